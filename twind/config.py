@@ -1,0 +1,340 @@
+"""Configuration files: one TOML file per optic, and an interferometer file listing optics.
+
+Every dimensional value is written ``"number unit"`` (see :mod:`twind.units`); unknown keys,
+missing keys, wrong units, unreadable foton designs and unstable loops are reported as
+:class:`~twind.errors.ConfigError` naming the file, the key and the problem.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twind import DOFS
+from twind.errors import ConfigError, TwindError
+from twind.loop.damping import DampingLoop
+from twind.loop.filtermodule import N_STAGES, FilterModule, Stage
+from twind.loop.foton import parse_design
+from twind.loop.plant import Plant
+from twind.model.params import ALL_DOFS, SOSParams
+from twind.simulation.noise import NoiseSpec
+
+CONFIG_DIR = Path(__file__).parent / "configs"
+DEFAULT_CONFIG = CONFIG_DIR / "c1.toml"
+
+# config key -> (SOSParams field, dimension)
+SUSPENSION_KEYS = {
+    "mass": ("mass_kg", "mass"), "radius": ("radius_m", "length"),
+    "thickness": ("thickness_m", "length"), "I_pitch": ("I_pitch_kgm2", "inertia"),
+    "I_yaw": ("I_yaw_kgm2", "inertia"), "I_roll": ("I_roll_kgm2", "inertia"),
+    "wire_length": ("wire_length_m", "length"), "b": ("b_m", "length"),
+    "R1": ("R1_m", "length"), "R2": ("R2_m", "length"),
+    "vertical_stiffness": ("vertical_stiffness_Npm", "stiffness"),
+}
+OSEM_KEYS = {"lever": ("osem_lever_m", "length"), "coil": ("coil_N_per_ct", "actuation"),
+             "side_coil": ("side_coil_N_per_ct", "actuation")}
+CDS_KEYS = {"rate": ("sample_rate_hz", "frequency"), "loop_delay": ("loop_delay_s", "time")}
+NOISE_KEYS = {"osem": ("osem_m", "length ASD"), "osem_corner": ("osem_corner_hz", "frequency"),
+              "sp_x": ("sp_x_m", "length ASD"), "sp_y": ("sp_y_m", "length ASD"),
+              "sp_phi": ("sp_phi_rad", "angle ASD"), "floor": ("floor_hz", "frequency")}
+MODELS = ("analytical", "geometric")
+
+
+@dataclass(frozen=True)
+class ModuleConfig:
+    """Settings of one damping filter module as written in the file."""
+
+    gain: float
+    stages: tuple[tuple[str, str] | None, ...]
+    on: tuple[int, ...]
+    ramp_s: float = 0.0
+    limit: float = 0.0
+
+    def build(self) -> FilterModule:
+        """A fresh :class:`FilterModule` (mutable state for an engine)."""
+        return FilterModule.from_designs(self.stages, self.on, self.gain,
+                                         ramp_s=self.ramp_s, limit=self.limit)
+
+
+@dataclass(frozen=True)
+class OpticConfig:
+    """Everything twind knows about one optic."""
+
+    name: str
+    sus: SOSParams
+    damping: dict[str, ModuleConfig]
+    noise: NoiseSpec = field(default_factory=NoiseSpec)
+    model: str = "analytical"
+    source: str = "<defaults>"
+
+    def mechanics(self):  # noqa: ANN201 - Mechanics, imported lazily with the geometric model
+        """Rigid-body dynamics of the configured model."""
+        if self.model == "geometric":
+            from twind.model.geometric import WireGeometry, geometric_mechanics
+
+            return geometric_mechanics(WireGeometry.from_params(self.sus))
+        from twind.model.analytical import analytical_mechanics
+
+        return analytical_mechanics(self.sus)
+
+    def loop(self) -> DampingLoop:
+        """The optic's damping loop, with fresh filter modules."""
+        plant = Plant.from_params(self.sus, self.mechanics())
+        return DampingLoop(self.name, plant, {d: self.damping[d].build() for d in DOFS})
+
+
+@dataclass(frozen=True)
+class TwinConfig:
+    """An interferometer's worth of optics."""
+
+    ifo: str
+    optics: dict[str, OpticConfig]
+    source: str
+
+    def select(self, names: Sequence[str] | str | None) -> list[OpticConfig]:
+        """Optics by name (``"all"`` or None for every one), in the file's order."""
+        if names is None or names == "all" or names == ["all"]:
+            return list(self.optics.values())
+        names = names.split(",") if isinstance(names, str) else list(names)
+        unknown = [n for n in names if n not in self.optics]
+        if unknown:
+            msg = f"unknown optic(s) {', '.join(unknown)}; {self.source} has {', '.join(self.optics)}"
+            raise ConfigError(self.source, "ifo.optics", msg)
+        return [self.optics[n] for n in names]
+
+
+class _Reader:
+    """Walks one TOML table, converting values and remembering the keys it used."""
+
+    def __init__(self, source: str, table: dict[str, Any], prefix: str = "") -> None:
+        self.source, self.table, self.prefix = source, table, prefix
+
+    def key(self, name: str) -> str:
+        return f"{self.prefix}{name}"
+
+    def fail(self, name: str, problem: str) -> ConfigError:
+        return ConfigError(self.source, self.key(name), problem)
+
+    def sub(self, name: str, required: bool = True) -> _Reader:
+        value = self.table.get(name, {} if not required else None)
+        if value is None:
+            raise self.fail(name, "missing table")
+        if not isinstance(value, dict):
+            raise self.fail(name, f"expected a table, got {value!r}")
+        return _Reader(self.source, value, self.key(name) + ".")
+
+    def get(self, name: str, convert: Callable[[Any], Any], default: Any = ...) -> Any:
+        if name not in self.table:
+            if default is ...:
+                raise self.fail(name, "missing parameter")
+            return default
+        try:
+            return convert(self.table[name])
+        except (ValueError, TypeError, TwindError) as err:
+            raise self.fail(name, str(err)) from None
+
+    def only(self, allowed: Sequence[str]) -> None:
+        for name in self.table:
+            if name not in allowed:
+                raise self.fail(name, f"unknown key; expected one of {', '.join(allowed)}")
+
+
+def _quantity(dimension: str) -> Callable[[Any], float]:
+    from twind.units import parse_quantity
+
+    return lambda v: parse_quantity(v, dimension)
+
+
+def _positive(v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+        msg = f"expected a positive number, got {v!r}"
+        raise ValueError(msg)
+    return float(v)
+
+
+def _read_sus(r: _Reader, name: str) -> SOSParams:
+    sus, osem, cds = r.sub("suspension"), r.sub("osem"), r.sub("cds")
+    values: dict[str, Any] = {"name": name}
+    for reader, keys in ((sus, SUSPENSION_KEYS), (osem, OSEM_KEYS), (cds, CDS_KEYS)):
+        reader.only([*keys, "Q"] if reader is sus else list(keys))
+        for key, (attr, dim) in keys.items():
+            values[attr] = reader.get(key, _quantity(dim))
+    q = sus.sub("Q")
+    q.only(ALL_DOFS)
+    values["Q"] = {d: q.get(d, _positive) for d in ALL_DOFS}
+    p = SOSParams(**values)
+    for attr, problem in p.check():
+        raise ConfigError(r.source, _config_key(attr), problem)
+    return p
+
+
+def _config_key(attr: str) -> str:
+    for section, keys in (("suspension", SUSPENSION_KEYS), ("osem", OSEM_KEYS), ("cds", CDS_KEYS)):
+        for key, (a, _) in keys.items():
+            if a == attr:
+                return f"{section}.{key}"
+    return f"suspension.{attr}"
+
+
+def _stage(v: Any) -> tuple[str, str]:
+    if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, str) for x in v)):
+        msg = f"expected [\"name\", \"foton design\"], got {v!r}"
+        raise ValueError(msg)
+    parse_design(v[1])  # a FotonError here names the design and its problem
+    return v[0], v[1]
+
+
+def _on(v: Any) -> tuple[int, ...]:
+    if not isinstance(v, list) or not all(isinstance(x, int) and 1 <= x <= N_STAGES for x in v):
+        msg = f"expected a list of FM numbers 1..{N_STAGES}, got {v!r}"
+        raise ValueError(msg)
+    return tuple(v)
+
+
+def _read_damping(r: _Reader) -> dict[str, ModuleConfig]:
+    damping = r.sub("damping")
+    fms = [f"FM{i}" for i in range(1, N_STAGES + 1)]
+    common = ["on", "ramp", "limit", *fms]
+    damping.only([*common, *DOFS])
+    modules = {}
+    for dof in DOFS:
+        own = damping.sub(dof)
+        own.only(["gain", *common])
+
+        def pick(key: str, convert: Callable[[Any], Any], default: Any = ..., own=own) -> Any:
+            return own.get(key, convert, damping.get(key, convert, default))
+
+        stages = tuple(pick(fm, _stage, None) for fm in fms)
+        on = pick("on", _on, ())
+        for fm in on:
+            if stages[fm - 1] is None:
+                raise own.fail("on", f"FM{fm} is switched on but holds no filter")
+        modules[dof] = ModuleConfig(
+            gain=own.get("gain", _quantity("velocity gain")), stages=stages, on=on,
+            ramp_s=pick("ramp", _quantity("time"), 0.0), limit=pick("limit", _quantity("counts"), 0.0))
+    return modules
+
+
+def _read_noise(r: _Reader) -> NoiseSpec:
+    noise = r.sub("noise", required=False)
+    noise.only([*NOISE_KEYS, "enabled"])
+    values = {attr: noise.get(key, _quantity(dim), getattr(NoiseSpec(), attr))
+              for key, (attr, dim) in NOISE_KEYS.items()}
+    values["enabled"] = noise.get("enabled", bool, True)
+    return NoiseSpec(**values)
+
+
+def _check_model(v: Any) -> str:
+    if v not in MODELS:
+        msg = f"expected one of {', '.join(MODELS)}, got {v!r}"
+        raise ValueError(msg)
+    return v
+
+
+def load_optic(path: str | Path) -> OpticConfig:
+    """Read one optic's TOML file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    OpticConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, the key and the problem.
+    """
+    source = str(path)
+    r = _Reader(source, _read_toml(path))
+    r.only(["optic", "suspension", "osem", "cds", "damping", "noise"])
+    optic = r.sub("optic")
+    optic.only(["name", "model"])
+    name = optic.get("name", str)
+    cfg = OpticConfig(name=name, sus=_read_sus(r, name), damping=_read_damping(r),
+                      noise=_read_noise(r), model=optic.get("model", _check_model, "analytical"),
+                      source=source)
+    check_stable(cfg)
+    return cfg
+
+
+def load_config(path: str | Path | None = None) -> TwinConfig:
+    """Read an interferometer file (``[ifo]`` with ``optics``) or a single optic's file.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        Defaults to the 40m file shipped with twind (:data:`DEFAULT_CONFIG`).
+
+    Returns
+    -------
+    TwinConfig
+    """
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    data = _read_toml(path)
+    if "ifo" not in data:
+        optic = load_optic(path)
+        return TwinConfig("C1", {optic.name: optic}, str(path))
+    r = _Reader(str(path), data)
+    r.only(["ifo"])
+    ifo = r.sub("ifo")
+    ifo.only(["name", "optics"])
+    names = ifo.get("optics", lambda v: [str(x) for x in v])
+    optics = {}
+    for name in names:
+        file = path.parent / "optics" / f"{name}.toml"
+        if not file.exists():
+            raise ifo.fail("optics", f"no file {file} for optic {name}")
+        optics[name] = load_optic(file)
+    return TwinConfig(ifo.get("name", str), optics, str(path))
+
+
+def _read_toml(path: str | Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(str(path), "-", "file not found") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(str(path), "-", f"not valid TOML: {err}") from None
+
+
+def check_stable(cfg: OpticConfig) -> None:
+    """Raise ConfigError when the optic's closed damping loop has a growing mode.
+
+    The check uses the engine's own discrete closed loop, so what passes here runs.
+    """
+    from twind.simulation.discretize import discrete_closed_loop
+
+    sys = discrete_closed_loop(cfg.loop(), cfg.sus.sample_rate_hz)
+    poles = np.linalg.eigvals(sys.A)
+    worst = poles[np.argmax(np.abs(poles))]
+    if abs(worst) < 1.0:
+        return
+    f = abs(np.angle(worst)) * cfg.sus.sample_rate_hz / (2 * np.pi)
+    msg = (f"the closed damping loop is unstable: a mode at {f:.3g} Hz grows by a factor "
+           f"{abs(worst):.6f} per cycle; check the gains, signs and filters")
+    raise ConfigError(cfg.source, f"damping.{_culprit(cfg)}", msg)
+
+
+def _culprit(cfg: OpticConfig) -> str:
+    """The DOF whose loop alone (other gains zero) is unstable, for the error message."""
+    from twind.simulation.discretize import discrete_closed_loop
+
+    for dof in DOFS:
+        loop = cfg.loop()
+        for other in DOFS:
+            if other != dof:
+                loop.modules[other].gain = 0.0
+        sys = discrete_closed_loop(loop, cfg.sus.sample_rate_hz)
+        if np.abs(np.linalg.eigvals(sys.A)).max() >= 1.0:
+            return f"{dof}.gain"
+    return "gain"

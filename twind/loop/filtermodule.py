@@ -1,0 +1,117 @@
+"""A CDS standard filter module: IN1, EXC, IN2 = IN1 + EXC, FM1..FM10, gain with ramp, limit, OUT.
+
+The continuous response (for the model) comes from each stage's foton design; the discrete
+second-order sections (for the engine) from the same design, or from a foton file's
+coefficients when the stage has no design.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import signal
+
+from twind.errors import FotonError
+from twind.loop.foton import ZPK, parse_design, zpk_to_sos
+
+N_STAGES = 10
+IDENTITY_SECTION = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One filter stage (FMn): a name and its foton design, or raw sections from a file."""
+
+    name: str
+    design: str | None = None
+    sos: NDArray[np.float64] | None = None  # discrete sections at `rate_hz`, when no design
+    rate_hz: float | None = None
+
+    def zpk(self) -> ZPK | None:
+        """Continuous zpk of the design (None for coefficient-only stages)."""
+        return None if self.design is None else parse_design(self.design)
+
+    def sections(self, rate_hz: float) -> NDArray[np.float64]:
+        """Discrete second-order sections at `rate_hz`, shape (n, 6)."""
+        if self.design is not None:
+            return zpk_to_sos(parse_design(self.design), rate_hz)
+        if self.sos is None or self.rate_hz != rate_hz:
+            msg = f"stage {self.name!r} has no design and no coefficients at {rate_hz} Hz"
+            raise FotonError(msg)
+        return np.atleast_2d(self.sos)
+
+    def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """Response at `f_hz`: continuous from the design, else discrete from the sections."""
+        zpk = self.zpk()
+        if zpk is not None:
+            return zpk.response(f_hz)
+        _, h = signal.sosfreqz(self.sections(self.rate_hz), worN=np.asarray(f_hz), fs=self.rate_hz)
+        return h
+
+
+@dataclass
+class FilterModule:
+    """Settings of one filter module; the engine runs it, :meth:`response` models it.
+
+    Attributes
+    ----------
+    stages : list of Stage or None
+        FM1..FM10 (index 0 is FM1); None where a slot is empty.
+    on : set of int
+        FM numbers (1-based, as on the MEDM screen) switched on.
+    gain : float
+        Module gain (ct per input unit).
+    ramp_s : float
+        Gain ramp time used by later gain changes.
+    limit : float
+        Output limit in counts; 0 means no limit.
+    """
+
+    stages: list[Stage | None]
+    on: set[int]
+    gain: float = 1.0
+    ramp_s: float = 0.0
+    limit: float = 0.0
+
+    def __post_init__(self) -> None:
+        if len(self.stages) > N_STAGES:
+            msg = f"a filter module has at most {N_STAGES} stages, got {len(self.stages)}"
+            raise FotonError(msg)
+        self.stages = list(self.stages) + [None] * (N_STAGES - len(self.stages))
+        for fm in self.on:
+            if not 1 <= fm <= N_STAGES or self.stages[fm - 1] is None:
+                msg = f"FM{fm} is switched on but holds no filter"
+                raise FotonError(msg)
+
+    @classmethod
+    def from_designs(cls, designs: Sequence[tuple[str, str] | None], on: Iterable[int],
+                     gain: float, **kw: float) -> FilterModule:
+        """Build from ``(name, foton design)`` pairs for FM1, FM2, ..."""
+        stages = [None if d is None else Stage(d[0], d[1]) for d in designs]
+        return cls(stages, set(on), gain, **kw)
+
+    def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """Continuous IN2 -> OUT response of the switched-on stages and the gain."""
+        h = np.full(np.shape(f_hz), self.gain, dtype=complex)
+        for fm in sorted(self.on):
+            h = h * self.stages[fm - 1].response(f_hz)
+        return h
+
+    def section_layout(self, rate_hz: float) -> tuple[NDArray[np.float64], dict[int, slice]]:
+        """All defined stages' sections in FM order, and which rows belong to each FM.
+
+        Every defined stage keeps its rows, switched on or not, so that switching in the
+        engine is a swap between these coefficients and :data:`IDENTITY_SECTION`.
+        """
+        rows, where, start = [], {}, 0
+        for i, stage in enumerate(self.stages):
+            if stage is None:
+                continue
+            sos = stage.sections(rate_hz)
+            where[i + 1] = slice(start, start + len(sos))
+            rows.append(sos)
+            start += len(sos)
+        return (np.vstack(rows) if rows else np.zeros((0, 6))), where

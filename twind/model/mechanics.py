@@ -1,0 +1,75 @@
+"""Linear rigid-body dynamics ``M q'' + C q' + K q = f`` about an equilibrium.
+
+Both suspension models (analytical T000134 and geometric) produce a :class:`Mechanics`; the
+rest of twind only ever sees this.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+# Suspension-point inputs: translation along the beam, sideways, and yaw of the clamp frame.
+SUSPENSION_POINT = ("x_sp", "y_sp", "phi_sp")
+_SP_DOF = {"x_sp": "POS", "y_sp": "SIDE", "phi_sp": "YAW"}
+
+
+@dataclass(frozen=True)
+class Mechanics:
+    """Mass, damping and stiffness matrices over named generalised coordinates.
+
+    Attributes
+    ----------
+    dofs : tuple of str
+        Coordinate names, a subset of POS, PIT, YAW, SIDE, VERT, ROLL (m or rad).
+    M, C, K : ndarray, shape (n, n)
+        Mass (kg, kg m^2), viscous damping and stiffness matrices.
+    """
+
+    dofs: tuple[str, ...]
+    M: NDArray[np.float64]
+    C: NDArray[np.float64]
+    K: NDArray[np.float64]
+
+    @property
+    def n(self) -> int:
+        """Number of generalised coordinates."""
+        return len(self.dofs)
+
+    def index(self, dof: str) -> int:
+        """Position of coordinate `dof`."""
+        return self.dofs.index(dof)
+
+    def suspension_point_forces(self) -> NDArray[np.float64]:
+        """Generalised force per unit suspension-point motion, shape (n, 3).
+
+        Moving the clamps rigidly by ``x_sp`` leaves the optic in equilibrium at ``q = x_sp``
+        in that coordinate, so the force it produces is the stiffness column of that coordinate.
+        """
+        return np.stack([self.K[:, self.index(_SP_DOF[sp])] for sp in SUSPENSION_POINT], axis=1)
+
+    def admittance(self, s: NDArray[np.complex128]) -> NDArray[np.complex128]:
+        """``(M s^2 + C s + K)^-1`` at each complex frequency, shape (len(s), n, n)."""
+        s = np.asarray(s, dtype=complex)[:, None, None]
+        return np.linalg.inv(self.M * s**2 + self.C * s + self.K)
+
+    def state_space(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Continuous state matrices for the state ``[q, q']`` driven by generalised forces.
+
+        Returns
+        -------
+        A : ndarray, shape (2n, 2n)
+        B : ndarray, shape (2n, n)
+        """
+        n = self.n
+        Minv = np.linalg.inv(self.M)
+        A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ self.K, -Minv @ self.C]])
+        B = np.vstack([np.zeros((n, n)), Minv])
+        return A, B
+
+    def eigenfrequencies_hz(self) -> NDArray[np.float64]:
+        """Undamped normal-mode frequencies (Hz), ascending."""
+        w2 = np.linalg.eigvals(np.linalg.solve(self.M, self.K)).real
+        return np.sort(np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi))

@@ -1,0 +1,147 @@
+"""Discrete-time pieces shared by the engine and its independent checks.
+
+The DAC holds each output for one cycle, so the plant is discretised with a zero-order hold;
+filter sections are transposed direct form II as in the kernel.
+"""
+
+from __future__ import annotations
+
+import control
+import numpy as np
+import scipy.linalg
+from scipy import signal
+from numpy.typing import NDArray
+
+from twind import DOFS
+from twind.loop.damping import DampingLoop
+from twind.loop.filtermodule import IDENTITY_SECTION
+
+
+def zoh(A: NDArray, B: NDArray, dt: float) -> tuple[NDArray, NDArray]:
+    """Zero-order-hold discretisation ``(Ad, Bd)`` of ``x' = A x + B u``."""
+    n, m = B.shape
+    big = np.zeros((n + m, n + m))
+    big[:n, :n], big[:n, n:] = A * dt, B * dt
+    e = scipy.linalg.expm(big)
+    return e[:n, :n], e[:n, n:]
+
+
+def delay_samples(delay_s: float, rate_hz: float) -> int:
+    """The loop delay as a whole number of model cycles."""
+    n = delay_s * rate_hz
+    if abs(n - round(n)) > 1e-6:
+        msg = f"loop delay {delay_s} s is not a whole number of cycles at {rate_hz} Hz"
+        raise ValueError(msg)
+    return int(round(n))
+
+
+def balance(sos: NDArray[np.float64], rate_hz: float) -> NDArray[np.float64]:
+    """The same cascade with its gain spread evenly over the sections.
+
+    A cascade whose first section carries the whole gain (1e-23 for an all-pole roll-off)
+    passes signals through a huge dynamic range; spreading it keeps each section's peak gain
+    equal, which the state-space checks and the round-off of long runs both need.
+    """
+    if len(sos) == 0:
+        return sos
+    f = np.geomspace(1e-3, 0.45 * rate_hz, 512)
+    peaks = np.array([np.abs(signal.sosfreqz(sec[None], worN=f, fs=rate_hz)[1]).max() for sec in sos])
+    if not np.all(np.isfinite(peaks)) or np.any(peaks == 0):
+        return sos
+    share = np.exp(np.mean(np.log(peaks)))
+    out = sos.copy()
+    out[:, :3] *= (share / peaks)[:, None]
+    return out
+
+
+def stage_sections(loop: DampingLoop, dof: str, rate_hz: float) -> tuple[NDArray, dict[int, slice]]:
+    """Every defined stage's balanced sections for `dof`, and the rows of each FM."""
+    sos, where = loop.modules[dof].section_layout(rate_hz)
+    sos = sos.copy()
+    for rows in where.values():
+        sos[rows] = balance(sos[rows], rate_hz)
+    return sos, where
+
+
+def module_sections(loop: DampingLoop, dof: str, rate_hz: float) -> NDArray[np.float64]:
+    """Sections the engine runs for `dof`: switched-off stages as identity sections."""
+    sos, where = stage_sections(loop, dof, rate_hz)
+    for fm, rows in where.items():
+        if fm not in loop.modules[dof].on:
+            sos[rows] = IDENTITY_SECTION
+    return sos
+
+
+def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Real modal form of a discrete plant: each state couples only to its mode partner.
+
+    Returns
+    -------
+    a_diag, a_off : ndarray, shape (n,)
+        ``x+[i] = a_diag[i] x[i] + a_off[i] x[partner[i]] + ...``
+    partner : ndarray of int, shape (n,)
+    B_modal, C_modal : ndarray
+        Input and output matrices in the modal coordinates.
+    """
+    # LAPACK returns each complex pair together, positive imaginary part first, as cdf2rdf wants
+    w, v = np.linalg.eig(Ad)
+    wr, vr = scipy.linalg.cdf2rdf(w, v)
+    cond = np.linalg.cond(vr)
+    if cond > 1e10:
+        msg = f"the plant's modes are nearly degenerate (eigenvector condition {cond:.2g})"
+        raise ValueError(msg)
+    n = len(w)
+    partner = np.arange(n)
+    a_off = np.zeros(n)
+    i = 0
+    while i < n:
+        if abs(w[i].imag) > 0:
+            partner[i], partner[i + 1] = i + 1, i
+            a_off[i], a_off[i + 1] = wr[i, i + 1], wr[i + 1, i]
+            i += 2
+        else:
+            i += 1
+    inv = np.linalg.inv(vr)
+    return np.diag(wr).copy(), a_off, partner, inv @ B, C @ vr
+
+
+
+def _sections_ss(sos: NDArray, gain: float, dt: float) -> control.StateSpace:
+    # each transposed-DF2 section: y = b0 v + z0; z0+ = (b1 - a1 b0) v - a1 z0 + z1; ...
+    sys = control.ss([], [], [], [[gain]], dt)
+    for b0, b1, b2, _, a1, a2 in sos:
+        sec = control.ss([[-a1, 1.0], [-a2, 0.0]], [[b1 - a1 * b0], [b2 - a2 * b0]],
+                         [[1.0, 0.0]], [[b0]], dt)
+        sys = sec * sys
+    return sys
+
+
+def discrete_closed_loop(loop: DampingLoop, rate_hz: float) -> control.StateSpace:
+    """The engine's closed loop as one discrete state space (noise off).
+
+    Inputs are the four EXC test points; outputs IN1, IN2 and OUT of POS, PIT, YAW, SIDE
+    (12 rows). Built with python-control from the same matrices the engine uses but none of
+    its code, so that forced_response checks the engine independently.
+    """
+    dt = 1.0 / rate_hz
+    A, Bc, _, C = loop.plant.osem_state_space()
+    Ad, Bd = zoh(A, Bc, dt)
+    plant = control.ss(Ad, Bd @ loop.plant.output_matrix, loop.plant.input_matrix @ C,
+                       np.zeros((4, 4)), dt)
+    nd = delay_samples(loop.plant.delay_s, rate_hz)
+    if nd:
+        one = control.ss(np.eye(nd, k=-1), np.eye(nd, 1), np.eye(1, nd, nd - 1), [[0.0]], dt)
+        plant = plant * control.append(*([one] * 4))
+    ctrl = control.append(*[
+        _sections_ss(module_sections(loop, d, rate_hz), loop.modules[d].gain, dt) for d in DOFS
+    ])
+    Ag, Bg, Cg = plant.A, plant.B, plant.C
+    Ak, Bk, Ck, Dk = ctrl.A, ctrl.B, ctrl.C, ctrl.D
+    nk = Ak.shape[0]
+    Acl = np.block([[Ag + Bg @ Dk @ Cg, Bg @ Ck], [Bk @ Cg, Ak]])
+    Bcl = np.vstack([Bg @ Dk, Bk])
+    Ccl = np.vstack([np.hstack([Cg, np.zeros((4, nk))]),
+                     np.hstack([Cg, np.zeros((4, nk))]),
+                     np.hstack([Dk @ Cg, Ck])])
+    Dcl = np.vstack([np.zeros((4, 4)), np.eye(4), Dk])
+    return control.ss(Acl, Bcl, Ccl, Dcl, dt)

@@ -1,0 +1,238 @@
+"""The fixed-step engine: all configured optics and their damping loops at the model rate.
+
+State is carried across blocks and the noise comes from per-optic streams of one seed, so
+``step(a)`` then ``step(b)`` gives bit for bit what ``step(a + b)`` gives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from twind import DOFS
+from twind.loop.damping import DampingLoop
+from twind.loop.filtermodule import IDENTITY_SECTION
+from twind.simulation.discretize import delay_samples, modal, module_sections, stage_sections, zoh
+from twind.simulation.kernel import N_DOF, run_loops, shaped_noise
+from twind.simulation.noise import CHANNELS as NOISE_CHANNELS
+from twind.simulation.noise import NoiseSpec
+
+N_OSEM = 5  # UL, UR, LL, LR, SIDE
+N_NOISE = len(NOISE_CHANNELS)
+CHUNK = 1024  # samples the kernel runs between numpy steps; its buffers stay in L2
+from twind.simulation.rng import seed_states
+
+
+@dataclass(frozen=True)
+class Block:
+    """One block of samples of every test point, for every optic.
+
+    Arrays are indexed ``[optic, dof, sample]``; ``sen`` is ``[optic, osem, sample]`` in um
+    (OSEMs UL, UR, LL, LR, SIDE).
+    """
+
+    optics: tuple[str, ...]
+    start_sample: int
+    rate_hz: float
+    exc: NDArray[np.float64]
+    in1: NDArray[np.float64]
+    in2: NDArray[np.float64]
+    out: NDArray[np.float64]
+    sen: NDArray[np.float64]
+
+    def channel(self, optic: str, dof: str, point: str) -> NDArray[np.float64]:
+        """Samples of e.g. ``("ETMX", "POS", "IN1")``."""
+        arr = getattr(self, point.lower())
+        return arr[self.optics.index(optic), DOFS.index(dof)]
+
+
+class Engine:
+    """Integrates plants plus damping loops in fixed steps of one model cycle.
+
+    Parameters
+    ----------
+    loops : sequence of DampingLoop
+        One per optic.
+    noise : NoiseSpec or mapping of optic name to NoiseSpec
+        Sensor and suspension-point noise; ``NoiseSpec(enabled=False)`` for none.
+    seed : int
+        Seed of all noise streams.
+    rate_hz : float
+        Model rate.
+    """
+
+    def __init__(self, loops: Sequence[DampingLoop], noise: NoiseSpec | Mapping[str, NoiseSpec]
+                 = NoiseSpec(), seed: int = 0, rate_hz: float = 16384.0) -> None:
+        self.loops = list(loops)
+        self.optics = tuple(lp.name for lp in self.loops)
+        self.rate_hz = float(rate_hz)
+        self.samples = 0
+        specs = [noise[n] if isinstance(noise, Mapping) else noise for n in self.optics]
+        self._build_plants()
+        self._build_filters()
+        self._build_noise(specs, seed)
+        self._alloc_scratch()
+
+    def _build_plants(self) -> None:
+        n_opt, dt = len(self.loops), 1.0 / self.rate_hz
+        modes = []
+        for lp in self.loops:
+            A, Bc, Bs, C = lp.plant.osem_state_space()
+            Ad, Bd = zoh(A, np.hstack([Bc @ lp.plant.output_matrix, Bs]), dt)
+            modes.append(modal(Ad, Bd, C))
+        ns = max(len(m[0]) for m in modes)
+        self._a_diag = np.zeros((n_opt, ns))
+        self._a_off = np.zeros((n_opt, ns))
+        self._partner = np.tile(np.arange(ns), (n_opt, 1))
+        self._bdrive = np.zeros((n_opt, ns, N_DOF))
+        self._bsp = np.zeros((n_opt, ns, 3))
+        self._cs = np.zeros((n_opt, N_OSEM, ns))  # OSEM um per modal state
+        self._cin = np.zeros((n_opt, N_DOF, ns))
+        self._inmat = np.array([lp.plant.input_matrix for lp in self.loops])
+        for o, (a_diag, a_off, partner, B, C) in enumerate(modes):
+            k = len(a_diag)
+            self._a_diag[o, :k], self._a_off[o, :k], self._partner[o, :k] = a_diag, a_off, partner
+            self._bdrive[o, :k], self._bsp[o, :k] = B[:, :N_DOF], B[:, N_DOF:]
+            self._cs[o, :, :k] = C * 1e6
+            self._cin[o, :, :k] = self._inmat[o] @ C
+        self._x = np.zeros((n_opt, ns))
+        self._ndelay = np.array([delay_samples(lp.plant.delay_s, self.rate_hz) for lp in self.loops])
+        self._dbuf = np.zeros((n_opt, max(1, self._ndelay.max()), N_DOF))
+        self._dpos = np.zeros(n_opt, dtype=np.int64)
+
+    def _build_filters(self) -> None:
+        n_opt = len(self.loops)
+        self._stage_sos = [[stage_sections(lp, d, self.rate_hz) for d in DOFS] for lp in self.loops]
+        nmax = max(1, max(len(sos) for lay in self._stage_sos for sos, _ in lay))
+        # kernel layout [optic, section, coefficient, dof]; short cascades padded with identity
+        self._sos = np.tile(IDENTITY_SECTION[None, :, None], (n_opt, nmax, 1, N_DOF))
+        for o, lp in enumerate(self.loops):
+            for d, dof in enumerate(DOFS):
+                sos = module_sections(lp, dof, self.rate_hz)
+                self._sos[o, : len(sos), :, d] = sos
+        self._nsec = np.full(n_opt, nmax, dtype=np.int64)
+        self._zi = np.zeros((n_opt, nmax, 2, N_DOF))
+        self._gain = np.array([[lp.modules[d].gain for d in DOFS] for lp in self.loops], dtype=float)
+        self._gain_target = self._gain.copy()
+        self._gain_step = np.zeros((n_opt, N_DOF))
+        self._ramp_left = np.zeros((n_opt, N_DOF), dtype=np.int64)
+        self._limit = np.array([[lp.modules[d].limit for d in DOFS] for lp in self.loops], dtype=float)
+
+    def _build_noise(self, specs: Sequence[NoiseSpec], seed: int) -> None:
+        shaped = [s.shaping(self.rate_hz) for s in specs]
+        self._noise_sos = np.array([sos for sos, _ in shaped])
+        self._noise_sigma = np.array([sigma for _, sigma in shaped])
+        self._noise_zi = np.zeros((len(specs), N_NOISE, 2))
+        self._rng = seed_states(seed, len(specs) * N_NOISE).reshape(len(specs), N_NOISE, 4)
+
+    def _alloc_scratch(self) -> None:
+        # kernel buffers for one chunk, sample-major, allocated once: fresh pages cost more
+        # than the arithmetic on this kind of machine
+        n_opt, ns, c = len(self.loops), self._x.shape[1], CHUNK
+        self._s_noise = np.empty((n_opt, N_NOISE, c))
+        self._s_in1n = np.empty((n_opt, c, N_DOF))
+        self._s_sp = np.empty((n_opt, c, 3 if ns == 0 else ns))[:, :, :ns]
+        self._s_exc = np.empty((n_opt, c, N_DOF))
+        self._s_in1, self._s_in2, self._s_out = (np.empty((n_opt, c, N_DOF)) for _ in range(3))
+        self._s_xs = np.empty((n_opt, c, ns))
+
+    def new_block(self, n: int) -> Block:
+        """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again."""
+        n_opt = len(self.loops)
+        arrays = [np.zeros((n_opt, N_DOF, n)) for _ in range(4)]
+        return Block(self.optics, self.samples, self.rate_hz, *arrays, np.zeros((n_opt, N_OSEM, n)))
+
+    def step(self, n: int, exc: NDArray[np.float64] | None = None, out: Block | None = None) -> Block:
+        """Advance all optics by `n` samples.
+
+        Parameters
+        ----------
+        n : int
+            Number of samples.
+        exc : ndarray, shape (n_optics, 4, n), optional
+            Excitation added at each EXC test point (zero when omitted).
+        out : Block, optional
+            A block of `n` samples from :meth:`new_block` to fill instead of a new one.
+
+        Returns
+        -------
+        Block
+            The block's test points; its ``start_sample`` counts from the engine's start.
+        """
+        n_opt = len(self.loops)
+        block = out if out is not None else self.new_block(n)
+        if block.in1.shape != (n_opt, N_DOF, n):
+            msg = f"out holds {block.in1.shape[-1]} samples, step asked for {n}"
+            raise ValueError(msg)
+        if exc is None:
+            block.exc[:] = 0.0
+        elif np.shape(exc) != (n_opt, N_DOF, n):
+            msg = f"exc must have shape {(n_opt, N_DOF, n)}, got {np.shape(exc)}"
+            raise ValueError(msg)
+        else:
+            block.exc[:] = exc
+        for start in range(0, n, CHUNK):
+            self._chunk(block, start, min(CHUNK, n - start))
+        block = replace(block, start_sample=self.samples)
+        self.samples += n
+        return block
+
+    def _chunk(self, block: Block, a: int, c: int) -> None:
+        b = a + c
+        noise = self._s_noise[:, :, :c]
+        shaped_noise(c, self._noise_sigma, self._noise_sos, self._noise_zi, self._rng, noise)
+        osem_noise = noise[:, :N_OSEM]
+        in1n, sp, exc = self._s_in1n[:, :c], self._s_sp[:, :c], self._s_exc[:, :c]
+        np.matmul(osem_noise.transpose(0, 2, 1), self._inmat.transpose(0, 2, 1), out=in1n)
+        np.matmul(noise[:, N_OSEM:].transpose(0, 2, 1), self._bsp.transpose(0, 2, 1), out=sp)
+        exc[:] = block.exc[:, :, a:b].transpose(0, 2, 1)
+        in1, in2, out, xs = self._s_in1[:, :c], self._s_in2[:, :c], self._s_out[:, :c], self._s_xs[:, :c]
+        run_loops(c, self._a_diag, self._a_off, self._partner, self._bdrive, self._cin,
+                  self._sos, self._nsec, self._zi, self._gain, self._gain_target,
+                  self._gain_step, self._ramp_left, self._limit, self._dbuf, self._dpos,
+                  self._ndelay, self._x, in1n, sp, exc, in1, in2, out, xs)
+        block.in1[:, :, a:b] = in1.transpose(0, 2, 1)
+        block.in2[:, :, a:b] = in2.transpose(0, 2, 1)
+        block.out[:, :, a:b] = out.transpose(0, 2, 1)
+        sen = block.sen[:, :, a:b]
+        np.matmul(self._cs, xs.transpose(0, 2, 1), out=sen)
+        sen += 1e6 * osem_noise
+
+    def _where(self, optic: str, dof: str) -> tuple[int, int]:
+        if optic not in self.optics:
+            msg = f"unknown optic {optic!r}; the engine runs {', '.join(self.optics)}"
+            raise KeyError(msg)
+        if dof not in DOFS:
+            msg = f"unknown DOF {dof!r}; expected one of {', '.join(DOFS)}"
+            raise KeyError(msg)
+        return self.optics.index(optic), DOFS.index(dof)
+
+    def set_gain(self, optic: str, dof: str, gain: float, ramp_s: float | None = None) -> None:
+        """Ramp a filter module's gain linearly to `gain` over `ramp_s` (its own ramp if None)."""
+        o, d = self._where(optic, dof)
+        module = self.loops[o].modules[dof]
+        ramp = module.ramp_s if ramp_s is None else ramp_s
+        steps = int(round(ramp * self.rate_hz))
+        self._gain_target[o, d] = gain
+        if steps == 0:
+            self._gain[o, d], self._ramp_left[o, d] = gain, 0
+        else:
+            self._gain_step[o, d] = (gain - self._gain[o, d]) / steps
+            self._ramp_left[o, d] = steps
+        module.gain = gain
+
+    def switch(self, optic: str, dof: str, fm: int, on: bool) -> None:
+        """Switch stage FM`fm` of a module on or off; a stage switched on starts from rest."""
+        o, d = self._where(optic, dof)
+        sos, where = self._stage_sos[o][d]
+        if fm not in where:
+            msg = f"{optic} {dof} FM{fm} holds no filter"
+            raise KeyError(msg)
+        rows = where[fm]
+        self._sos[o, rows, :, d] = sos[rows] if on else IDENTITY_SECTION
+        self._zi[o, rows, :, d] = 0.0
+        module = self.loops[o].modules[dof]
+        module.on = (module.on | {fm}) if on else (module.on - {fm})
