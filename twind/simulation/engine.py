@@ -7,6 +7,7 @@ State is carried across blocks and the noise comes from per-optic streams of one
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -22,7 +23,7 @@ from twind.simulation.noise import NoiseSpec
 
 N_OSEM = 5  # UL, UR, LL, LR, SIDE
 N_NOISE = len(NOISE_CHANNELS)
-CHUNK = 1024  # samples the kernel runs between numpy steps; its buffers stay in L2
+CHUNK = 2048  # samples the kernel runs between numpy steps; its buffers stay in L2
 from twind.simulation.rng import seed_states
 
 
@@ -47,6 +48,12 @@ class Block:
         """Samples of e.g. ``("ETMX", "POS", "IN1")``."""
         arr = getattr(self, point.lower())
         return arr[self.optics.index(optic), DOFS.index(dof)]
+
+
+def _padded(shape: tuple[int, int, int]) -> NDArray[np.float64]:
+    """Zeros of `shape` whose rows do not lie a multiple of 4 KiB apart (see kernel)."""
+    base = np.zeros(shape[:-1] + (shape[-1] + 8,))
+    return base[..., : shape[-1]]
 
 
 class Engine:
@@ -74,7 +81,6 @@ class Engine:
         self._build_plants()
         self._build_filters()
         self._build_noise(specs, seed)
-        self._alloc_scratch()
 
     def _build_plants(self) -> None:
         n_opt, dt = len(self.loops), 1.0 / self.rate_hz
@@ -127,23 +133,32 @@ class Engine:
         self._noise_sigma = np.array([sigma for _, sigma in shaped])
         self._noise_zi = np.zeros((len(specs), N_NOISE, 2))
         self._rng = seed_states(seed, len(specs) * N_NOISE).reshape(len(specs), N_NOISE, 4)
+        # noise comes in whole chunks, whatever the block sizes, so results do not depend on
+        # them; the next chunk is drawn on a second thread while the loops run
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="twind-noise")
+        self._noise = self._draw_noise()
+        self._noise_pos = 0
+        self._noise_next = self._pool.submit(self._draw_noise)
 
-    def _alloc_scratch(self) -> None:
-        # kernel buffers for one chunk, sample-major, allocated once: fresh pages cost more
-        # than the arithmetic on this kind of machine
-        n_opt, ns, c = len(self.loops), self._x.shape[1], CHUNK
-        self._s_noise = np.empty((n_opt, N_NOISE, c))
-        self._s_in1n = np.empty((n_opt, c, N_DOF))
-        self._s_sp = np.empty((n_opt, c, 3 if ns == 0 else ns))[:, :, :ns]
-        self._s_exc = np.empty((n_opt, c, N_DOF))
-        self._s_in1, self._s_in2, self._s_out = (np.empty((n_opt, c, N_DOF)) for _ in range(3))
-        self._s_xs = np.empty((n_opt, c, ns))
+    def _draw_noise(self) -> NDArray[np.float64]:
+        buf = _padded((len(self.loops), N_NOISE, CHUNK))
+        shaped_noise(CHUNK, self._noise_sigma, self._noise_sos, self._noise_zi, self._rng, buf)
+        return buf
+
+    def _take_noise(self, c: int) -> tuple[NDArray[np.float64], int]:
+        """The current noise chunk and where in it the next `c` samples start."""
+        if self._noise_pos == CHUNK:
+            self._noise, self._noise_pos = self._noise_next.result(), 0
+            self._noise_next = self._pool.submit(self._draw_noise)
+        start = self._noise_pos
+        self._noise_pos += c
+        return self._noise, start
 
     def new_block(self, n: int) -> Block:
         """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again."""
         n_opt = len(self.loops)
-        arrays = [np.zeros((n_opt, N_DOF, n)) for _ in range(4)]
-        return Block(self.optics, self.samples, self.rate_hz, *arrays, np.zeros((n_opt, N_OSEM, n)))
+        arrays = [_padded((n_opt, N_DOF, n)) for _ in range(4)]
+        return Block(self.optics, self.samples, self.rate_hz, *arrays, _padded((n_opt, N_OSEM, n)))
 
     def step(self, n: int, exc: NDArray[np.float64] | None = None, out: Block | None = None) -> Block:
         """Advance all optics by `n` samples.
@@ -174,32 +189,22 @@ class Engine:
             raise ValueError(msg)
         else:
             block.exc[:] = exc
-        for start in range(0, n, CHUNK):
-            self._chunk(block, start, min(CHUNK, n - start))
+        start = 0
+        while start < n:
+            c = min(n - start, CHUNK - self._noise_pos if self._noise_pos < CHUNK else CHUNK)
+            self._chunk(block, start, c)
+            start += c
         block = replace(block, start_sample=self.samples)
         self.samples += n
         return block
 
     def _chunk(self, block: Block, a: int, c: int) -> None:
-        b = a + c
-        noise = self._s_noise[:, :, :c]
-        shaped_noise(c, self._noise_sigma, self._noise_sos, self._noise_zi, self._rng, noise)
-        osem_noise = noise[:, :N_OSEM]
-        in1n, sp, exc = self._s_in1n[:, :c], self._s_sp[:, :c], self._s_exc[:, :c]
-        np.matmul(osem_noise.transpose(0, 2, 1), self._inmat.transpose(0, 2, 1), out=in1n)
-        np.matmul(noise[:, N_OSEM:].transpose(0, 2, 1), self._bsp.transpose(0, 2, 1), out=sp)
-        exc[:] = block.exc[:, :, a:b].transpose(0, 2, 1)
-        in1, in2, out, xs = self._s_in1[:, :c], self._s_in2[:, :c], self._s_out[:, :c], self._s_xs[:, :c]
-        run_loops(c, self._a_diag, self._a_off, self._partner, self._bdrive, self._cin,
-                  self._sos, self._nsec, self._zi, self._gain, self._gain_target,
-                  self._gain_step, self._ramp_left, self._limit, self._dbuf, self._dpos,
-                  self._ndelay, self._x, in1n, sp, exc, in1, in2, out, xs)
-        block.in1[:, :, a:b] = in1.transpose(0, 2, 1)
-        block.in2[:, :, a:b] = in2.transpose(0, 2, 1)
-        block.out[:, :, a:b] = out.transpose(0, 2, 1)
-        sen = block.sen[:, :, a:b]
-        np.matmul(self._cs, xs.transpose(0, 2, 1), out=sen)
-        sen += 1e6 * osem_noise
+        noise, npos = self._take_noise(c)
+        run_loops(c, a, npos, self._a_diag, self._a_off, self._partner, self._bdrive, self._bsp,
+                  self._cin, self._cs, self._inmat, self._sos, self._nsec, self._zi, self._gain,
+                  self._gain_target, self._gain_step, self._ramp_left, self._limit, self._dbuf,
+                  self._dpos, self._ndelay, self._x, noise, block.exc, block.in1, block.in2,
+                  block.out, block.sen)
 
     def _where(self, optic: str, dof: str) -> tuple[int, int]:
         if optic not in self.optics:
