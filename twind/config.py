@@ -266,13 +266,15 @@ def load_optic(path: str | Path) -> OpticConfig:
     return cfg
 
 
-def load_config(path: str | Path | None = None) -> TwinConfig:
+def load_config(path: str | Path | None = None, optics: Sequence[str] | str | None = None) -> TwinConfig:
     """Read an interferometer file (``[ifo]`` with ``optics``) or a single optic's file.
 
     Parameters
     ----------
     path : str or Path, optional
         Defaults to the 40m file shipped with twind (:data:`DEFAULT_CONFIG`).
+    optics : sequence of str or str, optional
+        Read only these optics (comma-separated names, or ``"all"``, the default).
 
     Returns
     -------
@@ -288,13 +290,18 @@ def load_config(path: str | Path | None = None) -> TwinConfig:
     ifo = r.sub("ifo")
     ifo.only(["name", "optics"])
     names = ifo.get("optics", lambda v: [str(x) for x in v])
-    optics = {}
-    for name in names:
+    wanted = names if optics in (None, "all", ["all"]) else (
+        optics.split(",") if isinstance(optics, str) else list(optics))
+    unknown = [n for n in wanted if n not in names]
+    if unknown:
+        raise ifo.fail("optics", f"unknown optic(s) {', '.join(unknown)}; the file has {', '.join(names)}")
+    loaded = {}
+    for name in wanted:
         file = path.parent / "optics" / f"{name}.toml"
         if not file.exists():
             raise ifo.fail("optics", f"no file {file} for optic {name}")
-        optics[name] = load_optic(file)
-    return TwinConfig(ifo.get("name", str), optics, str(path))
+        loaded[name] = load_optic(file)
+    return TwinConfig(ifo.get("name", str), loaded, str(path))
 
 
 def _read_toml(path: str | Path) -> dict[str, Any]:

@@ -7,7 +7,6 @@ State is carried across blocks and the noise comes from per-optic streams of one
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -17,7 +16,7 @@ from twind import DOFS
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import IDENTITY_SECTION
 from twind.simulation.discretize import delay_samples, modal, module_sections, stage_sections, zoh
-from twind.simulation.kernel import N_DOF, run_loops, shaped_noise
+from twind.simulation.kernel import N_DOF, advance, shaped_noise
 from twind.simulation.noise import CHANNELS as NOISE_CHANNELS
 from twind.simulation.noise import NoiseSpec
 
@@ -134,25 +133,14 @@ class Engine:
         self._noise_zi = np.zeros((len(specs), N_NOISE, 2))
         self._rng = seed_states(seed, len(specs) * N_NOISE).reshape(len(specs), N_NOISE, 4)
         # noise comes in whole chunks, whatever the block sizes, so results do not depend on
-        # them; the next chunk is drawn on a second thread while the loops run
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="twind-noise")
-        self._noise = self._draw_noise()
+        # them; the next chunk is drawn on the second thread while the loops run
+        self._noise = _padded((len(specs), N_NOISE, CHUNK))
+        self._noise_next = _padded((len(specs), N_NOISE, CHUNK))
+        for o in range(len(specs)):
+            shaped_noise(CHUNK, self._noise_sigma[o], self._noise_sos[o], self._noise_zi[o],
+                         self._rng[o], self._noise[o])
         self._noise_pos = 0
-        self._noise_next = self._pool.submit(self._draw_noise)
-
-    def _draw_noise(self) -> NDArray[np.float64]:
-        buf = _padded((len(self.loops), N_NOISE, CHUNK))
-        shaped_noise(CHUNK, self._noise_sigma, self._noise_sos, self._noise_zi, self._rng, buf)
-        return buf
-
-    def _take_noise(self, c: int) -> tuple[NDArray[np.float64], int]:
-        """The current noise chunk and where in it the next `c` samples start."""
-        if self._noise_pos == CHUNK:
-            self._noise, self._noise_pos = self._noise_next.result(), 0
-            self._noise_next = self._pool.submit(self._draw_noise)
-        start = self._noise_pos
-        self._noise_pos += c
-        return self._noise, start
+        self._next_ready = False
 
     def new_block(self, n: int) -> Block:
         """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again."""
@@ -199,12 +187,17 @@ class Engine:
         return block
 
     def _chunk(self, block: Block, a: int, c: int) -> None:
-        noise, npos = self._take_noise(c)
-        run_loops(c, a, npos, self._a_diag, self._a_off, self._partner, self._bdrive, self._bsp,
-                  self._cin, self._cs, self._inmat, self._sos, self._nsec, self._zi, self._gain,
-                  self._gain_target, self._gain_step, self._ramp_left, self._limit, self._dbuf,
-                  self._dpos, self._ndelay, self._x, noise, block.exc, block.in1, block.in2,
-                  block.out, block.sen)
+        if self._noise_pos == CHUNK:
+            self._noise, self._noise_next = self._noise_next, self._noise
+            self._noise_pos, self._next_ready = 0, False
+        advance(c, a, self._noise_pos, self._a_diag, self._a_off, self._partner, self._bdrive,
+                self._bsp, self._cin, self._cs, self._inmat, self._sos, self._nsec, self._zi,
+                self._gain, self._gain_target, self._gain_step, self._ramp_left, self._limit,
+                self._dbuf, self._dpos, self._ndelay, self._x, self._noise, block.exc,
+                block.in1, block.in2, block.out, block.sen, not self._next_ready, CHUNK,
+                self._noise_sigma, self._noise_sos, self._noise_zi, self._rng, self._noise_next)
+        self._noise_pos += c
+        self._next_ready = True
 
     def _where(self, optic: str, dof: str) -> tuple[int, int]:
         if optic not in self.optics:

@@ -1,8 +1,7 @@
 """Compiled loops of the engine: noise for a block, then every optic's loop sample by sample.
 
-:func:`shaped_noise` draws and shapes noise a chunk ahead (each channel its own stream, on a
-second thread while the loops run); :func:`run_loops` closes the damping loops sample by
-sample (parallel over optics). Everything that persists between blocks lives in the arrays passed
+:func:`advance` closes the damping loops sample by sample and, on the other thread, draws
+and shapes the next chunk of noise (each channel its own stream) with :func:`shaped_noise`. Everything that persists between blocks lives in the arrays passed
 in, so a block boundary changes nothing in the result.
 
 Rows of the ``[optic, channel, sample]`` arrays the loops read and write are padded so that
@@ -26,28 +25,25 @@ N_OSEM = 5  # UL, UR, LL, LR, SIDE
 
 @nb.njit(nogil=True, cache=True)
 def shaped_noise(n, sigma, sos, zi, states, out):
-    """White Gaussian noise through one section per channel.
+    """One optic's noise: white Gaussian noise through one section per channel.
 
-    Parameters: `sigma` (optics, channels) white standard deviations; `sos` (optics,
-    channels, 6) shaping sections; `zi` (optics, channels, 2) their states; `states`
-    (optics, channels, 4) xoshiro streams; `out` (optics, channels, n) the result.
+    Parameters: `sigma` (channels,) white standard deviations; `sos` (channels, 6) shaping
+    sections; `zi` (channels, 2) their states; `states` (channels, 4) xoshiro streams;
+    `out` (channels, n) the result.
     """
-    n_opt, n_ch = sigma.shape
-    for oc in range(n_opt * n_ch):
-        o, c = oc // n_ch, oc % n_ch
-        s, z, st, y = sos[o, c], zi[o, c], states[o, c], out[o, c]
-        b0, b1, b2, a1, a2 = s[0], s[1], s[2], s[4], s[5]
-        z0, z1, g = z[0], z[1], sigma[o, c]
+    for c in range(sigma.shape[0]):
+        b0, b1, b2, a1, a2 = sos[c, 0], sos[c, 1], sos[c, 2], sos[c, 4], sos[c, 5]
+        z0, z1, g, st = zi[c, 0], zi[c, 1], sigma[c], states[c]
         if g == 0.0:
-            y[:] = 0.0
+            out[c, :n] = 0.0
             continue
         for k in range(n):
             w = g * normal(st, KI, WI, FI)
             v = b0 * w + z0
             z0 = b1 * w - a1 * v + z1
             z1 = b2 * w - a2 * v
-            y[k] = v
-        z[0], z[1] = z0, z1
+            out[c, k] = v
+        zi[c, 0], zi[c, 1] = z0, z1
 
 
 @nb.njit(nogil=True, cache=True, fastmath={"contract"})
@@ -119,13 +115,20 @@ def _run_optic(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, 
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
-def run_loops(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, sos, nsec, zi,
-              gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x, noise,
-              exc, in1, in2, out, sen):
+def advance(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, sos, nsec, zi,
+            gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x, noise,
+            exc, in1, in2, out, sen, draw, n_draw, sigma, noise_sos, noise_zi, rng, noise_next):
     """Close every optic's loop for `n` samples from sample `a` of the block arrays, with
-    noise from sample `npos` of `noise`; see :class:`twind.simulation.engine.Engine`."""
-    for o in nb.prange(x.shape[0]):
-        _run_optic(n, a, npos, a_diag[o], a_off[o], partner[o], bdrive[o], bsp[o], cin[o],
-                   cs[o], inmat[o], sos[o], nsec[o], zi[o], gain[o], gain_target[o],
-                   gain_step[o], ramp_left[o], limit[o], dbuf[o], dpos[o:o + 1], ndelay[o],
-                   x[o], noise[o], exc[o], in1[o], in2[o], out[o], sen[o])
+    noise from sample `npos` of `noise`; meanwhile, when `draw`, fill `noise_next` with the
+    next `n_draw` noise samples. Loops and draws interleave as tasks so that two threads
+    share them; see :class:`twind.simulation.engine.Engine`."""
+    for task in nb.prange(2 * x.shape[0]):
+        o = task // 2
+        if task % 2 == 0:
+            _run_optic(n, a, npos, a_diag[o], a_off[o], partner[o], bdrive[o], bsp[o],
+                       cin[o], cs[o], inmat[o], sos[o], nsec[o], zi[o], gain[o],
+                       gain_target[o], gain_step[o], ramp_left[o], limit[o], dbuf[o],
+                       dpos[o:o + 1], ndelay[o], x[o], noise[o], exc[o], in1[o], in2[o],
+                       out[o], sen[o])
+        elif draw:
+            shaped_noise(n_draw, sigma[o], noise_sos[o], noise_zi[o], rng[o], noise_next[o])

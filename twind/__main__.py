@@ -1,0 +1,5 @@
+import sys
+
+from twind.cli import main
+
+sys.exit(main())

@@ -1,0 +1,35 @@
+"""LIGO channel names of the twin's test points, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+from numpy.typing import NDArray
+
+from twind import DOFS
+
+TEST_POINTS = ("EXC", "IN1", "IN2", "OUT")
+OSEMS = ("UL", "UR", "LL", "LR", "SIDE")
+UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
+
+
+def dof_channel(ifo: str, optic: str, dof: str, point: str) -> str:
+    """``C1:SUS-ETMX_SUSPOS_IN1`` for ``("C1", "ETMX", "POS", "IN1")``."""
+    return f"{ifo}:SUS-{optic}_SUS{dof}_{point}"
+
+
+def osem_channel(ifo: str, optic: str, osem: str) -> str:
+    """``C1:SUS-ETMX_ULSEN_OUT``: an OSEM's calibrated reading (um)."""
+    return f"{ifo}:SUS-{optic}_{osem}SEN_OUT"
+
+
+def block_channels(ifo: str, block) -> Iterator[tuple[str, str, NDArray[np.float64]]]:  # noqa: ANN001
+    """Every channel of an engine block as ``(name, unit, samples)``."""
+    for o, optic in enumerate(block.optics):
+        for d, dof in enumerate(DOFS):
+            for point in TEST_POINTS:
+                unit = "ct" if point == "OUT" else UNITS[dof]
+                yield dof_channel(ifo, optic, dof, point), unit, getattr(block, point.lower())[o, d]
+        for j, osem in enumerate(OSEMS):
+            yield osem_channel(ifo, optic, osem), "um", block.sen[o, j]

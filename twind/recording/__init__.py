@@ -1,0 +1,1 @@
+"""Sessions on disk: MCAP files of protobuf SampleBlocks (schemas/twind/v1)."""
