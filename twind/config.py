@@ -213,7 +213,8 @@ def _read_damping(r: _Reader) -> dict[str, ModuleConfig]:
         on = pick("on", _on, ())
         for fm in on:
             if stages[fm - 1] is None:
-                raise own.fail("on", f"FM{fm} is switched on but holds no filter")
+                where = own if "on" in own.table else damping
+                raise where.fail("on", f"FM{fm} is switched on but holds no filter")
         modules[dof] = ModuleConfig(
             gain=own.get("gain", _quantity("velocity gain")), stages=stages, on=on,
             ramp_s=pick("ramp", _quantity("time"), 0.0), limit=pick("limit", _quantity("counts"), 0.0))
@@ -319,10 +320,9 @@ def check_stable(cfg: OpticConfig) -> None:
 
     The check uses the engine's own discrete closed loop, so what passes here runs.
     """
-    from twind.simulation.discretize import discrete_closed_loop
+    from twind.simulation.discretize import closed_loop_matrices
 
-    sys = discrete_closed_loop(cfg.loop(), cfg.sus.sample_rate_hz)
-    poles = np.linalg.eigvals(sys.A)
+    poles = np.linalg.eigvals(closed_loop_matrices(cfg.loop(), cfg.sus.sample_rate_hz)[0])
     worst = poles[np.argmax(np.abs(poles))]
     if abs(worst) < 1.0:
         return
@@ -334,14 +334,14 @@ def check_stable(cfg: OpticConfig) -> None:
 
 def _culprit(cfg: OpticConfig) -> str:
     """The DOF whose loop alone (other gains zero) is unstable, for the error message."""
-    from twind.simulation.discretize import discrete_closed_loop
+    from twind.simulation.discretize import closed_loop_matrices
 
     for dof in DOFS:
         loop = cfg.loop()
         for other in DOFS:
             if other != dof:
                 loop.modules[other].gain = 0.0
-        sys = discrete_closed_loop(loop, cfg.sus.sample_rate_hz)
-        if np.abs(np.linalg.eigvals(sys.A)).max() >= 1.0:
+        A = closed_loop_matrices(loop, cfg.sus.sample_rate_hz)[0]
+        if np.abs(np.linalg.eigvals(A)).max() >= 1.0:
             return f"{dof}.gain"
     return "gain"

@@ -6,7 +6,6 @@ filter sections are transposed direct form II as in the kernel.
 
 from __future__ import annotations
 
-import control
 import numpy as np
 import scipy.linalg
 from scipy import signal
@@ -106,37 +105,49 @@ def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, NDArray, NDArra
 
 
 
-def _sections_ss(sos: NDArray, gain: float, dt: float) -> control.StateSpace:
+SS = tuple  # (A, B, C, D) of a discrete state space, numpy arrays
+
+
+def _series(first: SS, second: SS) -> SS:
+    """``second`` after ``first``."""
+    A1, B1, C1, D1 = first
+    A2, B2, C2, D2 = second
+    A = np.block([[A1, np.zeros((A1.shape[0], A2.shape[0]))], [B2 @ C1, A2]])
+    return A, np.vstack([B1, B2 @ D1]), np.hstack([D2 @ C1, C2]), D2 @ D1
+
+
+def _parallel(systems: list[SS]) -> SS:
+    """Independent systems side by side (block diagonal)."""
+    return tuple(scipy.linalg.block_diag(*(s[i] for s in systems)) for i in range(4))
+
+
+def _sections(sos: NDArray, gain: float) -> SS:
     # each transposed-DF2 section: y = b0 v + z0; z0+ = (b1 - a1 b0) v - a1 z0 + z1; ...
-    sys = control.ss([], [], [], [[gain]], dt)
+    sys: SS = (np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), np.array([[gain]]))
     for b0, b1, b2, _, a1, a2 in sos:
-        sec = control.ss([[-a1, 1.0], [-a2, 0.0]], [[b1 - a1 * b0], [b2 - a2 * b0]],
-                         [[1.0, 0.0]], [[b0]], dt)
-        sys = sec * sys
+        sec = (np.array([[-a1, 1.0], [-a2, 0.0]]), np.array([[b1 - a1 * b0], [b2 - a2 * b0]]),
+               np.array([[1.0, 0.0]]), np.array([[b0]]))
+        sys = _series(sys, sec)
     return sys
 
 
-def discrete_closed_loop(loop: DampingLoop, rate_hz: float) -> control.StateSpace:
-    """The engine's closed loop as one discrete state space (noise off).
+def closed_loop_matrices(loop: DampingLoop, rate_hz: float) -> SS:
+    """The engine's closed loop (noise off) as discrete ``(A, B, C, D)``.
 
     Inputs are the four EXC test points; outputs IN1, IN2 and OUT of POS, PIT, YAW, SIDE
-    (12 rows). Built with python-control from the same matrices the engine uses but none of
-    its code, so that forced_response checks the engine independently.
+    (12 rows). Built from the same matrices the engine uses but none of its code.
     """
     dt = 1.0 / rate_hz
     A, Bc, _, C = loop.plant.osem_state_space()
     Ad, Bd = zoh(A, Bc, dt)
-    plant = control.ss(Ad, Bd @ loop.plant.output_matrix, loop.plant.input_matrix @ C,
-                       np.zeros((4, 4)), dt)
+    plant: SS = (Ad, Bd @ loop.plant.output_matrix, loop.plant.input_matrix @ C, np.zeros((4, 4)))
     nd = delay_samples(loop.plant.delay_s, rate_hz)
     if nd:
-        one = control.ss(np.eye(nd, k=-1), np.eye(nd, 1), np.eye(1, nd, nd - 1), [[0.0]], dt)
-        plant = plant * control.append(*([one] * 4))
-    ctrl = control.append(*[
-        _sections_ss(module_sections(loop, d, rate_hz), loop.modules[d].gain, dt) for d in DOFS
-    ])
-    Ag, Bg, Cg = plant.A, plant.B, plant.C
-    Ak, Bk, Ck, Dk = ctrl.A, ctrl.B, ctrl.C, ctrl.D
+        one = (np.eye(nd, k=-1), np.eye(nd, 1), np.eye(1, nd, nd - 1), np.zeros((1, 1)))
+        plant = _series(_parallel([one] * 4), plant)
+    Ag, Bg, Cg, _ = plant
+    Ak, Bk, Ck, Dk = _parallel([_sections(module_sections(loop, d, rate_hz), loop.modules[d].gain)
+                                for d in DOFS])
     nk = Ak.shape[0]
     Acl = np.block([[Ag + Bg @ Dk @ Cg, Bg @ Ck], [Bk @ Cg, Ak]])
     Bcl = np.vstack([Bg @ Dk, Bk])
@@ -144,4 +155,11 @@ def discrete_closed_loop(loop: DampingLoop, rate_hz: float) -> control.StateSpac
                      np.hstack([Cg, np.zeros((4, nk))]),
                      np.hstack([Dk @ Cg, Ck])])
     Dcl = np.vstack([np.zeros((4, 4)), np.eye(4), Dk])
-    return control.ss(Acl, Bcl, Ccl, Dcl, dt)
+    return Acl, Bcl, Ccl, Dcl
+
+
+def discrete_closed_loop(loop: DampingLoop, rate_hz: float):  # noqa: ANN201 - control.StateSpace
+    """:func:`closed_loop_matrices` as a python-control discrete ``StateSpace``."""
+    import control
+
+    return control.ss(*closed_loop_matrices(loop, rate_hz), 1.0 / rate_hz)

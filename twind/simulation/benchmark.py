@@ -1,0 +1,102 @@
+"""Engine benchmarks, every figure measured side by side in one run (machines are noisy).
+
+``twind bench`` prints: the engine's speed on one optic and on the 40m; its speed and largest
+output difference against python-control's ``forced_response`` on the same discrete closed
+loop; and the marginal speed of ``twind simulate`` (200 s minus 20 s of simulated time over
+the wall-time difference, so start-up and compilation cancel).
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import time
+
+import control
+import numpy as np
+
+from twind.config import load_config
+from twind.simulation.discretize import discrete_closed_loop
+from twind.simulation.engine import Engine
+from twind.simulation.noise import NoiseSpec
+
+
+def engine_speed(optics: list, seconds: float, seed: int = 0) -> float:
+    """Simulated seconds per wall second of an engine over `optics` (noise on, 1 s blocks)."""
+    rate = optics[0].sus.sample_rate_hz
+    engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics}, seed=seed,
+                    rate_hz=rate)
+    n = int(rate)
+    buf = engine.new_block(n)
+    engine.step(n, out=buf)  # compile and warm up
+    t0 = time.perf_counter()
+    for _ in range(int(seconds)):
+        engine.step(n, out=buf)
+    return int(seconds) / (time.perf_counter() - t0)
+
+
+def against_forced_response(optic, seconds: float, seed: int = 1) -> dict[str, float]:  # noqa: ANN001
+    """Engine and python-control on the same closed loop and the same broadband EXC."""
+    rate = optic.sus.sample_rate_hz
+    n = int(seconds * rate)
+    exc = np.random.default_rng(seed).standard_normal((1, 4, n))
+    engine = Engine([optic.loop()], NoiseSpec(enabled=False), rate_hz=rate)
+    Engine([optic.loop()], NoiseSpec(enabled=False), rate_hz=rate).step(16)  # compile first
+    t0 = time.perf_counter()
+    block = engine.step(n, exc=exc)
+    t_engine = time.perf_counter() - t0
+    sys_cl = discrete_closed_loop(optic.loop(), rate)
+    t0 = time.perf_counter()
+    resp = control.forced_response(sys_cl, U=exc[0])
+    t_control = time.perf_counter() - t0
+    ours = np.concatenate([block.in1[0], block.in2[0], block.out[0]])
+    diff = np.abs(ours - resp.outputs).max(axis=1) / ours.std(axis=1)
+    return {"engine_s": t_engine, "control_s": t_control, "ratio": t_control / t_engine,
+            "max_rel_diff": float(diff.max()), "samples": n}
+
+
+def simulate_marginal(config: str | None, short: float = 20.0, long: float = 200.0,
+                      repeats: int = 5) -> dict[str, float]:
+    """Wall times of ``twind simulate`` for two durations and the marginal speed.
+
+    Each duration runs `repeats` times, alternating, and the shortest wall time counts:
+    process start-up varies by tenths of a second, as much as 180 s of simulation takes.
+    """
+    walls = {short: np.inf, long: np.inf}
+    for _ in range(repeats):
+        for duration in (short, long):
+            cmd = [sys.executable, "-m", "twind", "simulate", "--duration", str(duration)]
+            if config:
+                cmd += ["--config", config]
+            t0 = time.perf_counter()
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+            walls[duration] = min(walls[duration], time.perf_counter() - t0)
+            if not re.search(r"x real time", out):
+                msg = f"unexpected output of {' '.join(cmd)}: {out[-200:]}"
+                raise RuntimeError(msg)
+    return {"wall_short_s": walls[short], "wall_long_s": walls[long],
+            "marginal_x_real_time": (long - short) / (walls[long] - walls[short])}
+
+
+def run_benchmarks(config: str | None = None, seconds: float = 20.0, marginal: bool = True) -> None:
+    """Print every benchmark figure (see module docstring)."""
+    twin = load_config(config)
+    etmx = twin.optics.get("ETMX", next(iter(twin.optics.values())))
+    one = engine_speed([etmx], seconds)
+    rate = etmx.sus.sample_rate_hz
+    print(f"engine, 1 optic ({etmx.name}), noise on: {one:8.1f} x real time "
+          f"({one * rate:.3g} samples/s)")
+    every = list(twin.optics.values())
+    many = engine_speed(every, max(2.0, seconds / 4))
+    print(f"engine, {len(every)} optics ({twin.source}): {many:8.1f} x real time "
+          f"({many * rate * len(every):.3g} optic-samples/s)")
+    fr = against_forced_response(etmx, min(seconds, 5.0))
+    print(f"python-control forced_response, same closed loop, {fr['samples']} samples: "
+          f"engine {fr['engine_s']:.3f} s, control {fr['control_s']:.3f} s, "
+          f"engine faster by {fr['ratio']:.1f} x; largest difference {fr['max_rel_diff']:.2e} "
+          f"of the output RMS")
+    if marginal:
+        m = simulate_marginal(config)
+        print(f"twind simulate: 20 s in {m['wall_short_s']:.2f} s, 200 s in {m['wall_long_s']:.2f} s "
+              f"wall; marginal speed {m['marginal_x_real_time']:.0f} x real time")
