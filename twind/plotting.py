@@ -38,17 +38,22 @@ def bode_matrix(f_hz: NDArray[np.float64], curves: Mapping[str, NDArray[np.compl
 
     n = len(labels)
     fig, axes = plt.subplots(2 * n, n, figsize=(3.2 * n, 4.2 * n), sharex=True, squeeze=False)
+    drawn = np.zeros((n, n), dtype=bool)
     for name, h in curves.items():
         for i in range(n):
             for j in range(n):
                 mag = np.abs(h[:, i, j])
                 if not np.any(mag > 1e-12 * np.abs(h).max()):
-                    continue
+                    continue  # zero by symmetry; round-off is not worth a curve
+                drawn[i, j] = True
                 axes[2 * i, j].loglog(f_hz, mag, label=name)
                 axes[2 * i + 1, j].semilogx(f_hz, np.degrees(np.angle(h[:, i, j])), label=name)
     for i in range(n):
         for j in range(n):
             axes[2 * i, j].set_title(f"{labels[i]} / {labels[j]}", fontsize=9)
+            if not drawn[i, j]:
+                axes[2 * i, j].text(0.5, 0.5, "zero", ha="center", va="center",
+                                    transform=axes[2 * i, j].transAxes, color="gray")
             axes[2 * i + 1, j].set_ylim(-180, 180)
             axes[2 * i + 1, j].set_yticks([-180, -90, 0, 90, 180])
             for ax in axes[2 * i : 2 * i + 2, j]:
@@ -57,7 +62,7 @@ def bode_matrix(f_hz: NDArray[np.float64], curves: Mapping[str, NDArray[np.compl
         ax.set_xlabel("frequency [Hz]")
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
     path = Path(path)
     fig.savefig(path, dpi=90)
     plt.close(fig)
