@@ -50,15 +50,15 @@ class ModuleConfig:
     """Settings of one damping filter module as written in the file."""
 
     gain: float
-    stages: tuple[tuple[str, str] | None, ...]
+    stages: tuple[Stage | None, ...]
     on: tuple[int, ...]
     ramp_s: float = 0.0
     limit: float = 0.0
 
     def build(self) -> FilterModule:
         """A fresh :class:`FilterModule` (mutable state for an engine)."""
-        return FilterModule.from_designs(self.stages, self.on, self.gain,
-                                         ramp_s=self.ramp_s, limit=self.limit)
+        return FilterModule(list(self.stages), set(self.on), self.gain, ramp_s=self.ramp_s,
+                            limit=self.limit)
 
 
 @dataclass(frozen=True)
@@ -181,12 +181,37 @@ def _config_key(attr: str) -> str:
     return f"suspension.{attr}"
 
 
-def _stage(v: Any) -> tuple[str, str]:
+def _stage(v: Any) -> Stage:
     if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, str) for x in v)):
         msg = f"expected [\"name\", \"foton design\"], got {v!r}"
         raise ValueError(msg)
     parse_design(v[1])  # a FotonError here names the design and its problem
-    return v[0], v[1]
+    return Stage(v[0], v[1])
+
+
+def _foton_file(damping: _Reader):  # noqa: ANN202 - FilterFile or None
+    """The foton file named by ``foton_file`` (relative to the config file), if any."""
+    from twind.loop.foton_file import read_filter_file
+
+    name = damping.get("foton_file", str, None)
+    if name is None:
+        return None
+    try:
+        return read_filter_file(Path(damping.source).parent / name)
+    except TwindError as err:
+        raise damping.fail("foton_file", str(err)) from None
+
+
+def _file_stages(damping: _Reader, ff, optic: str, dof: str) -> tuple[Stage | None, ...]:  # noqa: ANN001
+    """FM1..FM10 of the filter module ``<optic>_SUS<dof>`` of foton file `ff`."""
+    path = ff.path
+    module = f"{optic}_SUS{dof}"
+    if module not in ff.modules:
+        raise damping.fail("foton_file", f"{path} has no filter module {module}")
+    stages: list[Stage | None] = [None] * N_STAGES
+    for st in ff.modules[module]:
+        stages[st.index] = Stage(st.name, st.design, st.sos, ff.rate_hz)
+    return tuple(stages)
 
 
 def _on(v: Any) -> tuple[int, ...]:
@@ -196,11 +221,12 @@ def _on(v: Any) -> tuple[int, ...]:
     return tuple(v)
 
 
-def _read_damping(r: _Reader) -> dict[str, ModuleConfig]:
+def _read_damping(r: _Reader, optic: str) -> dict[str, ModuleConfig]:
     damping = r.sub("damping")
     fms = [f"FM{i}" for i in range(1, N_STAGES + 1)]
     common = ["on", "ramp", "limit", *fms]
-    damping.only([*common, *DOFS])
+    damping.only([*common, "foton_file", *DOFS])
+    ff = _foton_file(damping)
     modules = {}
     for dof in DOFS:
         own = damping.sub(dof)
@@ -210,6 +236,11 @@ def _read_damping(r: _Reader) -> dict[str, ModuleConfig]:
             return own.get(key, convert, damping.get(key, convert, default))
 
         stages = tuple(pick(fm, _stage, None) for fm in fms)
+        if ff is not None:
+            if any(stages):
+                raise damping.fail("foton_file", "give the stages either as FMn designs or "
+                                   "in a foton file, not both")
+            stages = _file_stages(damping, ff, optic, dof)
         on = pick("on", _on, ())
         for fm in on:
             if stages[fm - 1] is None:
@@ -260,7 +291,7 @@ def load_optic(path: str | Path) -> OpticConfig:
     optic = r.sub("optic")
     optic.only(["name", "model"])
     name = optic.get("name", str)
-    cfg = OpticConfig(name=name, sus=_read_sus(r, name), damping=_read_damping(r),
+    cfg = OpticConfig(name=name, sus=_read_sus(r, name), damping=_read_damping(r, name),
                       noise=_read_noise(r), model=optic.get("model", _check_model, "analytical"),
                       source=source)
     check_stable(cfg)

@@ -7,7 +7,6 @@ coefficients when the stage has no design.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,13 +34,16 @@ class Stage:
         return None if self.design is None else parse_design(self.design)
 
     def sections(self, rate_hz: float) -> NDArray[np.float64]:
-        """Discrete second-order sections at `rate_hz`, shape (n, 6)."""
+        """Discrete second-order sections at `rate_hz`, shape (n, 6).
+
+        A foton file's coefficients are what the front end runs, so they win over its design.
+        """
+        if self.sos is not None and self.rate_hz == rate_hz:
+            return np.atleast_2d(self.sos)
         if self.design is not None:
             return zpk_to_sos(parse_design(self.design), rate_hz)
-        if self.sos is None or self.rate_hz != rate_hz:
-            msg = f"stage {self.name!r} has no design and no coefficients at {rate_hz} Hz"
-            raise FotonError(msg)
-        return np.atleast_2d(self.sos)
+        msg = f"stage {self.name!r} has no design and no coefficients at {rate_hz} Hz"
+        raise FotonError(msg)
 
     def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
         """Response at `f_hz`: continuous from the design, else discrete from the sections."""
@@ -85,13 +87,6 @@ class FilterModule:
             if not 1 <= fm <= N_STAGES or self.stages[fm - 1] is None:
                 msg = f"FM{fm} is switched on but holds no filter"
                 raise FotonError(msg)
-
-    @classmethod
-    def from_designs(cls, designs: Sequence[tuple[str, str] | None], on: Iterable[int],
-                     gain: float, **kw: float) -> FilterModule:
-        """Build from ``(name, foton design)`` pairs for FM1, FM2, ..."""
-        stages = [None if d is None else Stage(d[0], d[1]) for d in designs]
-        return cls(stages, set(on), gain, **kw)
 
     def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
         """Continuous IN2 -> OUT response of the switched-on stages and the gain."""
