@@ -93,9 +93,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     twin = load_config(args.config, args.optics)
     optics = twin.select(args.optics)
-    if args.duration <= 0:
-        msg = f"--duration must be positive, got {args.duration}"
-        raise TwindError(msg)
+    for name in ("duration", "block"):
+        if not getattr(args, name) > 0:
+            msg = f"--{name} must be positive, got {getattr(args, name)}"
+            raise TwindError(msg)
     rate = optics[0].sus.sample_rate_hz
     engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
                     seed=args.seed, rate_hz=rate)
