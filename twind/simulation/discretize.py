@@ -15,21 +15,21 @@ from twind import DOFS
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import IDENTITY_SECTION
 
+SS = tuple  # (A, B, C, D) of a discrete state space, numpy arrays
 
-def zoh(A: NDArray, B: NDArray, dt: float) -> tuple[NDArray, NDArray]:
-    """Zero-order-hold discretisation ``(Ad, Bd)`` of ``x' = A x + B u``."""
-    n, m = B.shape
-    big = np.zeros((n + m, n + m))
-    big[:n, :n], big[:n, n:] = A * dt, B * dt
-    e = scipy.linalg.expm(big)
-    return e[:n, :n], e[:n, n:]
+
+def bilinear(A: NDArray, B: NDArray, C: NDArray, dt: float) -> SS:
+    """Bilinear discretisation of ``x' = A x + B u, y = C x``; returns ``(Ad, Bd, Cd, Dd)``."""
+    Ad, Bd, Cd, Dd, _ = signal.cont2discrete((A, B, C, np.zeros((C.shape[0], B.shape[1]))),
+                                             dt, method="bilinear")
+    return Ad, Bd, Cd, Dd
 
 
 def delay_samples(delay_s: float, rate_hz: float) -> int:
     """The loop delay as a whole number of model cycles."""
     n = delay_s * rate_hz
-    if abs(n - round(n)) > 1e-6:
-        msg = f"loop delay {delay_s} s is not a whole number of cycles at {rate_hz} Hz"
+    if abs(n - round(n)) > 1e-6 or round(n) < 1:
+        msg = f"loop delay {delay_s} s is not a whole number (>= 1) of cycles at {rate_hz} Hz"
         raise ValueError(msg)
     return int(round(n))
 
@@ -105,9 +105,6 @@ def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, NDArray, NDArra
 
 
 
-SS = tuple  # (A, B, C, D) of a discrete state space, numpy arrays
-
-
 def _series(first: SS, second: SS) -> SS:
     """``second`` after ``first``."""
     A1, B1, C1, D1 = first
@@ -137,14 +134,13 @@ def closed_loop_matrices(loop: DampingLoop, rate_hz: float) -> SS:
     Inputs are the four EXC test points; outputs IN1, IN2 and OUT of POS, PIT, YAW, SIDE
     (12 rows). Built from the same matrices the engine uses but none of its code.
     """
-    dt = 1.0 / rate_hz
     A, Bc, _, C = loop.plant.osem_state_space()
-    Ad, Bd = zoh(A, Bc, dt)
-    plant: SS = (Ad, Bd @ loop.plant.output_matrix, loop.plant.input_matrix @ C, np.zeros((4, 4)))
+    Ad, Bd, Cd, Dd = bilinear(A, Bc @ loop.plant.output_matrix, C, 1.0 / rate_hz)
+    inmat = loop.plant.input_matrix
+    plant: SS = (Ad, Bd, inmat @ Cd, inmat @ Dd)
     nd = delay_samples(loop.plant.delay_s, rate_hz)
-    if nd:
-        one = (np.eye(nd, k=-1), np.eye(nd, 1), np.eye(1, nd, nd - 1), np.zeros((1, 1)))
-        plant = _series(_parallel([one] * 4), plant)
+    one = (np.eye(nd, k=-1), np.eye(nd, 1), np.eye(1, nd, nd - 1), np.zeros((1, 1)))
+    plant = _series(_parallel([one] * 4), plant)
     Ag, Bg, Cg, _ = plant
     Ak, Bk, Ck, Dk = _parallel([_sections(module_sections(loop, d, rate_hz), loop.modules[d].gain)
                                 for d in DOFS])

@@ -15,15 +15,20 @@ from numpy.typing import NDArray
 from twind import DOFS
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import IDENTITY_SECTION
-from twind.simulation.discretize import delay_samples, modal, module_sections, stage_sections, zoh
-from twind.simulation.kernel import N_DOF, advance, shaped_noise
+from twind.simulation.discretize import (
+    bilinear,
+    delay_samples,
+    modal,
+    module_sections,
+    stage_sections,
+)
+from twind.simulation.kernel import N_DOF, N_OSEM, advance, shaped_noise
 from twind.simulation.noise import CHANNELS as NOISE_CHANNELS
 from twind.simulation.noise import NoiseSpec
-
-N_OSEM = 5  # UL, UR, LL, LR, SIDE
-N_NOISE = len(NOISE_CHANNELS)
-CHUNK = 2048  # samples the kernel runs between numpy steps; its buffers stay in L2
 from twind.simulation.rng import seed_states
+
+N_NOISE = len(NOISE_CHANNELS)
+CHUNK = 2048  # samples per kernel call and per noise draw: small enough to stay in cache
 
 
 @dataclass(frozen=True)
@@ -84,10 +89,12 @@ class Engine:
     def _build_plants(self) -> None:
         n_opt, dt = len(self.loops), 1.0 / self.rate_hz
         modes = []
+        feedthrough = []
         for lp in self.loops:
             A, Bc, Bs, C = lp.plant.osem_state_space()
-            Ad, Bd = zoh(A, np.hstack([Bc @ lp.plant.output_matrix, Bs]), dt)
-            modes.append(modal(Ad, Bd, C))
+            Ad, Bd, Cd, Dd = bilinear(A, np.hstack([Bc @ lp.plant.output_matrix, Bs]), C, dt)
+            modes.append(modal(Ad, Bd, Cd))
+            feedthrough.append(Dd)
         ns = max(len(m[0]) for m in modes)
         self._a_diag = np.zeros((n_opt, ns))
         self._a_off = np.zeros((n_opt, ns))
@@ -95,17 +102,17 @@ class Engine:
         self._bdrive = np.zeros((n_opt, ns, N_DOF))
         self._bsp = np.zeros((n_opt, ns, 3))
         self._cs = np.zeros((n_opt, N_OSEM, ns))  # OSEM um per modal state
-        self._cin = np.zeros((n_opt, N_DOF, ns))
-        self._inmat = np.array([lp.plant.input_matrix for lp in self.loops])
+        # the kernel's OSEM signals are in um, so the input matrix loses its calibration
+        self._inmat = np.array([lp.plant.input_matrix * 1e-6 for lp in self.loops])
+        self._ds = 1e6 * np.array(feedthrough)  # OSEM um per coil count and per sp m, rad
         for o, (a_diag, a_off, partner, B, C) in enumerate(modes):
             k = len(a_diag)
             self._a_diag[o, :k], self._a_off[o, :k], self._partner[o, :k] = a_diag, a_off, partner
             self._bdrive[o, :k], self._bsp[o, :k] = B[:, :N_DOF], B[:, N_DOF:]
             self._cs[o, :, :k] = C * 1e6
-            self._cin[o, :, :k] = self._inmat[o] @ C
         self._x = np.zeros((n_opt, ns))
         self._ndelay = np.array([delay_samples(lp.plant.delay_s, self.rate_hz) for lp in self.loops])
-        self._dbuf = np.zeros((n_opt, max(1, self._ndelay.max()), N_DOF))
+        self._dbuf = np.zeros((n_opt, self._ndelay.max(), N_DOF))
         self._dpos = np.zeros(n_opt, dtype=np.int64)
 
     def _build_filters(self) -> None:
@@ -131,7 +138,7 @@ class Engine:
         self._noise_sos = np.array([sos for sos, _ in shaped])
         self._noise_sigma = np.array([sigma for _, sigma in shaped])
         self._noise_zi = np.zeros((len(specs), N_NOISE, 2))
-        self._rng = seed_states(seed, len(specs) * N_NOISE).reshape(len(specs), N_NOISE, 4)
+        self._rng = np.array([seed_states(seed, N_NOISE, key=name) for name in self.optics])
         # noise comes in whole chunks, whatever the block sizes, so results do not depend on
         # them; the next chunk is drawn on the second thread while the loops run
         self._noise = _padded((len(specs), N_NOISE, CHUNK))
@@ -191,7 +198,7 @@ class Engine:
             self._noise, self._noise_next = self._noise_next, self._noise
             self._noise_pos, self._next_ready = 0, False
         advance(c, a, self._noise_pos, self._a_diag, self._a_off, self._partner, self._bdrive,
-                self._bsp, self._cin, self._cs, self._inmat, self._sos, self._nsec, self._zi,
+                self._bsp, self._cs, self._ds, self._inmat, self._sos, self._nsec, self._zi,
                 self._gain, self._gain_target, self._gain_step, self._ramp_left, self._limit,
                 self._dbuf, self._dpos, self._ndelay, self._x, self._noise, block.exc,
                 block.in1, block.in2, block.out, block.sen, not self._next_ready, CHUNK,

@@ -10,6 +10,8 @@ they never lie a multiple of 4 KiB apart: such rows evict each other from the ca
 Speed notes: inside the sample loop nothing is sliced (a numba array view costs more than a
 filter section's arithmetic); the four DOFs' filter cascades are written out side by side, so
 their four dependency chains overlap; the plant is in modal form (two multiplies a state).
+The plant is bilinear-discretised, so its inputs of this cycle (the coil drives, which are
+OUT of ``ndelay >= 1`` cycles ago, and the suspension point) also feed through to the OSEMs.
 """
 
 from __future__ import annotations
@@ -47,27 +49,32 @@ def shaped_noise(n, sigma, sos, zi, states, out):
 
 
 @nb.njit(nogil=True, cache=True, fastmath={"contract"})
-def _run_optic(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, sos, nsec, zi,
-               gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x, noise,
-               exc, in1, in2, out, sen):
+def _run_optic(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cs, ds, inmat, sos, nsec, zi, gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x,
+               noise, exc, in1, in2, out, sen):
     ns = x.shape[0]
     xn = np.empty(ns)
-    drive = np.empty(N_DOF)
+    u = np.empty(N_DOF + 3)  # the plant's inputs this cycle: coil drives (delayed OUT), x/y/yaw sp
     y = np.empty(N_DOF)
+    osem = np.empty(N_OSEM)
     pos = dpos[0]
     for k in range(n):
         t, q = a + k, npos + k
+        for d in range(N_DOF):
+            u[d] = dbuf[pos, d]
+        for m in range(3):
+            u[N_DOF + m] = noise[N_OSEM + m, q]
         for j in range(N_OSEM):
             acc = 1e6 * noise[j, q]
             for i in range(ns):
                 acc += cs[j, i] * x[i]
+            for m in range(N_DOF + 3):
+                acc += ds[j, m] * u[m]
+            osem[j] = acc
             sen[j, t] = acc
         for d in range(N_DOF):
             acc = 0.0
             for j in range(N_OSEM):
-                acc += inmat[d, j] * noise[j, q]
-            for i in range(ns):
-                acc += cin[d, i] * x[i]
+                acc += inmat[d, j] * osem[j]
             in1[d, t] = acc
             y[d] = acc + exc[d, t]
             in2[d, t] = y[d]
@@ -95,19 +102,14 @@ def _run_optic(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, 
             if limit[d] > 0.0:
                 o = min(max(o, -limit[d]), limit[d])
             out[d, t] = o
-            if ndelay == 0:
-                drive[d] = o
-            else:
-                drive[d] = dbuf[pos, d]
-                dbuf[pos, d] = o
-        if ndelay > 0:
-            pos = pos + 1 if pos + 1 < ndelay else 0
+            dbuf[pos, d] = o
+        pos = pos + 1 if pos + 1 < ndelay else 0
         for i in range(ns):
             acc = a_diag[i] * x[i] + a_off[i] * x[partner[i]]
-            for j in range(3):
-                acc += bsp[i, j] * noise[N_OSEM + j, q]
+            for m in range(3):
+                acc += bsp[i, m] * u[N_DOF + m]
             for d in range(N_DOF):
-                acc += bdrive[i, d] * drive[d]
+                acc += bdrive[i, d] * u[d]
             xn[i] = acc
         for i in range(ns):
             x[i] = xn[i]
@@ -115,9 +117,9 @@ def _run_optic(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, 
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
-def advance(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, sos, nsec, zi,
-            gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x, noise,
-            exc, in1, in2, out, sen, draw, n_draw, sigma, noise_sos, noise_zi, rng, noise_next):
+def advance(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cs, ds, inmat, sos, nsec, zi, gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x,
+            noise, exc, in1, in2, out, sen, draw, n_draw, sigma, noise_sos, noise_zi, rng,
+            noise_next):
     """Close every optic's loop for `n` samples from sample `a` of the block arrays, with
     noise from sample `npos` of `noise`; meanwhile, when `draw`, fill `noise_next` with the
     next `n_draw` noise samples. Loops and draws interleave as tasks so that two threads
@@ -126,7 +128,7 @@ def advance(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cin, cs, inmat, sos
         o = task // 2
         if task % 2 == 0:
             _run_optic(n, a, npos, a_diag[o], a_off[o], partner[o], bdrive[o], bsp[o],
-                       cin[o], cs[o], inmat[o], sos[o], nsec[o], zi[o], gain[o],
+                       cs[o], ds[o], inmat[o], sos[o], nsec[o], zi[o], gain[o],
                        gain_target[o], gain_step[o], ramp_left[o], limit[o], dbuf[o],
                        dpos[o:o + 1], ndelay[o], x[o], noise[o], exc[o], in1[o], in2[o],
                        out[o], sen[o])

@@ -9,6 +9,8 @@ method for generating random variables" (2000), with numpy's 256-layer constants
 
 from __future__ import annotations
 
+import zlib
+
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
@@ -40,9 +42,14 @@ def tables() -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64
 KI, WI, FI = tables()
 
 
-def seed_states(seed: int, n: int) -> NDArray[np.uint64]:
-    """Independent xoshiro256** states for `n` streams from one integer seed, shape (n, 4)."""
-    children = np.random.SeedSequence(seed).spawn(n)
+def seed_states(seed: int, n: int, key: str = "") -> NDArray[np.uint64]:
+    """Independent xoshiro256** states for `n` streams from one integer seed, shape (n, 4).
+
+    `key` (an optic's name) selects its own family of streams, so an optic's noise does not
+    depend on which other optics run beside it.
+    """
+    spawn_key = (zlib.crc32(key.encode()),) if key else ()
+    children = np.random.SeedSequence(seed, spawn_key=spawn_key).spawn(n)
     states = np.array([c.generate_state(4, dtype=np.uint64) for c in children], dtype=np.uint64)
     states[np.all(states == 0, axis=1), 0] = 1  # the all-zero state is a fixed point
     return states
