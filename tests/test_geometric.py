@@ -9,7 +9,8 @@ import pytest
 
 from twind.errors import TwindError
 from twind.model.analytical import analytical_mechanics
-from twind.model.compare import compare_models, eigenfrequencies_by_dof, plot_comparison
+from twind.model.compare import compare_models, eigenfrequencies_by_dof
+from twind.plotting import plot_comparison
 from twind.model.geometric import (
     DOFS,
     GeometryError,

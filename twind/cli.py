@@ -72,7 +72,8 @@ def cmd_model_response(args: argparse.Namespace) -> int:
 def cmd_model_compare(args: argparse.Namespace) -> int:
     """Geometric rigid-body model against the analytical model for one optic."""
     from twind.config import load_config
-    from twind.model.compare import compare_models, plot_comparison
+    from twind.model.compare import compare_models
+    from twind.plotting import plot_comparison
 
     cfg = load_config(args.config, [args.optic]).select([args.optic])[0]
     cmp = compare_models(cfg.sus, np.geomspace(0.1, 10, 400))

@@ -9,8 +9,6 @@ opposite sign (T000134 pitch convention, see :mod:`twind.model.geometric`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
@@ -21,9 +19,6 @@ from twind.model.analytical import analytical_mechanics
 from twind.model.geometric import WireGeometry, geometric_mechanics
 from twind.model.mechanics import Mechanics
 from twind.model.params import SOSParams
-
-if TYPE_CHECKING:  # matplotlib is imported only when plotting
-    from matplotlib.axes import Axes
 
 DOFS: tuple[str, ...] = ("POS", "PIT", "YAW", "SIDE")
 RESONANCE_EXCLUSION = 0.10  # fractional band around each resonance left out of comparisons
@@ -151,57 +146,3 @@ def _restricted_admittance(mech: Mechanics, s: NDArray[np.complex128]) -> NDArra
     # invert the full system first: VERT/ROLL of the geometric model still shape SIDE
     idx = [mech.index(d) for d in DOFS]
     return mech.admittance(s)[np.ix_(np.arange(len(s)), idx, idx)]
-
-
-def plot_comparison(cmp: ModelComparison, path: str | Path) -> Path:
-    """Write a 4x4 Bode-magnitude matrix of both models' admittances to a PNG.
-
-    Parameters
-    ----------
-    cmp : ModelComparison
-    path : str or Path
-        Output PNG file.
-
-    Returns
-    -------
-    Path
-        The file written.
-    """
-    # Agg canvas directly: no pyplot global state, no display needed
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(14, 11))
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(4, 4, sharex=True)
-    zero = cmp.structurally_zero()
-    worst = cmp.max_relative_difference()
-    for i, row in enumerate(cmp.dofs):
-        for j, col in enumerate(cmp.dofs):
-            _panel(axes[i, j], cmp, i, j, zero[i, j], worst[i, j])
-            axes[i, j].set_title(f"{row} / {col}", fontsize=9)
-        axes[3, i].set_xlabel("frequency (Hz)")
-    axes[0, 0].legend(fontsize=8, loc="lower left")
-    fig.suptitle("Admittance |displacement / generalised force|: analytical (T000134) vs geometric "
-                 "rigid body\n(max relative magnitude difference excluding ±10 % around resonances;"
-                 " POS/PIT off-diagonal differs in sign only)", fontsize=10)
-    # fixed margins: constrained layout costs seconds on a 4x4 grid
-    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.05, top=0.91, wspace=0.25, hspace=0.3)
-    out = Path(path)
-    fig.savefig(out, dpi=100)
-    return out
-
-
-def _panel(ax: "Axes", cmp: ModelComparison, i: int, j: int, zero: bool, worst: float) -> None:
-    ax.set_xscale("log")
-    ax.set_xlim(0.1, 10)
-    if zero:
-        ax.text(0.5, 0.5, "0 in both models", ha="center", va="center", transform=ax.transAxes,
-                color="0.5")
-        ax.set_yticks([])
-        return
-    ax.loglog(cmp.f_hz, np.abs(cmp.admittance_analytical[:, i, j]), "C0-", lw=1.2, label="analytical")
-    ax.loglog(cmp.f_hz, np.abs(cmp.admittance_geometric[:, i, j]), "C1--", lw=1.2, label="geometric")
-    ax.text(0.97, 0.95, f"max |Δ| = {100 * worst:.2g} %", ha="right", va="top",
-            transform=ax.transAxes, fontsize=8)
-    ax.grid(True, which="both", alpha=0.3)
