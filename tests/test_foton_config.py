@@ -18,10 +18,10 @@ RATE = 16384.0
 DESIGNS = [("velocity", NOMINAL_FM1), ("Cheby", NOMINAL_FM2), ("BounceRoll", NOMINAL_FM3)]
 
 
-def _config_with_file(tmp_path: Path, with_designs: bool = True) -> Path:
+def _config_with_file(tmp_path: Path) -> Path:
     modules = {
         f"ETMX_SUS{dof}": [
-            FilterStage(i, name, design_to_sos(design, RATE), design if with_designs else None)
+            FilterStage(i, name, design_to_sos(design, RATE), design)
             for i, (name, design) in enumerate(DESIGNS)
         ]
         for dof in DOFS
@@ -35,26 +35,25 @@ def _config_with_file(tmp_path: Path, with_designs: bool = True) -> Path:
     return path
 
 
-def test_foton_file_gives_the_same_loop(tmp_path: Path) -> None:
+def test_foton_file_runs_the_same_loop(tmp_path: Path) -> None:
     from_designs = load_optic(CONFIG_DIR / "optics" / "ETMX.toml").loop()
     from_file = load_optic(_config_with_file(tmp_path)).loop()
-    f = np.geomspace(0.05, 50, 60)
-    a, b = from_designs.responses(f), from_file.responses(f)
-    for key in a:
-        np.testing.assert_allclose(b[key], a[key], rtol=1e-12, atol=0)
     A1 = closed_loop_matrices(from_designs, RATE)[0]
     A2 = closed_loop_matrices(from_file, RATE)[0]
     np.testing.assert_allclose(A2, A1, rtol=1e-9, atol=1e-12)
 
 
-def test_coefficient_only_stages_model_the_discrete_filter(tmp_path: Path) -> None:
-    loop = load_optic(_config_with_file(tmp_path, with_designs=False)).loop()
+def test_model_follows_the_coefficients_not_a_stale_design(tmp_path: Path) -> None:
+    """What runs is the file's coefficients; a design line may be out of date."""
+    path = _config_with_file(tmp_path)
+    filters = tmp_path / "C1SUSETMX.txt"
+    filters.write_text(filters.read_text().replace(NOMINAL_FM1, 'zpk([0],[3],6.2832,"n")'))
+    loop = load_optic(path).loop()
     reference = load_optic(CONFIG_DIR / "optics" / "ETMX.toml").loop()
     f = np.geomspace(0.1, 10, 30)
     k, k_ref = loop.controller(f), reference.controller(f)
     # the discrete filters differ from the continuous designs by the bilinear warping only
-    assert np.max(np.abs(k / k_ref - 1)) < 1e-3
-    assert np.max(np.abs(k / k_ref - 1)) > 0  # and they are not the designs
+    assert 0 < np.max(np.abs(k / k_ref - 1)) < 1e-3
 
 
 def test_missing_module_and_both_sources_are_errors(tmp_path: Path) -> None:

@@ -15,7 +15,6 @@ from twind.loop.foton_file import (
     FilterStage,
     FotonFileWarning,
     read_filter_file,
-    stage_sos,
     write_filter_file,
 )
 
@@ -222,14 +221,6 @@ def test_zero_gain_stage_round_trips(tmp_path):
     np.testing.assert_array_equal(back.sos, off.sos)
     assert back.design == "gain(0)"
     assert read_filter_file(out).rate_hz == 2048.0
-
-
-def test_stage_sos_cascades_engaged_stages(fixture_file):
-    stages = fixture_file.modules["ETMX_SUSPOS"]
-    assert stage_sos(stages, [0, 1]).shape == (3, 6)
-    np.testing.assert_array_equal(stage_sos(stages, []), [[1, 0, 0, 1, 0, 0]])
-    with pytest.raises(FotonError, match=r"no stage with index \[7\]"):
-        stage_sos(stages, [7])
 
 
 # ----------------------------------------------------------------------------- malformed files

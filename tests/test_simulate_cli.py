@@ -59,3 +59,22 @@ def test_simulate_rejects_bad_arguments() -> None:
     assert code == 2 and "--duration must be positive" in err
     code, _, err = _run(["simulate", "--duration", "1", "--optics", "ETMZ"])
     assert code == 2 and "unknown optic" in err
+
+
+def test_simulate_rejects_inputs_that_would_hang_or_crash(tmp_path: Path) -> None:
+    for args, message in [
+        (["--duration", "1e-6"], "at least one sample"),
+        (["--duration", "1", "--block", "1e-5"], "at least one sample"),
+        (["--duration", "1", "--block", "0"], "--block must be positive"),
+        (["--duration", "1", "--optics", "ETMX,ETMX"], "named twice"),
+        (["--duration", "1", "--record", str(tmp_path / "no" / "dir.mcap")], "No such file"),
+    ]:
+        code, _, err = _run(["simulate", *args])
+        assert code == 2 and message in err and "Traceback" not in err, (args, err)
+
+
+def test_model_response_rejects_bad_frequencies() -> None:
+    for args, message in [(["--freqs", "a,b"], "comma-separated numbers"),
+                          (["--n", "1"], "--n >= 2"), (["--freqs", "1,-2"], "positive")]:
+        code, _, err = _run(["model", "response", "--json", *args])
+        assert code == 2 and message in err, (args, err)

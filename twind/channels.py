@@ -8,9 +8,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS
+from twind.model.osem import OSEMS
 
 TEST_POINTS = ("EXC", "IN1", "IN2", "OUT")
-OSEMS = ("UL", "UR", "LL", "LR", "SIDE")
 UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
 
 

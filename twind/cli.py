@@ -99,10 +99,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             msg = f"--{name} must be positive, got {getattr(args, name)}"
             raise TwindError(msg)
     rate = optics[0].sus.sample_rate_hz
-    engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
-                    seed=args.seed, rate_hz=rate)
     n_block = int(round(args.block * rate))
     n_total = int(round(args.duration * rate))
+    if n_block < 1 or n_total < 1:
+        msg = f"--duration and --block must each hold at least one sample at {rate:g} Hz"
+        raise TwindError(msg)
+    engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
+                    seed=args.seed, rate_hz=rate)
     buf = engine.new_block(n_block)
     writer = None
     if args.record:
@@ -147,6 +150,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _seed(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        msg = f"must be a non-negative integer, got {text}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     p = argparse.ArgumentParser(prog="twind", description=__doc__.splitlines()[0])
@@ -174,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--config")
     sim.add_argument("--optics", default="ETMX", help="comma-separated names, or 'all'")
     sim.add_argument("--duration", type=float, required=True, help="simulated seconds")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--seed", type=_seed, default=0)
     sim.add_argument("--block", type=float, default=1.0, help="seconds per engine block")
     sim.add_argument("--record", help="MCAP file to record every block to")
     sim.set_defaults(func=cmd_simulate)
@@ -193,7 +204,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (TwindError, FileExistsError) as err:
+    except (TwindError, OSError) as err:
         print(f"twind: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

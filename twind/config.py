@@ -19,7 +19,7 @@ from twind import DOFS
 from twind.errors import ConfigError, TwindError
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import N_STAGES, FilterModule, Stage
-from twind.loop.foton import parse_design
+from twind.loop.foton import design_to_sos
 from twind.loop.plant import Plant
 from twind.model.params import ALL_DOFS, SOSParams
 from twind.simulation.noise import NoiseSpec
@@ -105,7 +105,14 @@ class TwinConfig:
         if unknown:
             msg = f"unknown optic(s) {', '.join(unknown)}; {self.source} has {', '.join(self.optics)}"
             raise ConfigError(self.source, "ifo.optics", msg)
-        return [self.optics[n] for n in names]
+        if len(set(names)) != len(names):
+            raise ConfigError(self.source, "ifo.optics", f"an optic is named twice in {names}")
+        chosen = [self.optics[n] for n in names]
+        rates = {o.sus.sample_rate_hz for o in chosen}
+        if len(rates) > 1:
+            msg = f"optics run at different rates {sorted(rates)}; one engine runs one rate"
+            raise ConfigError(self.source, "cds.rate", msg)
+        return chosen
 
 
 class _Reader:
@@ -150,6 +157,35 @@ def _quantity(dimension: str) -> Callable[[Any], float]:
     return lambda v: parse_quantity(v, dimension)
 
 
+def _positive_quantity(dimension: str) -> Callable[[Any], float]:
+    def convert(v: Any) -> float:
+        value = _quantity(dimension)(v)
+        if not value > 0:
+            msg = f"must be positive, got {v!r}"
+            raise ValueError(msg)
+        return value
+
+    return convert
+
+
+def _non_negative_quantity(dimension: str) -> Callable[[Any], float]:
+    def convert(v: Any) -> float:
+        value = _quantity(dimension)(v)
+        if not value >= 0:
+            msg = f"must not be negative, got {v!r}"
+            raise ValueError(msg)
+        return value
+
+    return convert
+
+
+def _boolean(v: Any) -> bool:
+    if not isinstance(v, bool):
+        msg = f"expected true or false (no quotes), got {v!r}"
+        raise ValueError(msg)
+    return v
+
+
 def _positive(v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
         msg = f"expected a positive number, got {v!r}"
@@ -181,12 +217,15 @@ def _config_key(attr: str) -> str:
     return f"suspension.{attr}"
 
 
-def _stage(v: Any) -> Stage:
-    if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, str) for x in v)):
-        msg = f"expected [\"name\", \"foton design\"], got {v!r}"
-        raise ValueError(msg)
-    parse_design(v[1])  # a FotonError here names the design and its problem
-    return Stage(v[0], v[1])
+def _stage(rate_hz: float) -> Callable[[Any], Stage]:
+    def convert(v: Any) -> Stage:
+        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, str) for x in v)):
+            msg = f"expected [\"name\", \"foton design\"], got {v!r}"
+            raise ValueError(msg)
+        design_to_sos(v[1], rate_hz)  # a FotonError here names the design and its problem
+        return Stage(v[0], v[1])
+
+    return convert
 
 
 def _foton_file(damping: _Reader):  # noqa: ANN202 - FilterFile or None
@@ -202,15 +241,18 @@ def _foton_file(damping: _Reader):  # noqa: ANN202 - FilterFile or None
         raise damping.fail("foton_file", str(err)) from None
 
 
-def _file_stages(damping: _Reader, ff, optic: str, dof: str) -> tuple[Stage | None, ...]:  # noqa: ANN001
+def _file_stages(damping: _Reader, ff, optic: str, dof: str,  # noqa: ANN001
+                 rate_hz: float) -> tuple[Stage | None, ...]:
     """FM1..FM10 of the filter module ``<optic>_SUS<dof>`` of foton file `ff`."""
     path = ff.path
     module = f"{optic}_SUS{dof}"
     if module not in ff.modules:
         raise damping.fail("foton_file", f"{path} has no filter module {module}")
+    if ff.rate_hz is not None and ff.rate_hz != rate_hz:
+        raise damping.fail("foton_file", f"{path} is for {ff.rate_hz:g} Hz, the model runs at {rate_hz:g} Hz")
     stages: list[Stage | None] = [None] * N_STAGES
     for st in ff.modules[module]:
-        stages[st.index] = Stage(st.name, st.design, st.sos, ff.rate_hz)
+        stages[st.index] = Stage(st.name, st.design, st.sos, rate_hz)
     return tuple(stages)
 
 
@@ -221,7 +263,7 @@ def _on(v: Any) -> tuple[int, ...]:
     return tuple(v)
 
 
-def _read_damping(r: _Reader, optic: str) -> dict[str, ModuleConfig]:
+def _read_damping(r: _Reader, optic: str, rate_hz: float) -> dict[str, ModuleConfig]:
     damping = r.sub("damping")
     fms = [f"FM{i}" for i in range(1, N_STAGES + 1)]
     common = ["on", "ramp", "limit", *fms]
@@ -235,12 +277,12 @@ def _read_damping(r: _Reader, optic: str) -> dict[str, ModuleConfig]:
         def pick(key: str, convert: Callable[[Any], Any], default: Any = ..., own=own) -> Any:
             return own.get(key, convert, damping.get(key, convert, default))
 
-        stages = tuple(pick(fm, _stage, None) for fm in fms)
+        stages = tuple(pick(fm, _stage(rate_hz), None) for fm in fms)
         if ff is not None:
             if any(stages):
                 raise damping.fail("foton_file", "give the stages either as FMn designs or "
                                    "in a foton file, not both")
-            stages = _file_stages(damping, ff, optic, dof)
+            stages = _file_stages(damping, ff, optic, dof, rate_hz)
         on = pick("on", _on, ())
         for fm in on:
             if stages[fm - 1] is None:
@@ -248,16 +290,17 @@ def _read_damping(r: _Reader, optic: str) -> dict[str, ModuleConfig]:
                 raise where.fail("on", f"FM{fm} is switched on but holds no filter")
         modules[dof] = ModuleConfig(
             gain=own.get("gain", _quantity("velocity gain")), stages=stages, on=on,
-            ramp_s=pick("ramp", _quantity("time"), 0.0), limit=pick("limit", _quantity("counts"), 0.0))
+            ramp_s=pick("ramp", _non_negative_quantity("time"), 0.0),
+            limit=pick("limit", _non_negative_quantity("counts"), 0.0))
     return modules
 
 
 def _read_noise(r: _Reader) -> NoiseSpec:
     noise = r.sub("noise", required=False)
     noise.only([*NOISE_KEYS, "enabled"])
-    values = {attr: noise.get(key, _quantity(dim), getattr(NoiseSpec(), attr))
+    values = {attr: noise.get(key, _positive_quantity(dim), getattr(NoiseSpec(), attr))
               for key, (attr, dim) in NOISE_KEYS.items()}
-    values["enabled"] = noise.get("enabled", bool, True)
+    values["enabled"] = noise.get("enabled", _boolean, True)
     return NoiseSpec(**values)
 
 
@@ -291,7 +334,8 @@ def load_optic(path: str | Path) -> OpticConfig:
     optic = r.sub("optic")
     optic.only(["name", "model"])
     name = optic.get("name", str)
-    cfg = OpticConfig(name=name, sus=_read_sus(r, name), damping=_read_damping(r, name),
+    sus = _read_sus(r, name)
+    cfg = OpticConfig(name=name, sus=sus, damping=_read_damping(r, name, sus.sample_rate_hz),
                       noise=_read_noise(r), model=optic.get("model", _check_model, "analytical"),
                       source=source)
     check_stable(cfg)
@@ -351,8 +395,12 @@ def check_stable(cfg: OpticConfig) -> None:
 
     The check uses the engine's own discrete closed loop, so what passes here runs.
     """
-    from twind.simulation.discretize import closed_loop_matrices
+    from twind.simulation.discretize import closed_loop_matrices, delay_samples
 
+    try:
+        delay_samples(cfg.sus.loop_delay_s, cfg.sus.sample_rate_hz)
+    except ValueError as err:
+        raise ConfigError(cfg.source, "cds.loop_delay", str(err)) from None
     poles = np.linalg.eigvals(closed_loop_matrices(cfg.loop(), cfg.sus.sample_rate_hz)[0])
     worst = poles[np.argmax(np.abs(poles))]
     if abs(worst) < 1.0:

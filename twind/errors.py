@@ -28,6 +28,3 @@ class ConfigError(TwindError):
 class FotonError(TwindError):
     """A foton design string or filter file cannot be understood."""
 
-
-class UnstableLoopError(TwindError):
-    """A closed damping loop has a pole in the right half plane."""

@@ -14,9 +14,9 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind.errors import FotonError
-from twind.loop.foton import ZPK, parse_design, zpk_to_sos
+from twind.loop.foton import parse_design, zpk_to_sos
+from twind.loop.foton_file import N_STAGES
 
-N_STAGES = 10
 IDENTITY_SECTION = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])
 
 
@@ -26,32 +26,31 @@ class Stage:
 
     name: str
     design: str | None = None
-    sos: NDArray[np.float64] | None = None  # discrete sections at `rate_hz`, when no design
+    sos: NDArray[np.float64] | None = None  # discrete sections at `rate_hz` from a foton file
     rate_hz: float | None = None
-
-    def zpk(self) -> ZPK | None:
-        """Continuous zpk of the design (None for coefficient-only stages)."""
-        return None if self.design is None else parse_design(self.design)
 
     def sections(self, rate_hz: float) -> NDArray[np.float64]:
         """Discrete second-order sections at `rate_hz`, shape (n, 6).
 
         A foton file's coefficients are what the front end runs, so they win over its design.
         """
-        if self.sos is not None and self.rate_hz == rate_hz:
+        if self.sos is not None:
+            if self.rate_hz != rate_hz:
+                msg = f"stage {self.name!r} has coefficients for {self.rate_hz} Hz, not {rate_hz} Hz"
+                raise FotonError(msg)
             return np.atleast_2d(self.sos)
-        if self.design is not None:
-            return zpk_to_sos(parse_design(self.design), rate_hz)
-        msg = f"stage {self.name!r} has no design and no coefficients at {rate_hz} Hz"
-        raise FotonError(msg)
+        if self.design is None:
+            msg = f"stage {self.name!r} has neither a design nor coefficients"
+            raise FotonError(msg)
+        return zpk_to_sos(parse_design(self.design), rate_hz)
 
     def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
-        """Response at `f_hz`: continuous from the design, else discrete from the sections."""
-        zpk = self.zpk()
-        if zpk is not None:
-            return zpk.response(f_hz)
-        _, h = signal.sosfreqz(self.sections(self.rate_hz), worN=np.asarray(f_hz), fs=self.rate_hz)
-        return h
+        """Response at `f_hz` of what runs: a foton file's coefficients (its design may be
+        stale), else the continuous design."""
+        if self.sos is not None:
+            _, h = signal.sosfreqz(self.sos, worN=np.asarray(f_hz), fs=self.rate_hz)
+            return h
+        return parse_design(self.design).response(f_hz)
 
 
 @dataclass

@@ -122,7 +122,6 @@ __all__ = [
     "INPUT_SWITCHING",
     "OUTPUT_SWITCHING",
     "read_filter_file",
-    "stage_sos",
     "write_filter_file",
 ]
 
@@ -774,36 +773,3 @@ def _check_token(path: str, token: str, what: str, max_length: int | None) -> No
 def _fail_write(path: str, module: str, stage: FilterStage, problem: str) -> NoReturn:
     msg = f"{path}: {_label(module, stage.index)} {stage.name!r}: {problem}"
     raise FotonError(msg)
-
-
-def stage_sos(stages: Sequence[FilterStage], engaged: Sequence[int] | None = None) -> NDArray[np.float64]:
-    """Cascade the sos of several stages (e.g. the engaged FM buttons) into one array.
-
-    Parameters
-    ----------
-    stages : sequence of FilterStage
-        Stages of one module.
-    engaged : sequence of int, optional
-        Indices (0..9) of the stages to include; all stages if None.
-
-    Returns
-    -------
-    ndarray, shape (n, 6)
-        Concatenated second-order sections; ``[[1, 0, 0, 1, 0, 0]]`` (unity)
-        if no stage is included.
-
-    Raises
-    ------
-    FotonError
-        If an engaged index has no stage.
-    """
-    by_index = {s.index: s for s in stages}
-    wanted = sorted(by_index) if engaged is None else list(engaged)
-    missing = [i for i in wanted if i not in by_index]
-    if missing:
-        msg = f"no stage with index {missing} (present: {sorted(by_index)})"
-        raise FotonError(msg)
-    if not wanted:
-        return np.array([[1.0, 0.0, 0.0, 1.0, 0.0, 0.0]])
-    parts: list[ArrayLike] = [by_index[i].sos for i in wanted]
-    return np.vstack(parts)

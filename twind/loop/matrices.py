@@ -13,8 +13,7 @@ CALIBRATION = 1e6
 
 def input_matrix(lever_m: float) -> NDArray[np.float64]:
     """OSEM readings (m) -> DOF signals (um, urad), shape (4, 5): rows POS PIT YAW SIDE."""
-    y = np.array([FACE_POSITION[o][0] for o in ("UL", "UR", "LL", "LR")], dtype=float)
-    z = np.array([FACE_POSITION[o][1] for o in ("UL", "UR", "LL", "LR")], dtype=float)
+    y, z = np.array(list(FACE_POSITION.values()), dtype=float).T
     m = np.zeros((4, 5))
     m[0, :4] = 0.25
     m[1, :4] = z / (4 * lever_m)

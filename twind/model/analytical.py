@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from twind import DOFS
 from twind.model.mechanics import Mechanics
 from twind.model.params import SOSParams
 
-DOFS = ("POS", "PIT", "YAW", "SIDE")
 
 
 def analytical_mechanics(p: SOSParams) -> Mechanics:

@@ -15,12 +15,12 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
+from twind import DOFS
 from twind.model.analytical import analytical_mechanics
 from twind.model.geometric import WireGeometry, geometric_mechanics
 from twind.model.mechanics import Mechanics
 from twind.model.params import SOSParams
 
-DOFS: tuple[str, ...] = ("POS", "PIT", "YAW", "SIDE")
 RESONANCE_EXCLUSION = 0.10  # fractional band around each resonance left out of comparisons
 _ZERO = 1e-12  # relative to the largest diagonal admittance: below is structurally zero
 

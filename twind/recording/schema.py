@@ -14,7 +14,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from twind.errors import TwindError
 
-SCHEMA_ROOT = Path(__file__).resolve().parents[2] / "schemas"
+SCHEMA_ROOT = Path(__file__).parent.parent / "schemas"  # a link to schemas/ in the source tree
 TIMESERIES = "twind/v1/timeseries.proto"
 
 
@@ -24,7 +24,7 @@ def _pool(proto: str) -> descriptor_pool.DescriptorPool:
 
     source = SCHEMA_ROOT / proto
     if not source.exists():
-        msg = f"schema {source} not found (twind reads schemas/ from its source tree)"
+        msg = f"schema {source} not found: a broken installation of twind"
         raise TwindError(msg)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "set.binpb"

@@ -1,7 +1,10 @@
-"""Discrete-time pieces shared by the engine and its independent checks.
+"""Discrete-time pieces shared by the engine and its checks.
 
-The DAC holds each output for one cycle, so the plant is discretised with a zero-order hold;
-filter sections are transposed direct form II as in the kernel.
+The plant is discretised with the bilinear (trapezoidal) rule. MODEL.md's loop has exactly one
+cycle of delay, ``exp(-s T)``, and nothing for the DAC's hold; a zero-order-hold plant would
+add half a cycle (1.9e-3 rad at 10 Hz), enough to pass for a ``loop_delay`` effect in a
+diagnosis. The bilinear plant behind a whole-cycle delay reproduces the model to ~(wT)^2/12.
+Filter sections are transposed direct form II, as in the kernel.
 """
 
 from __future__ import annotations
@@ -56,7 +59,7 @@ def balance(sos: NDArray[np.float64], rate_hz: float) -> NDArray[np.float64]:
 def stage_sections(loop: DampingLoop, dof: str, rate_hz: float) -> tuple[NDArray, dict[int, slice]]:
     """Every defined stage's balanced sections for `dof`, and the rows of each FM."""
     sos, where = loop.modules[dof].section_layout(rate_hz)
-    sos = sos.copy()
+    sos = sos / sos[:, 3:4]  # the kernel takes a0 = 1
     for rows in where.values():
         sos[rows] = balance(sos[rows], rate_hz)
     return sos, where
@@ -132,7 +135,9 @@ def closed_loop_matrices(loop: DampingLoop, rate_hz: float) -> SS:
     """The engine's closed loop (noise off) as discrete ``(A, B, C, D)``.
 
     Inputs are the four EXC test points; outputs IN1, IN2 and OUT of POS, PIT, YAW, SIDE
-    (12 rows). Built from the same matrices the engine uses but none of its code.
+    (12 rows). It shares the engine's discretisation (:func:`bilinear`, the sections) but not
+    its kernel, so python-control's ``forced_response`` on it checks the kernel; the golden
+    and Welch tests check the discretisation.
     """
     A, Bc, _, C = loop.plant.osem_state_space()
     Ad, Bd, Cd, Dd = bilinear(A, Bc @ loop.plant.output_matrix, C, 1.0 / rate_hz)

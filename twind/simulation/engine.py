@@ -19,7 +19,6 @@ from twind.simulation.discretize import (
     bilinear,
     delay_samples,
     modal,
-    module_sections,
     stage_sections,
 )
 from twind.simulation.kernel import N_DOF, N_OSEM, advance, shaped_noise
@@ -56,8 +55,9 @@ class Block:
 
 def _padded(shape: tuple[int, int, int]) -> NDArray[np.float64]:
     """Zeros of `shape` whose rows do not lie a multiple of 4 KiB apart (see kernel)."""
-    base = np.zeros(shape[:-1] + (shape[-1] + 8,))
-    return base[..., : shape[-1]]
+    n = shape[-1]
+    pad = 8 if (n + 8) % 512 else 16
+    return np.zeros(shape[:-1] + (n + pad,))[..., :n]
 
 
 class Engine:
@@ -123,8 +123,11 @@ class Engine:
         self._sos = np.tile(IDENTITY_SECTION[None, :, None], (n_opt, nmax, 1, N_DOF))
         for o, lp in enumerate(self.loops):
             for d, dof in enumerate(DOFS):
-                sos = module_sections(lp, dof, self.rate_hz)
+                sos, where = self._stage_sos[o][d]
                 self._sos[o, : len(sos), :, d] = sos
+                for fm, rows in where.items():
+                    if fm not in lp.modules[dof].on:
+                        self._sos[o, rows, :, d] = IDENTITY_SECTION
         self._nsec = np.full(n_opt, nmax, dtype=np.int64)
         self._zi = np.zeros((n_opt, nmax, 2, N_DOF))
         self._gain = np.array([[lp.modules[d].gain for d in DOFS] for lp in self.loops], dtype=float)
@@ -173,6 +176,9 @@ class Engine:
             The block's test points; its ``start_sample`` counts from the engine's start.
         """
         n_opt = len(self.loops)
+        if n < 0:
+            msg = f"cannot step by {n} samples"
+            raise ValueError(msg)
         block = out if out is not None else self.new_block(n)
         if block.in1.shape != (n_opt, N_DOF, n):
             msg = f"out holds {block.in1.shape[-1]} samples, step asked for {n}"
@@ -220,6 +226,9 @@ class Engine:
         o, d = self._where(optic, dof)
         module = self.loops[o].modules[dof]
         ramp = module.ramp_s if ramp_s is None else ramp_s
+        if not (np.isfinite(gain) and np.isfinite(ramp) and ramp >= 0):
+            msg = f"gain must be finite and ramp non-negative, got gain {gain}, ramp {ramp} s"
+            raise ValueError(msg)
         steps = int(round(ramp * self.rate_hz))
         self._gain_target[o, d] = gain
         if steps == 0:
@@ -236,8 +245,10 @@ class Engine:
         if fm not in where:
             msg = f"{optic} {dof} FM{fm} holds no filter"
             raise KeyError(msg)
+        module = self.loops[o].modules[dof]
+        if (fm in module.on) == on:
+            return  # as CDS: pressing a button into the state it is in does nothing
         rows = where[fm]
         self._sos[o, rows, :, d] = sos[rows] if on else IDENTITY_SECTION
         self._zi[o, rows, :, d] = 0.0
-        module = self.loops[o].modules[dof]
         module.on = (module.on | {fm}) if on else (module.on - {fm})
