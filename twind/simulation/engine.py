@@ -239,7 +239,12 @@ class Engine:
         module.gain = gain
 
     def switch(self, optic: str, dof: str, fm: int, on: bool) -> None:
-        """Switch stage FM`fm` of a module on or off; a stage switched on starts from rest."""
+        """Switch stage FM`fm` of a module on or off.
+
+        A stage switched on starts from rest, as CDS's "zero history" input switching does;
+        the file's switching types (ramped or crossing-triggered outputs, always-on inputs)
+        are not modelled: the switch is immediate.
+        """
         o, d = self._where(optic, dof)
         sos, where = self._stage_sos[o][d]
         if fm not in where:
