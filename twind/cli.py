@@ -142,6 +142,106 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _endpoints(args: argparse.Namespace) -> tuple[list[str], list[str]]:
+    from twind.bus.session import DEFAULT_ENDPOINT
+
+    listen = args.listen or ([] if args.connect else [DEFAULT_ENDPOINT])
+    return listen, args.connect or []
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """The twin as a Zenoh service."""
+    from twind.bus.session import zenoh_config
+    from twind.config import load_config
+    from twind.service.serve import main as serve_main
+
+    twin = load_config(args.config, args.optics)
+    optics = twin.select(args.optics)
+    listen, connect = _endpoints(args)
+    conf = zenoh_config(listen, connect, mode=args.mode, config_file=args.zenoh_config)
+    return serve_main(conf, twin, optics, block_s=args.block, speed=args.speed, seed=args.seed,
+                      duration=args.duration, record_dir=args.record, endpoints=listen + connect)
+
+
+def _client(args: argparse.Namespace):  # noqa: ANN202 - TwinClient
+    from twind.bus.session import DEFAULT_ENDPOINT
+    from twind.client import TwinClient
+
+    return TwinClient(connect=args.connect or [DEFAULT_ENDPOINT], ifo=args.ifo,
+                      timeout=args.timeout, config_file=args.zenoh_config)
+
+
+def cmd_inject(args: argparse.Namespace) -> int:
+    """Start an excitation on a running twin; prints its id, or the reason it was refused."""
+    settings = {k: getattr(args, k) for k in ("freq", "amp", "duration", "ramp", "f_stop",
+                                              "n_tones", "shape", "seed")
+                if getattr(args, k) is not None}
+    if args.start is not None:
+        settings["start_gps"] = args.start
+    if args.file:
+        settings["samples"] = np.loadtxt(args.file, ndmin=1)
+    with _client(args) as twin:
+        exc_id = twin.inject(args.channel, args.waveform, **settings)
+    print(exc_id)
+    return 0
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    """Stop an excitation by id (or all)."""
+    with _client(args) as twin:
+        print(" ".join(twin.stop(None if args.id == "all" else args.id)))
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Print the service status."""
+    with _client(args) as twin:
+        status = twin.status()
+    if args.json:
+        print(json.dumps(status))
+        return 0
+    print(f"{status['ifo']} twin of {', '.join(status['optics'])}: GPS {status['gps']:.3f}, "
+          f"up {status['uptime_s']:.1f} s, {status['real_time_factor']:.3f} x real time "
+          f"(speed {status['speed']:g}), lag {1e3 * status['lag_s']:.1f} ms "
+          f"(max {1e3 * status['max_lag_s']:.1f}), {status['late_blocks']} late blocks, "
+          f"busy {100 * status['cpu_fraction']:.1f} %")
+    for exc in status["excitations"]:
+        print(f"  {exc['id']}: {exc['waveform']} on {exc['channel']}")
+    return 0
+
+
+def _bus_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--connect", action="append", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--ifo", default="C1")
+    p.add_argument("--timeout", type=float, default=5.0)
+    p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
+
+
+def cmd_soak(args: argparse.Namespace) -> int:
+    """Serve, record, inject and attack for a while; print the service figures."""
+    from twind.service.soak import soak
+
+    report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config)
+    print("\n".join(report.lines()))
+    return 0
+
+
+def _delegate(module: str, function: str):  # noqa: ANN202
+    """A subcommand implemented by ``module.function(args)``, imported when it runs."""
+    def run(args: argparse.Namespace) -> int:
+        import importlib
+
+        return getattr(importlib.import_module(module), function)(args)
+
+    return run
+
+
+def _arguments_of(module: str, parser: argparse.ArgumentParser) -> None:
+    import importlib
+
+    importlib.import_module(module).add_arguments(parser)
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     """Engine speed, side by side with python-control on the same closed loop."""
     from twind.simulation.benchmark import run_benchmarks
@@ -189,6 +289,62 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--block", type=float, default=1.0, help="seconds per engine block")
     sim.add_argument("--record", help="MCAP file to record every block to")
     sim.set_defaults(func=cmd_simulate)
+
+    serve = sub.add_parser("serve", help="run the twin on Zenoh (embedded session)")
+    serve.add_argument("--config")
+    serve.add_argument("--optics", default="all", help="comma-separated names, or 'all'")
+    serve.add_argument("--listen", action="append", help="endpoint (default tcp/127.0.0.1:7447)")
+    serve.add_argument("--connect", action="append", help="endpoint of a router or peer")
+    serve.add_argument("--mode", choices=("peer", "router", "client"), default="peer")
+    serve.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
+    serve.add_argument("--record", help="folder for rotating MCAP recordings of the session")
+    serve.add_argument("--speed", type=float, default=1.0, help="twin seconds per wall second")
+    serve.add_argument("--block", type=float, default=1 / 16, help="seconds per block")
+    serve.add_argument("--seed", type=_seed, default=0)
+    serve.add_argument("--duration", type=float, help="stop after this many twin seconds")
+    serve.set_defaults(func=cmd_serve)
+
+    inject = sub.add_parser("inject", help="start an excitation on a running twin")
+    inject.add_argument("channel", help="e.g. C1:SUS-ETMX_SUSPOS_EXC")
+    inject.add_argument("waveform", choices=("sine", "sweep", "noise", "multisine", "stream"))
+    inject.add_argument("--freq", type=float, help="Hz (sweep, multisine: lowest)")
+    inject.add_argument("--f-stop", type=float, help="Hz: sweep end, multisine highest")
+    inject.add_argument("--n-tones", type=int, help="multisine tones")
+    inject.add_argument("--amp", type=float, help="peak amplitude (noise: RMS)")
+    inject.add_argument("--duration", type=float, help="seconds (inf: until stopped)")
+    inject.add_argument("--ramp", type=float, help="taper seconds at start and end")
+    inject.add_argument("--start", type=float, help="GPS start (default: next block)")
+    inject.add_argument("--shape", help="noise: foton design shaping white noise")
+    inject.add_argument("--file", help="stream: text file of samples at the model rate")
+    inject.add_argument("--seed", type=_seed)
+    _bus_arguments(inject)
+    inject.set_defaults(func=cmd_inject)
+
+    stop = sub.add_parser("stop", help="stop an excitation by id, or 'all'")
+    stop.add_argument("id")
+    _bus_arguments(stop)
+    stop.set_defaults(func=cmd_stop)
+
+    status = sub.add_parser("status", help="status of a running twin")
+    status.add_argument("--json", action="store_true")
+    _bus_arguments(status)
+    status.set_defaults(func=cmd_status)
+
+    for name, module, function, text in [
+            ("record", "twind.recording.recorder", "record_main", "record twin channels to MCAP"),
+            ("replay", "twind.recording.replay", "replay_main", "republish a recording on Zenoh"),
+            ("export", "twind.recording.export", "export_main", "MCAP session to .npz or .h5")]:
+        cmd = sub.add_parser(name, help=text)
+        _arguments_of(module, cmd)
+        cmd.set_defaults(func=_delegate(module, function))
+
+    soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")
+    soak_p.add_argument("--duration", type=float, default=3600.0, help="seconds of serving")
+    soak_p.add_argument("--optics", default="all")
+    soak_p.add_argument("--hostile", type=int, default=1000, help="malformed requests to send")
+    soak_p.add_argument("--port", type=int, default=17461)
+    soak_p.add_argument("--config")
+    soak_p.set_defaults(func=cmd_soak)
 
     bench = sub.add_parser("bench", help="engine speed against python-control")
     bench.add_argument("--config")

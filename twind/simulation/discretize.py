@@ -74,7 +74,7 @@ def module_sections(loop: DampingLoop, dof: str, rate_hz: float) -> NDArray[np.f
     return sos
 
 
-def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, ...]:
     """Real modal form of a discrete plant: each state couples only to its mode partner.
 
     Returns
@@ -83,7 +83,9 @@ def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, NDArray, NDArra
         ``x+[i] = a_diag[i] x[i] + a_off[i] x[partner[i]] + ...``
     partner : ndarray of int, shape (n,)
     B_modal, C_modal : ndarray
-        Input and output matrices in the modal coordinates.
+        Input and output matrices in the modal coordinates (the feedthrough is unchanged).
+    to_modal : ndarray, shape (n, n)
+        ``x = to_modal @ z``: the physical state of modal state ``z``.
     """
     # LAPACK returns each complex pair together, positive imaginary part first, as cdf2rdf wants
     w, v = np.linalg.eig(Ad)
@@ -104,7 +106,7 @@ def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, NDArray, NDArra
         else:
             i += 1
     inv = np.linalg.inv(vr)
-    return np.diag(wr).copy(), a_off, partner, inv @ B, C @ vr
+    return np.diag(wr).copy(), a_off, partner, inv @ B, C @ vr, vr
 
 
 

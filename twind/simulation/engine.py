@@ -89,12 +89,12 @@ class Engine:
     def _build_plants(self) -> None:
         n_opt, dt = len(self.loops), 1.0 / self.rate_hz
         modes = []
-        feedthrough = []
+        feedthrough, self._to_modal = [], []
         for lp in self.loops:
-            A, Bc, Bs, C = lp.plant.osem_state_space()
-            Ad, Bd, Cd, Dd = bilinear(A, np.hstack([Bc @ lp.plant.output_matrix, Bs]), C, dt)
-            modes.append(modal(Ad, Bd, Cd))
+            mode, Dd, vr = self._discrete_plant(lp)
+            modes.append(mode)
             feedthrough.append(Dd)
+            self._to_modal.append(vr)
         ns = max(len(m[0]) for m in modes)
         self._a_diag = np.zeros((n_opt, ns))
         self._a_off = np.zeros((n_opt, ns))
@@ -114,6 +114,34 @@ class Engine:
         self._ndelay = np.array([delay_samples(lp.plant.delay_s, self.rate_hz) for lp in self.loops])
         self._dbuf = np.zeros((n_opt, self._ndelay.max(), N_DOF))
         self._dpos = np.zeros(n_opt, dtype=np.int64)
+
+    def _discrete_plant(self, lp: DampingLoop) -> tuple[tuple, NDArray, NDArray]:
+        A, Bc, Bs, C = lp.plant.osem_state_space()
+        Ad, Bd, Cd, Dd = bilinear(A, np.hstack([Bc @ lp.plant.output_matrix, Bs]), C,
+                                  1.0 / self.rate_hz)
+        mode = modal(Ad, Bd, Cd)
+        return mode[:5], Dd, mode[5]
+
+    def update_plant(self, optic: str, loop: DampingLoop) -> None:
+        """Replace an optic's plant while running; its motion carries over.
+
+        The state is mapped through physical coordinates (positions and velocities), so
+        the optic keeps moving as it was and only the dynamics from now on change.
+        """
+        o, _ = self._where(optic, DOFS[0])
+        (a_diag, a_off, partner, B, C), Dd, vr = self._discrete_plant(loop)
+        k = len(a_diag)
+        if k != len(self._to_modal[o]):
+            msg = f"{optic}: the new plant has {k} states, the running one {len(self._to_modal[o])}"
+            raise ValueError(msg)
+        physical = self._to_modal[o] @ self._x[o, :k]
+        self._x[o, :k] = np.linalg.solve(vr, physical)
+        self._a_diag[o, :k], self._a_off[o, :k], self._partner[o, :k] = a_diag, a_off, partner
+        self._bdrive[o, :k], self._bsp[o, :k] = B[:, :N_DOF], B[:, N_DOF:]
+        self._cs[o, :, :k] = C * 1e6
+        self._ds[o] = 1e6 * Dd
+        self._to_modal[o] = vr
+        self.loops[o].plant = loop.plant
 
     def _build_filters(self) -> None:
         n_opt = len(self.loops)

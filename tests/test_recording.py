@@ -1,0 +1,516 @@
+"""Recording, reading, exporting and replaying sessions (MCAP), all on loopback.
+
+Every test that uses Zenoh picks a free TCP port; the test's session listens on it and the
+recorder or replayer connects, with multicast scouting off.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import zenoh
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from twind.bus.codec import SampleBlock
+from twind.bus.session import zenoh_config
+from twind.channels import block_channels
+from twind.recording.export import export, export_main
+from twind.recording.export import add_arguments as export_arguments
+from twind.recording.reader import (
+    GapWarning,
+    JsonDecoderFactory,
+    RecordingError,
+    TruncatedRecordingWarning,
+    getdata,
+    read_session,
+)
+from twind.recording.recorder import Recorder, synthetic_block
+from twind.recording.replay import replay
+from twind.recording.writer import McapSession, SessionWriter, scan_block
+from twind.timeutil import gps_to_unix_ns
+
+GPS0 = 1_400_000_000.0
+ROOT = Path(__file__).resolve().parents[1]
+SYNTH = ["C1:SUS-ETMX_SUSPOS_IN1", "C1:SUS-ETMX_SUSPIT_IN1", "C1:SUS-ETMX_ULSEN_OUT"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _expected(channel: str, seqs) -> np.ndarray:  # noqa: ANN001
+    return np.concatenate([SampleBlock.decode(synthetic_block(channel, k)).samples
+                           for k in seqs])
+
+
+# --- files written by SessionWriter (twind simulate --record) ----------------------------
+
+
+@pytest.fixture(scope="module")
+def engine_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    """A session of ETMX and ITMX written by SessionWriter, and the engine's samples."""
+    from twind.config import load_config
+    from twind.simulation.engine import Engine
+
+    twin = load_config(None, "ETMX,ITMX")
+    optics = twin.select("ETMX,ITMX")
+    engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics}, seed=7)
+    path = tmp_path_factory.mktemp("engine") / "session.mcap"
+    expected: dict[str, list[np.ndarray]] = {}
+    with SessionWriter(path, twin.ifo, GPS0) as writer:
+        for _ in range(5):
+            block = engine.step(4096)
+            writer.write_block(block)
+            for name, _, x in block_channels(twin.ifo, block):
+                expected.setdefault(name, []).append(x.copy())
+    return path, {k: np.concatenate(v) for k, v in expected.items()}
+
+
+def test_session_writer_roundtrip(engine_session: tuple[Path, dict]) -> None:
+    path, expected = engine_session
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        session = read_session(path)
+    assert session.complete and not session.problems and not session.gaps
+    assert set(session.channels) == set(expected) and len(expected) == 42
+    for name, x in expected.items():
+        ch = session[name]
+        assert np.array_equal(ch.samples, x), name  # bit for bit
+        assert ch.t0 == GPS0 and ch.rate == 16384.0
+        assert list(ch.sequences) == [0, 1, 2, 3, 4]
+        assert np.allclose(np.diff(ch.gps_starts), 0.25)
+    assert session["C1:SUS-ETMX_SUSPOS_IN1"].unit == "um"
+    assert session.config["ifo"] == "C1" and session.config["gps"] == GPS0
+    assert session.events == []
+    with pytest.raises(RecordingError, match="not in the recording"):
+        session["C1:SUS-ETMZ_SUSPOS_IN1"]
+
+    # the standard reader: one schema, registered once, decodable by mcap-protobuf
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        protobuf = [s for s in summary.schemas.values() if s.encoding == "protobuf"]
+        assert [s.name for s in protobuf] == ["twind.v1.SampleBlock"]
+        assert summary.statistics.message_count == 42 * 5
+        assert all(c.compression == "zstd" for c in summary.chunk_indexes)
+        assert max(c.uncompressed_size for c in summary.chunk_indexes) < 300_000
+        n = 0
+        for _, channel, message, proto in reader.iter_decoded_messages():
+            assert channel.topic == f"twin/{proto.channel}"
+            assert message.sequence == proto.sequence
+            assert message.log_time == message.publish_time == gps_to_unix_ns(proto.gps_start)
+            n += 1
+        assert n == 42 * 5
+
+
+def test_export_npz_and_hdf5(engine_session: tuple[Path, dict], tmp_path: Path) -> None:
+    path, expected = engine_session
+    result = export(path, tmp_path / "all.npz")
+    assert result.format == "npz" and not result.gaps and len(result.channels) == 42
+    with np.load(tmp_path / "all.npz") as npz:
+        assert set(npz.files) == {f"{c}{s}" for c in expected for s in ("", ":t0", ":rate")}
+        for name, x in expected.items():
+            assert npz[name].dtype == np.float64 and np.array_equal(npz[name], x)
+            assert npz[f"{name}:t0"] == GPS0 and npz[f"{name}:rate"] == 16384.0
+
+    some = ["C1:SUS-ITMX_SUSYAW_OUT", "C1:SUS-ETMX_LRSEN_OUT"]
+    result = export(path, tmp_path / "some.h5", channels=some)
+    assert result.format == "hdf5" and result.channels == some
+    with h5py.File(tmp_path / "some.h5", "r") as f:
+        assert sorted(f.keys()) == sorted(some)
+        for name in some:
+            assert np.array_equal(f[name][()], expected[name])
+            assert f[name].attrs["t0"] == GPS0 and f[name].attrs["rate"] == 16384.0
+
+    # never overwrite; refuse unknown formats and channels, before writing anything
+    before = (tmp_path / "some.h5").read_bytes()
+    with pytest.raises(RecordingError, match="does not overwrite"):
+        export(path, tmp_path / "some.h5")
+    assert (tmp_path / "some.h5").read_bytes() == before
+    with pytest.raises(RecordingError, match=r"\.npz, \.h5 or \.hdf5"):
+        export(path, tmp_path / "x.csv")
+    with pytest.raises(RecordingError, match="C1:SUS-ETMZ"):
+        export(path, tmp_path / "x.npz", channels=["C1:SUS-ETMZ_SUSPOS_IN1"])
+    assert not (tmp_path / "x.npz").exists()
+
+    # the command line's half: twind export FILE -o OUT --channels a,b
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    export_arguments(parser)
+    out = tmp_path / "cli.hdf5"
+    args = parser.parse_args([str(path), "-o", str(out), "--channels", ",".join(some)])
+    assert export_main(args) == 0
+    with h5py.File(out, "r") as f:
+        assert sorted(f.keys()) == sorted(some)
+
+
+def test_getdata_from_a_recording(engine_session: tuple[Path, dict]) -> None:
+    path, expected = engine_session
+    name = "C1:SUS-ETMX_SUSPOS_IN1"
+    data = getdata([name, "C1:SUS-ITMX_ULSEN_OUT"], 0.5, start=GPS0 + 0.125, source=path)
+    ts = data[name]
+    assert ts.t0 == GPS0 + 0.125 and ts.sample_rate == 16384.0 and len(ts.value) == 8192
+    assert np.array_equal(ts.value, expected[name][2048:2048 + 8192])
+    with pytest.raises(RecordingError, match="cover GPS"):
+        getdata(name, 2.0, start=GPS0, source=path)  # 1.25 s recorded
+
+
+# --- synthetic files: gaps and truncation ---------------------------------------------------
+
+
+def _synthetic_file(path: Path, seqs: dict[str, list[int]], chunk_bytes: int = 32 * 1024,
+                    events: int = 0) -> None:
+    with McapSession(path, "C1", {"optics": ["ETMX"]}, chunk_bytes=chunk_bytes) as f:
+        for k in range(max(max(s) for s in seqs.values()) + 1):
+            for name, s in seqs.items():
+                if k in s:
+                    f.write_block(synthetic_block(name, k))
+            if k < events:
+                f.write_event({"event": "start", "id": k, "gps": GPS0 + k / 16})
+
+
+def test_gaps_are_reported_and_nan_filled(tmp_path: Path) -> None:
+    path = tmp_path / "gappy.mcap"
+    full, gappy = list(range(8)), [0, 1, 2, 5, 6, 7]
+    _synthetic_file(path, {SYNTH[0]: full, SYNTH[1]: gappy})
+    with pytest.warns(GapWarning, match="2 block"):
+        result = export(path, tmp_path / "gappy.npz")
+    assert list(result.gaps) == [SYNTH[1]]
+    gap = result.gaps[SYNTH[1]][0]
+    assert (gap.after_sequence, gap.before_sequence, gap.n_samples) == (2, 5, 2048)
+    with np.load(tmp_path / "gappy.npz") as npz:
+        x = npz[SYNTH[1]]
+        assert len(x) == 8 * 1024 and np.isnan(x[3072:5120]).all()
+        assert np.array_equal(x[:3072], _expected(SYNTH[1], [0, 1, 2]))
+        assert np.array_equal(x[5120:], _expected(SYNTH[1], [5, 6, 7]))
+        assert np.allclose(npz[f"{SYNTH[1]}:gaps"], [[GPS0 + 3 / 16, GPS0 + 5 / 16]])
+        assert f"{SYNTH[0]}:gaps" not in npz.files
+        assert np.array_equal(npz[SYNTH[0]], _expected(SYNTH[0], full))
+
+
+def test_truncated_file_reads_up_to_the_last_complete_chunk(tmp_path: Path) -> None:
+    path = tmp_path / "full.mcap"
+    _synthetic_file(path, {c: list(range(40)) for c in SYNTH[:2]}, events=3)
+    data = path.read_bytes()
+    counts = []
+    for cut in (400, len(data) // 3, len(data) // 2, len(data) - 200, len(data) - 1):
+        part = tmp_path / f"cut{cut}.mcap"
+        part.write_bytes(data[:cut])
+        with pytest.warns(TruncatedRecordingWarning, match="without its summary and footer"):
+            session = read_session(part)  # never raises
+        assert not session.complete
+        n = [len(session[c].sequences) if c in session else 0 for c in SYNTH[:2]]
+        for c in SYNTH[:2]:
+            if c in session:  # a prefix of the blocks, exactly
+                seqs = list(session[c].sequences)
+                assert seqs == list(range(len(seqs)))
+                assert np.array_equal(session[c].samples, _expected(c, seqs))
+        counts.append(min(n))
+    assert counts[0] == 0 and counts == sorted(counts) and counts[-1] == 40
+    assert 0 < counts[1] < counts[2] < 40
+
+
+# --- the recorder -----------------------------------------------------------------------------
+
+
+class _Lines:
+    """The lines a subprocess writes to a pipe, readable with a timeout."""
+
+    def __init__(self, pipe) -> None:  # noqa: ANN001
+        self.q: queue.SimpleQueue[str] = queue.SimpleQueue()
+        self.all: list[str] = []
+        threading.Thread(target=self._pump, args=(pipe,), daemon=True).start()
+
+    def _pump(self, pipe) -> None:  # noqa: ANN001
+        for line in pipe:
+            self.all.append(line)
+            self.q.put(line)
+
+    def wait_for(self, text: str, timeout: float = 20.0) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if text in line:
+                return line
+        msg = f"no {text!r} within {timeout} s; got {self.all}"
+        raise AssertionError(msg)
+
+
+def _start_recorder(out: Path, port: int, *extra: str) -> tuple[subprocess.Popen, _Lines]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "twind.recording.recorder", "twin/**", "-o", str(out),
+         "--connect", f"tcp/127.0.0.1:{port}", *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    lines = _Lines(proc.stderr)
+    try:
+        lines.wait_for("twind record: recording ")
+    except AssertionError:
+        proc.kill()
+        raise
+    return proc, lines
+
+
+def _publishers(session: zenoh.Session, channels: list[str]) -> dict:
+    pubs = {c: session.declare_publisher(f"twin/{c}",
+                                         congestion_control=zenoh.CongestionControl.BLOCK)
+            for c in channels}
+    deadline = time.monotonic() + 10
+    while not all(_matching(p) for p in pubs.values()):  # the recorder's subscription
+        assert time.monotonic() < deadline, "the recorder never subscribed"
+        time.sleep(0.01)
+    return pubs
+
+
+def _matching(pub) -> bool:  # noqa: ANN001
+    status = pub.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+def test_recorder_sigterm_writes_a_complete_file(tmp_path: Path) -> None:
+    port = _free_port()
+    out = tmp_path / "rec.mcap"
+    status = {"ifo": "C1", "optics": ["ETMX"], "model_rate_hz": 16384}
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        queryable = session.declare_queryable(
+            "twin/@/C1/status", lambda q: q.reply(q.key_expr, json.dumps(status)))
+        proc, lines = _start_recorder(out, port)
+        try:
+            pubs = _publishers(session, SYNTH)
+            events = session.declare_publisher("twin/@/C1/events")
+            for k in range(20):
+                for c in SYNTH:
+                    pubs[c].put(synthetic_block(c, k))
+                if k == 10:
+                    events.put(json.dumps({"event": "start", "id": "inj-1", "gps": GPS0 + 0.6,
+                                           "request": {"optic": "ETMX", "dof": "POS"}}))
+            time.sleep(0.5)  # in flight, then written
+            proc.send_signal(signal.SIGTERM)
+            stdout, _ = proc.communicate(timeout=20)
+        finally:
+            proc.kill()
+        queryable.undeclare()
+    assert proc.returncode == 0, "".join(lines.all)
+    assert "recorded 60 blocks of 3 channel(s)" in stdout and "1 event" in stdout
+
+    # complete: summary and footer, readable by the standard reader
+    with open(out, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory(), JsonDecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count == 60 + 1 + 1
+        topics = {c.topic for c in summary.channels.values()}
+        assert topics == {f"twin/{c}" for c in SYNTH} | {"twin/@events", "twin/@config"}
+        decoded = list(reader.iter_decoded_messages(log_time_order=False))
+    assert decoded[0].channel.topic == "twin/@config"
+    assert decoded[0].decoded_message["status"] == status
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        session_read = read_session(out)
+    assert session_read.complete and session_read.config["status"] == status
+    assert [e["id"] for e in session_read.events] == ["inj-1"]
+    for c in SYNTH:
+        assert list(session_read[c].sequences) == list(range(20))
+        assert np.array_equal(session_read[c].samples, _expected(c, range(20)))
+
+
+def test_recorder_sigkill_leaves_a_readable_file(tmp_path: Path) -> None:
+    port = _free_port()
+    out = tmp_path / "killed.mcap"
+    n = 150  # 3 x 150 blocks of 8.3 kB: about 15 chunks
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        proc, _ = _start_recorder(out, port)
+        try:
+            pubs = _publishers(session, SYNTH)
+            for k in range(n):
+                for c in SYNTH:
+                    pubs[c].put(synthetic_block(c, k))
+            deadline = time.monotonic() + 10
+            while out.stat().st_size < 2_000_000 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=10)
+        finally:
+            proc.kill()
+    with pytest.warns(TruncatedRecordingWarning):
+        session_read = read_session(out)
+    assert not session_read.complete
+    lengths = []
+    for c in SYNTH:
+        seqs = list(session_read[c].sequences)
+        assert seqs == list(range(len(seqs)))  # what is there is whole and in order
+        assert np.array_equal(session_read[c].samples, _expected(c, seqs))
+        lengths.append(len(seqs))
+    assert min(lengths) >= 50, lengths
+    assert session_read.config["status"] is None and "no twin service" in \
+        session_read.config["status_problem"]
+
+
+@pytest.mark.parametrize("rotate", [{"rotate_bytes": 800_000}, {"rotate_seconds": 2.0}])
+def test_rotation_reads_back_seamlessly(tmp_path: Path, rotate: dict) -> None:
+    port = _free_port()
+    out = tmp_path / "rot.mcap"
+    n = 120  # 3 MB of blocks, 7.5 s of data
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        rec = Recorder(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), out, **rotate,
+                       status_timeout=0.2, log=lambda line: None)
+        rec.start()
+        try:
+            pubs = _publishers(session, SYNTH)
+            for k in range(n):
+                for c in SYNTH:
+                    pubs[c].put(synthetic_block(c, k))
+            deadline = time.monotonic() + 10
+            while rec.stats.blocks < 3 * n and time.monotonic() < deadline:
+                time.sleep(0.02)
+        finally:
+            stats = rec.stop()
+    files = sorted(tmp_path.glob("rot-*.mcap"))
+    assert not out.exists() and files == stats.files and len(files) >= 3
+    assert [f.name for f in files[:2]] == ["rot-0001.mcap", "rot-0002.mcap"]
+    for i, f in enumerate(files):  # each one complete, and no bigger or longer than asked
+        with open(f, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+        assert summary.statistics.message_count > 1
+        if "rotate_bytes" in rotate:
+            assert f.stat().st_size <= 800_000 + 300_000
+        else:  # 32 blocks a file (24 in the last): GPS0 + 2 i ... GPS0 + 2 i + 31/16
+            starts = read_session(f)[SYNTH[0]].gps_starts
+            assert starts[0] == GPS0 + 2 * i and len(starts) == (24 if i == 3 else 32)
+    if "rotate_seconds" in rotate:
+        assert len(files) == 4
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        whole = read_session(out)  # the set, by the name it was given
+    assert whole.files == files and whole.complete and not whole.gaps
+    assert len(whole.configs) == len(files)
+    for c in SYNTH:
+        assert list(whole[c].sequences) == list(range(n))
+        assert np.array_equal(whole[c].samples, _expected(c, range(n)))
+
+
+def test_recorder_refuses_to_overwrite(tmp_path: Path) -> None:
+    (tmp_path / "a.mcap").write_bytes(b"")
+    conf = zenoh_config()
+    with pytest.raises(RecordingError, match="does not overwrite"):
+        Recorder(conf, tmp_path / "a.mcap")
+    (tmp_path / "b-0001.mcap").write_bytes(b"")
+    with pytest.raises(RecordingError, match="b-0001.mcap exists"):
+        Recorder(conf, tmp_path / "b.mcap", rotate_seconds=10)
+    with pytest.raises(RecordingError, match="rotate_bytes must be positive"):
+        Recorder(conf, tmp_path / "c.mcap", rotate_bytes=0)
+
+
+def test_getdata_from_the_bus(tmp_path: Path) -> None:
+    port = _free_port()
+    names = SYNTH[:2]
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        def publish() -> None:
+            pubs = _publishers(session, names)
+            for k in range(12):
+                for c in names:
+                    pubs[c].put(synthetic_block(c, k))
+                time.sleep(0.01)
+
+        publisher = threading.Thread(target=publish, daemon=True)
+        publisher.start()
+        data = getdata(names, 0.5, start=GPS0 + 0.125,
+                       source=zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), timeout=10)
+        publisher.join(timeout=10)
+    for c in names:
+        assert data[c].t0 == GPS0 + 0.125 and data[c].sample_rate == 16384.0
+        assert np.array_equal(data[c].value, _expected(c, range(12))[2048:2048 + 8192])
+
+
+# --- replay ------------------------------------------------------------------------------------
+
+
+def test_replay_same_bytes_in_order_and_paced(tmp_path: Path) -> None:
+    path = tmp_path / "rec.mcap"
+    _synthetic_file(path, {c: list(range(40)) for c in SYNTH[:2]}, events=1)
+    span = 39 / 16  # s between the first and last block
+    expected = [(f"twin/{h.channel}", d) for d in
+                (synthetic_block(c, k) for k in range(40) for c in SYNTH[:2])
+                for h in [scan_block(d)]]
+    port = _free_port()
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        got: queue.SimpleQueue = queue.SimpleQueue()
+        subs = [session.declare_subscriber(
+            key, lambda s: got.put((str(s.key_expr), s.payload.to_bytes())))
+            for key in ("twin/**", "twin/@/C1/events")]
+        conf = zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])
+        timings = {}
+        for rate in (10.0, float("inf")):
+            stats = replay(path, conf, rate=rate)
+            time.sleep(0.2)
+            received = []
+            while not got.empty():
+                received.append(got.get())
+            data = [r for r in received if not r[0].startswith("twin/@")]
+            assert data == expected, rate  # the same bytes, in order
+            events = [json.loads(r[1]) for r in received if r[0] == "twin/@/C1/events"]
+            assert events == [{"event": "start", "id": 0, "gps": GPS0}]
+            assert stats.messages == 81 and stats.recorded_span_s == pytest.approx(span)
+            timings[rate] = stats.elapsed_s
+        for s in subs:
+            s.undeclare()
+    assert span / 10 * 0.9 < timings[10.0] < span / 10 + 0.3, timings
+    assert timings[float("inf")] < timings[10.0] / 2, timings
+    with pytest.raises(RecordingError, match="rate must be >= 0"):
+        replay(path, conf, rate=-1)
+
+
+def test_replay_loop_and_stop(tmp_path: Path) -> None:
+    path = tmp_path / "short.mcap"
+    _synthetic_file(path, {SYNTH[0]: list(range(4))})  # 4 blocks: 0.25 s a pass
+    port = _free_port()
+    stop = threading.Event()
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        got: list[int] = []
+        sub = session.declare_subscriber(
+            "twin/**", lambda s: got.append(scan_block(s.payload.to_bytes()).sequence))
+        threading.Timer(1.5, stop.set).start()
+        stats = replay(path, zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), rate=2.0,
+                       loop=True, stop=stop)
+        time.sleep(0.1)
+        sub.undeclare()
+    # 0.125 s a pass at 2x: about 10 passes in 1.5 s, each 0, 1, 2, 3
+    assert 6 <= stats.loops <= 14, stats
+    assert got[:8] == [0, 1, 2, 3, 0, 1, 2, 3]
+    assert len(got) == stats.messages
+
+
+def test_cli_entry_points_report_errors(tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for module, args, text in [
+        ("export", [str(tmp_path / "none.mcap"), "-o", str(tmp_path / "x.npz")],
+         "no such recording"),
+        ("replay", [str(tmp_path / "none.mcap")], "no such recording"),
+        ("recorder", ["-o", str(tmp_path / "no" / "x.mcap")], "no such directory"),
+    ]:
+        proc = subprocess.run([sys.executable, "-m", f"twind.recording.{module}", *args],
+                              capture_output=True, text=True, env=env, cwd=ROOT, timeout=30,
+                              check=False)
+        assert proc.returncode == 2 and text in proc.stderr, (module, proc.stderr)
+        assert "Traceback" not in proc.stderr
+    shutil.rmtree(tmp_path, ignore_errors=True)

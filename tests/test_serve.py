@@ -1,0 +1,106 @@
+"""The twin as a service on loopback: channels out, excitations in, refusals, live control."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from servicekit import serving
+from twind.bus.codec import SampleBlock
+from twind.bus.keys import all_data
+from twind.bus.session import zenoh_config
+from twind.client import InjectionRefused, TwinClient
+
+POS = "C1:SUS-ETMX_SUSPOS"
+
+
+class Collector:
+    """Subscribes to every twin channel and keeps the blocks of some of them."""
+
+    def __init__(self, endpoint: str, channels: tuple[str, ...]) -> None:
+        self.blocks: dict[str, list[SampleBlock]] = {c: [] for c in channels}
+        self._lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(connect=[endpoint], mode="client"))
+        self.sub = self.session.declare_subscriber(all_data(), self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        block = SampleBlock.decode(sample.payload.to_bytes())
+        if block.channel in self.blocks:
+            with self._lock:
+                self.blocks[block.channel].append(block)
+
+    def series(self, channel: str) -> tuple[np.ndarray, list[SampleBlock]]:
+        with self._lock:
+            blocks = list(self.blocks[channel])
+        return np.concatenate([b.samples for b in blocks]), blocks
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+def _amplitude_at(x: np.ndarray, rate: float, f: float) -> float:
+    t = np.arange(x.size) / rate
+    basis = np.column_stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t)])
+    coef, *_ = np.linalg.lstsq(basis, x, rcond=None)
+    return float(np.hypot(*coef))
+
+
+@pytest.mark.slow
+def test_serve_inject_refuse_and_test_points() -> None:
+    with serving("--optics", "ETMX", "--speed", "4") as endpoint:
+        points = tuple(f"{POS}_{p}" for p in ("EXC", "IN1", "IN2", "OUT"))
+        col = Collector(endpoint, points)
+        try:
+            with TwinClient(connect=[endpoint]) as twin:
+                exc_id = twin.inject(f"{POS}_EXC", "sine", freq=3.0, amp=0.1, duration=math.inf)
+                for bad, reason in [({"freq": -3.0, "amp": 0.1}, "freq"),
+                                    ({"freq": 3.0, "amp": float("nan")}, "amp")]:
+                    with pytest.raises(InjectionRefused, match=reason):
+                        twin.inject(f"{POS}_EXC", "sine", duration=10.0, **bad)
+                with pytest.raises(InjectionRefused, match="unknown excitation channel"):
+                    twin.inject("C1:SUS-ETMZ_SUSPOS_EXC", "sine", freq=1.0, amp=0.1)
+                assert [e["id"] for e in twin.status()["excitations"]] == [exc_id]
+                time.sleep(5.5)  # 20 s of twin time at speed 4
+                status = twin.status()
+                twin.stop(exc_id)
+            assert status["blocks"] >= 16 * 20 and status["speed"] == 4
+        finally:
+            col.close()
+    exc, blocks = col.series(f"{POS}_EXC")
+    in1, _ = col.series(f"{POS}_IN1")
+    in2, _ = col.series(f"{POS}_IN2")
+    n = min(exc.size, in1.size, in2.size)
+    assert n >= 20 * 16384
+    seqs = [b.sequence for b in blocks]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # no gaps, in order
+    assert all(b.rate_hz == 16384 for b in blocks)
+    assert np.array_equal(in2[:n] - in1[:n], exc[:n]) or np.allclose(in2[:n] - in1[:n], exc[:n],
+                                                                      rtol=0, atol=1e-12)
+    on = np.flatnonzero(exc)
+    sine = exc[on[0]:on[0] + 16 * 16384]
+    assert _amplitude_at(sine, 16384, 3.0) == pytest.approx(0.1, rel=1e-6)
+    assert np.max(np.abs(sine)) == pytest.approx(0.1, rel=1e-3)
+
+
+def test_live_parameters_and_filters() -> None:
+    with serving("--optics", "ETMX,ITMX", "--speed", "4") as endpoint, \
+            TwinClient(connect=[endpoint]) as twin:
+        before = twin.params("ETMX")
+        assert before["params"]["wire_length_m"] == pytest.approx(0.248)
+        after = twin.params("ETMX", wire_length_m=0.25)
+        assert after["params"]["wire_length_m"] == pytest.approx(0.25)
+        with pytest.raises(Exception, match="unknown parameter"):
+            twin.params("ETMX", wire_lenght_m=0.25)
+        with pytest.raises(Exception, match="must be positive"):
+            twin.params("ETMX", mass_kg=-1.0)
+        state = twin.switch("ITMX", "PIT", 3, False)
+        assert state["filters"]["PIT"]["on"] == [1, 2]
+        state = twin.set_gain("ITMX", "PIT", 0.2, ramp=0.0)
+        assert state["filters"]["PIT"]["gain"] == pytest.approx(0.2)
+        assert twin.status()["late_blocks"] == 0

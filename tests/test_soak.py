@@ -1,0 +1,19 @@
+"""A short soak of the service: nothing lost on the bus or on disk, every attack refused."""
+
+from __future__ import annotations
+
+import pytest
+
+from servicekit import free_port
+from twind.service.soak import soak
+
+
+@pytest.mark.slow
+def test_short_soak() -> None:
+    report = soak(duration=8.0, optics="ETMX", hostile=60, port=free_port(), injections_every=1.0)
+    print("\n".join(report.lines()))
+    assert report.bus_blocks > 0 and report.bus_lost == 0 and report.bus_out_of_order == 0
+    assert report.mcap_blocks >= report.bus_blocks and report.mcap_gaps == 0
+    assert report.hostile_refused == report.hostile_sent == 60
+    assert report.hostile_unanswered == 0
+    assert len(report.latency_s) >= 3

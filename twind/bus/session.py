@@ -1,0 +1,39 @@
+"""Zenoh configuration for twin services and clients."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+
+import zenoh
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
+                 config_file: str | None = None, scouting: bool = False) -> zenoh.Config:
+    """A Zenoh configuration.
+
+    Parameters
+    ----------
+    listen, connect : sequence of str
+        Endpoints such as ``tcp/127.0.0.1:7447``.
+    mode : {"peer", "client", "router"}
+    config_file : str, optional
+        A Zenoh JSON5 configuration file (e.g. ``deploy/zenoh-router.json5``) to start from.
+    scouting : bool
+        Multicast scouting; off by default so that tests and twins stay on the endpoints they
+        are given and never find each other by accident.
+
+    Returns
+    -------
+    zenoh.Config
+    """
+    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
+    return conf

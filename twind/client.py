@@ -1,0 +1,118 @@
+"""Talk to a running twin over Zenoh, as scripts talk to CDS.
+
+>>> with TwinClient(connect=["tcp/127.0.0.1:7447"]) as twin:          # doctest: +SKIP
+...     exc = twin.inject("C1:SUS-ETMX_SUSPOS_EXC", "sine", freq=3.0, amp=0.1, duration=20)
+...     print(twin.status()["excitations"])
+...     twin.stop(exc)
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from types import TracebackType
+
+import zenoh
+
+from twind.bus.keys import ROOT, control_key
+from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
+from twind.errors import TwindError
+
+
+class InjectionRefused(TwindError):
+    """The twin refused an excitation; the message is its reason."""
+
+
+class TwinUnreachable(TwindError):
+    """No twin answered on the bus."""
+
+
+class TwinClient:
+    """A Zenoh client session to one twin service.
+
+    Parameters
+    ----------
+    connect : sequence of str
+        Endpoints of the twin (or of a router in front of it).
+    ifo : str
+        The twin's interferometer prefix.
+    timeout : float
+        Seconds to wait for a reply.
+    """
+
+    def __init__(self, connect: Sequence[str] = (DEFAULT_ENDPOINT,), ifo: str = "C1",
+                 timeout: float = 5.0, root: str = ROOT, config_file: str | None = None) -> None:
+        self.ifo, self.timeout, self.root = ifo, timeout, root
+        try:
+            self._session = zenoh.open(zenoh_config(connect=connect, mode="client",
+                                                    config_file=config_file))
+        except zenoh.ZError as err:
+            msg = f"cannot reach a twin at {', '.join(connect)}: {err}"
+            raise TwinUnreachable(msg) from None
+
+    def query(self, verb: str, request: dict | None = None) -> dict:
+        """Send one control request and return the reply (raises when none comes)."""
+        key = control_key(self.ifo, verb, self.root)
+        for reply in self._session.get(key, payload=json.dumps(request or {}), timeout=self.timeout):
+            if reply.ok is None:
+                msg = f"{key}: {reply.err.payload.to_string()}"
+                raise TwindError(msg)
+            return json.loads(reply.ok.payload.to_string())
+        msg = f"no twin answered on {key} within {self.timeout} s"
+        raise TwinUnreachable(msg)
+
+    def status(self) -> dict:
+        """The service status: real-time factor, lag, late blocks, excitations, uptime."""
+        return self.query("status")
+
+    def inject(self, channel: str, waveform: str, **settings: object) -> str:
+        """Start an excitation; returns its id, or raises :class:`InjectionRefused`.
+
+        `settings` are those of :class:`twind.excitation.ExcitationRequest` (``freq``,
+        ``amp``, ``duration``, ``ramp``, ``start_gps``, ``f_stop``, ``shape``, ``samples``...).
+        """
+        if "samples" in settings and settings["samples"] is not None:
+            settings["samples"] = [float(x) for x in settings["samples"]]  # type: ignore[union-attr]
+        reply = self.query("inject", {"channel": channel, "waveform": waveform, **settings})
+        if not reply.get("accepted"):
+            raise InjectionRefused(reply.get("reason", "refused"))
+        return reply["id"]
+
+    def stop(self, exc_id: str | None = None) -> list[str]:
+        """Stop one excitation by id, or all of them when `exc_id` is None."""
+        reply = self.query("stop", {"all": True} if exc_id is None else {"id": exc_id})
+        if not reply.get("ok"):
+            raise TwindError(reply.get("reason", "stop failed"))
+        return reply["stopped"]
+
+    def params(self, optic: str, **changes: float) -> dict:
+        """An optic's parameters and filter modules; with `changes`, set them live first."""
+        reply = self.query("params", {"optic": optic, **({"set": changes} if changes else {})})
+        if not reply.get("ok"):
+            raise TwindError(reply.get("reason", "params failed"))
+        return reply
+
+    def switch(self, optic: str, dof: str, fm: int, on: bool) -> dict:
+        """Switch filter stage FM`fm` of a damping filter module."""
+        return self._filter({"optic": optic, "dof": dof, "fm": fm, "on": on})
+
+    def set_gain(self, optic: str, dof: str, gain: float, ramp: float | None = None) -> dict:
+        """Ramp a damping filter module's gain."""
+        return self._filter({"optic": optic, "dof": dof, "gain": gain, "ramp": ramp})
+
+    def _filter(self, request: dict) -> dict:
+        reply = self.query("filter", request)
+        if not reply.get("ok"):
+            raise TwindError(reply.get("reason", "filter change failed"))
+        return reply
+
+    def close(self) -> None:
+        """Close the session."""
+        self._session.close()
+
+    def __enter__(self) -> TwinClient:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()

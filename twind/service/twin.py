@@ -1,0 +1,314 @@
+"""The twin as a service: the engine paced to the wall clock, publishing every test point on
+Zenoh and answering control queries (status, inject, stop, params, filter).
+
+A block is computed when its span has passed and published at once, as data acquisition
+does. An excitation asked for "now" starts at the sample of that moment, inside the block
+due next: latency at most one block plus the computation. Queries arrive on Zenoh's threads;
+they only touch shared state under a lock.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import zenoh
+
+from twind import DOFS
+from twind.bus.codec import SampleBlock
+from twind.bus.keys import ROOT, control_key, data_key
+from twind.channels import block_channels, dof_channel
+from twind.config import OpticConfig, TwinConfig
+from twind.errors import TwindError
+from twind.excitation import ExcitationError, ExcitationRequest, Limits, check, make_waveform
+from twind.simulation.engine import Engine
+from twind.timeutil import now_gps
+
+DEFAULT_LIMITS = Limits(peak=100.0, rms=30.0)  # um or urad at EXC: well inside the OSEM range
+VERBS = ("status", "inject", "stop", "params", "filter")
+
+
+@dataclass
+class Active:
+    """An accepted excitation and where it runs."""
+
+    id: str
+    request: ExcitationRequest
+    optic: int
+    dof: int
+    start_sample: int
+    waveform: object = field(repr=False)
+
+
+@dataclass
+class Stats:
+    """Pacing figures reported by ``status``."""
+
+    blocks: int = 0
+    late_blocks: int = 0  # computed after their due time by more than one block
+    max_lag_s: float = 0.0
+    lag_s: float = 0.0
+    busy_s: float = 0.0  # wall time spent computing and publishing
+
+
+class TwinService:
+    """One engine, its Zenoh publishers and its control queryables.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        An open session (the service declares on it, the caller owns it).
+    twin : TwinConfig
+        The interferometer's configuration (for names and snapshots).
+    optics : list of OpticConfig
+        The optics to run.
+    block_s : float
+        Seconds of twin time per block (1/16 s by default, as CDS test points).
+    speed : float
+        Twin seconds per wall second (1 = real time).
+    seed : int
+        Noise seed.
+    limits : Limits
+        Per-channel excitation limits.
+    root : str
+        Key root of the data channels.
+    """
+
+    def __init__(self, session: zenoh.Session, twin: TwinConfig, optics: list[OpticConfig],
+                 block_s: float = 1 / 16, speed: float = 1.0, seed: int = 0,
+                 limits: Limits = DEFAULT_LIMITS, root: str = ROOT) -> None:
+        if not (speed > 0 and math.isfinite(speed)):
+            msg = f"speed must be positive and finite, got {speed}"
+            raise TwindError(msg)
+        self.twin, self.optics, self.root, self.limits = twin, optics, root, limits
+        self.rate = optics[0].sus.sample_rate_hz
+        self.n = int(round(block_s * self.rate))
+        if self.n < 1:
+            msg = f"a block of {block_s} s holds no sample at {self.rate:g} Hz"
+            raise TwindError(msg)
+        self.block_s, self.speed = self.n / self.rate, speed
+        self.engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
+                             seed=seed, rate_hz=self.rate)
+        # load the compiled kernel and the schema now, so the first block is not late
+        Engine([optics[0].loop()], optics[0].noise, rate_hz=self.rate).step(self.n)
+        SampleBlock("warm-up", 0.0, self.rate, 0, np.zeros(self.n)).encode()
+        self.gps0 = math.floor(now_gps() / self.block_s) * self.block_s  # blocks on GPS marks
+        self.stats = Stats()
+        self._buf = self.engine.new_block(self.n)
+        self._lock = threading.Lock()
+        self._active: dict[str, Active] = {}
+        self._ids = (f"exc-{i}" for i in itertools.count(1))
+        self._started = self._t0 = time.monotonic()
+        self._session = session
+        names = [name for name, _, _ in block_channels(twin.ifo, self._buf)]
+        self._pubs = {name: session.declare_publisher(data_key(name, root)) for name in names}
+        self._events = session.declare_publisher(control_key(twin.ifo, "events", root))
+        handlers: dict[str, Callable[[dict], dict]] = {
+            "status": lambda _: self.status(), "inject": self.inject, "stop": self.stop,
+            "params": self.params, "filter": self.filter}
+        self._queryables = [
+            session.declare_queryable(control_key(twin.ifo, verb, root), self._answer(handlers[verb]))
+            for verb in VERBS]
+
+    # ---------------------------------------------------------------------------- pacing
+    def run(self, duration: float | None = None, stop: threading.Event | None = None) -> None:
+        """Serve until `duration` twin seconds have passed or `stop` is set."""
+        stop = stop or threading.Event()
+        t0 = self._t0 = time.monotonic()
+        for k in itertools.count():
+            if duration is not None and k * self.block_s >= duration - 1e-9:
+                return
+            due = t0 + (k + 1) * self.block_s / self.speed  # a block is published when its span ends
+            if stop.wait(max(0.0, due - time.monotonic())):
+                return
+            started = time.monotonic()
+            self.step()
+            done = time.monotonic()
+            self.stats.busy_s += done - started
+            self.stats.lag_s = done - due
+            self.stats.max_lag_s = max(self.stats.max_lag_s, self.stats.lag_s)
+            if self.stats.lag_s > self.block_s / self.speed:
+                self.stats.late_blocks += 1
+
+    def step(self) -> None:
+        """Compute the next block, with the excitations that fall in it, and publish it."""
+        with self._lock:
+            first = self.engine.samples
+            exc = self._excitation(first)
+            block = self.engine.step(self.n, exc=exc, out=self._buf)
+        gps = self.gps0 + first / self.rate
+        seq = self.stats.blocks
+        for name, unit, samples in block_channels(self.twin.ifo, block):
+            self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples, unit).encode())
+        self.stats.blocks += 1
+
+    def _excitation(self, first: int) -> np.ndarray | None:
+        if not self._active:
+            return None
+        exc = np.zeros((len(self.optics), len(DOFS), self.n))
+        for act in list(self._active.values()):
+            a = max(0, act.start_sample - first)
+            if a >= self.n:
+                continue
+            exc[act.optic, act.dof, a:] += act.waveform.next(self.n - a)
+            if act.waveform.done:
+                del self._active[act.id]
+                self._publish_event("end", act)
+        return exc
+
+    # ---------------------------------------------------------------------------- control
+    def _answer(self, handler: Callable[[dict], dict]) -> Callable[[zenoh.Query], None]:
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                payload = query.payload.to_string() if query.payload is not None else ""
+                request = json.loads(payload) if payload else {}
+                if not isinstance(request, dict):
+                    msg = "the request must be a JSON object"
+                    raise TwindError(msg)
+                reply = handler(request)
+            except (TwindError, ValueError, KeyError, TypeError) as err:
+                reply = {"ok": False, "reason": str(err)}
+            query.reply(query.key_expr, json.dumps(reply))
+
+        return on_query
+
+    def status(self) -> dict:
+        """Real-time factor, lag, late blocks, active excitations, uptime."""
+        uptime = time.monotonic() - self._started
+        twin_time = self.stats.blocks * self.block_s
+        with self._lock:
+            active = [{"id": a.id, "channel": a.request.channel, "waveform": a.request.waveform}
+                      for a in self._active.values()]
+        return {"ok": True, "ifo": self.twin.ifo, "optics": [o.name for o in self.optics],
+                "rate_hz": self.rate, "block_s": self.block_s, "speed": self.speed,
+                "gps": self.gps0 + twin_time, "uptime_s": uptime, "blocks": self.stats.blocks,
+                "real_time_factor": twin_time / uptime if uptime > 0 else 0.0,
+                "lag_s": self.stats.lag_s, "max_lag_s": self.stats.max_lag_s,
+                "late_blocks": self.stats.late_blocks, "dropped_blocks": 0,
+                "cpu_fraction": self.stats.busy_s / uptime if uptime > 0 else 0.0,
+                "excitations": active, "config": self.twin.source}
+
+    def inject(self, request: dict) -> dict:
+        """Accept an excitation (reply with its id) or refuse it with the reason."""
+        try:
+            req = ExcitationRequest.from_json(request)
+            optic, dof = self._test_point(req.channel)
+            check(req, self.limits, self.rate)
+        except (ExcitationError, TwindError) as err:
+            self._publish_event("refused", None, request=request, reason=str(err))
+            return {"ok": False, "accepted": False, "reason": str(err)}
+        with self._lock:
+            next_sample = self.engine.samples
+            if req.start_gps is None:
+                # the sample of this moment, inside the block due next: the twin does not
+                # excite its past
+                now = int((time.monotonic() - self._t0) * self.speed * self.rate)
+                start = max(next_sample, min(now, next_sample + self.n - 1))
+            else:
+                start = int(round((req.start_gps - self.gps0) * self.rate))
+                if start < next_sample:
+                    reason = (f"start GPS {req.start_gps} has passed; the next sample is at "
+                              f"{self.gps0 + next_sample / self.rate}")
+                    return {"ok": False, "accepted": False, "reason": reason}
+            act = Active(next(self._ids), req, optic, dof, start, make_waveform(req, self.rate))
+            self._active[act.id] = act
+        self._publish_event("start", act)
+        return {"ok": True, "accepted": True, "id": act.id,
+                "start_gps": self.gps0 + start / self.rate}
+
+    def stop(self, request: dict) -> dict:
+        """Stop an excitation by id (``{"id": ...}``), or all with ``{"all": true}``."""
+        with self._lock:
+            ids = list(self._active) if request.get("all") else [request.get("id")]
+            missing = [i for i in ids if i not in self._active]
+            if missing:
+                return {"ok": False, "reason": f"no active excitation {missing[0]!r}"}
+            stopped = [self._active.pop(i) for i in ids]
+        for act in stopped:
+            self._publish_event("stop", act)
+        return {"ok": True, "stopped": [a.id for a in stopped]}
+
+    def params(self, request: dict) -> dict:
+        """Get (``{"optic": "ETMX"}``) or set (``{"optic": ..., "set": {...}}``) parameters."""
+        name = request.get("optic", self.optics[0].name)
+        index = self._optic_index(name)
+        changes = request.get("set")
+        if changes:
+            if not isinstance(changes, dict):
+                msg = "'set' must be an object of parameter names and values"
+                raise TwindError(msg)
+            cfg = self.optics[index]
+            unknown = [k for k in changes if not hasattr(cfg.sus, k) or k == "name"]
+            if unknown:
+                msg = f"unknown parameter(s) {', '.join(unknown)}"
+                raise TwindError(msg)
+            sus = cfg.sus.updated(**changes)
+            problems = sus.check()
+            if problems:
+                raise TwindError("; ".join(f"{k}: {p}" for k, p in problems))
+            new = OpticConfig(cfg.name, sus, cfg.damping, cfg.noise, cfg.model, cfg.source)
+            loop = new.loop()
+            with self._lock:
+                self.engine.update_plant(name, loop)
+                self.optics[index] = new
+        sus = asdict(self.optics[index].sus)
+        modules = {d: {"gain": m.gain, "on": sorted(m.on), "limit": m.limit, "ramp_s": m.ramp_s}
+                   for d, m in self.engine.loops[index].modules.items()}
+        return {"ok": True, "optic": name, "params": sus, "filters": modules}
+
+    def filter(self, request: dict) -> dict:
+        """Switch a stage (``fm``, ``on``) or ramp a gain (``gain``, ``ramp``) of a module."""
+        optic, dof = request.get("optic", self.optics[0].name), request.get("dof")
+        self._optic_index(optic)
+        with self._lock:
+            if "fm" in request:
+                self.engine.switch(optic, dof, int(request["fm"]), bool(request.get("on", True)))
+            if "gain" in request:
+                self.engine.set_gain(optic, dof, float(request["gain"]), request.get("ramp"))
+        return self.params({"optic": optic})
+
+    # ---------------------------------------------------------------------------- helpers
+    def _optic_index(self, name: str) -> int:
+        names = [o.name for o in self.optics]
+        if name not in names:
+            msg = f"unknown optic {name!r}; this twin runs {', '.join(names)}"
+            raise TwindError(msg)
+        return names.index(name)
+
+    def _test_point(self, channel: str) -> tuple[int, int]:
+        for o, optic in enumerate(self.optics):
+            for d, dof in enumerate(DOFS):
+                if channel == dof_channel(self.twin.ifo, optic.name, dof, "EXC"):
+                    return o, d
+        msg = f"unknown excitation channel {channel!r}; e.g. {dof_channel(self.twin.ifo, self.optics[0].name, 'POS', 'EXC')}"
+        raise TwindError(msg)
+
+    def _publish_event(self, event: str, act: Active | None, **extra: object) -> None:
+        body: dict = {"event": event, "gps": self.gps0 + self.engine.samples / self.rate, **extra}
+        if act is not None:
+            body.update(id=act.id, channel=act.request.channel,
+                        start_gps=self.gps0 + act.start_sample / self.rate,
+                        request=act.request.to_json())
+        self._events.put(json.dumps(body, default=_jsonable))
+
+    def close(self) -> None:
+        """Undeclare everything this service declared."""
+        for q in self._queryables:
+            q.undeclare()
+        for p in self._pubs.values():
+            p.undeclare()
+        self._events.undeclare()
+
+
+def _jsonable(obj: object) -> object:
+    if isinstance(obj, np.ndarray):
+        return f"<{obj.size} samples>"
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    return str(obj)
