@@ -1,0 +1,79 @@
+"""The serve issue's acceptance run, on loopback: serve and record 20 s, inject a 3 Hz sine,
+refuse bad requests while serving, then find it all in the exported recording."""
+
+from __future__ import annotations
+
+import io
+import math
+import subprocess
+import sys
+import time
+from contextlib import redirect_stdout
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from servicekit import free_port
+from twind.cli import main
+from twind.client import InjectionRefused, TwinClient, TwinUnreachable
+from twind.recording.reader import read_session
+
+POS = "C1:SUS-ETMX_SUSPOS"
+RATE = 16384
+
+
+def _wait_for(endpoint: str, proc: subprocess.Popen) -> TwinClient:
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            client = TwinClient(connect=[endpoint], timeout=2.0)
+            client.status()
+            return client
+        except TwinUnreachable:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.2)
+
+
+@pytest.mark.slow
+def test_serve_record_inject_export(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rec = tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--optics", "ETMX",
+                             "--listen", endpoint, "--speed", "4", "--duration", "24",
+                             "--record", str(rec)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    with _wait_for(endpoint, proc) as twin:
+        exc_id = twin.inject(f"{POS}_EXC", "sine", freq=3.0, amp=0.1, duration=20.0)
+        for bad in ({"freq": -3.0, "amp": 0.1}, {"freq": 3.0, "amp": math.nan}):
+            with pytest.raises(InjectionRefused):
+                twin.inject(f"{POS}_EXC", "sine", duration=5.0, **bad)
+        assert twin.status()["excitations"][0]["id"] == exc_id  # still serving
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+
+    files = sorted(rec.glob("*.mcap"))
+    out = tmp_path / "session.npz"
+    with redirect_stdout(io.StringIO()):
+        assert main(["export", *map(str, files), "-o", str(out)]) == 0
+    data = np.load(out)
+    exc, in1, in2 = (data[f"{POS}_{p}"] for p in ("EXC", "IN1", "IN2"))
+    assert data[f"{POS}_EXC:rate"] == RATE
+    assert data[f"{POS}_IN1:t0"] == data[f"{POS}_EXC:t0"]
+    assert np.array_equal(in2 - in1, exc) or np.max(np.abs(in2 - in1 - exc)) < 1e-12
+    on = np.flatnonzero(exc)
+    sine = exc[on[0]:on[-1] + 1]
+    assert sine.size == pytest.approx(20 * RATE, abs=2)
+    t = np.arange(sine.size) / RATE
+    coef, *_ = np.linalg.lstsq(np.column_stack([np.sin(2 * np.pi * 3 * t),
+                                                np.cos(2 * np.pi * 3 * t)]), sine, rcond=None)
+    assert np.hypot(*coef) == pytest.approx(0.1, rel=1e-9)
+    spectrum = np.abs(np.fft.rfft(sine[: 16 * RATE]))
+    assert np.fft.rfftfreq(16 * RATE, 1 / RATE)[np.argmax(spectrum)] == pytest.approx(3.0)
+
+    session = read_session(files)
+    assert session.gaps == []
+    seqs = session[f"{POS}_EXC"].sequences
+    assert list(seqs) == list(range(seqs[0], seqs[0] + len(seqs)))
+    events = [e["event"] for e in session.events]
+    assert "start" in events and events.count("refused") == 2
