@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mcap.decoder import DecoderFactory as McapDecoderFactory
 from numpy.typing import NDArray
 
 from twind.errors import TwindError
@@ -533,7 +534,7 @@ def _json(m: RawMessage) -> dict[str, Any]:
         raise RecordingError(msg) from None
 
 
-class JsonDecoderFactory:
+class JsonDecoderFactory(McapDecoderFactory):
     """An mcap ``DecoderFactory`` for the JSON topics (``twin/@events``, ``twin/@config``).
 
     ``make_reader(fh, decoder_factories=[mcap_protobuf.decoder.DecoderFactory(),

@@ -198,22 +198,27 @@ class Recorder:
     # --- life cycle ---------------------------------------------------------------------
 
     def start(self) -> None:
-        """Open the session, snapshot the configuration, open the file and subscribe."""
+        """Open the session and subscribe, snapshot the configuration, open the file.
+
+        The subscriptions come first, the moment the session is open: whatever arrives
+        while the status query and the file's creation take their time waits in the queue,
+        so an event published just after a twin answers its first query is not lost.
+        """
         if self._session is not None:
             msg = "this Recorder has already been started"
             raise RecordingError(msg)
         self._session = zenoh.open(self.conf)
         try:
-            self._config = self._snapshot()
-            self._open_file(self._config["gps"])
-            self._thread = threading.Thread(target=self._write_loop, name="twind-record",
-                                            daemon=True)
-            self._thread.start()
             for key in self.keyexprs:
                 self._subs.append(self._session.declare_subscriber(key, self._on_data))
             if self.events:
                 self._subs.append(self._session.declare_subscriber(
                     control_key(self.ifo, "events"), self._on_event))
+            self._config = self._snapshot()
+            self._open_file(self._config["gps"])
+            self._thread = threading.Thread(target=self._write_loop, name="twind-record",
+                                            daemon=True)
+            self._thread.start()
         except BaseException:
             self._teardown()
             raise

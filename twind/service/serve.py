@@ -39,8 +39,10 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with zenoh.open(conf) as session:
+        # the recorder subscribes before the service answers anything, so that no block and
+        # no injection event escapes the recording
+        recorder = _recorder(record_dir, endpoints, twin.ifo) if record_dir else None
         service = TwinService(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
-        recorder = _recorder(record_dir, endpoints, twin.ifo, service.gps0) if record_dir else None
         print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
               f"{service.block_s:g} s blocks, {speed:g} x real time, GPS {service.gps0:.3f}, "
               f"on {' '.join(endpoints)}; Ctrl-C stops", flush=True)
@@ -58,14 +60,15 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
     return 0
 
 
-def _recorder(folder: str, endpoints: Sequence[str], ifo: str, gps0: float):  # noqa: ANN202
+def _recorder(folder: str, endpoints: Sequence[str], ifo: str):  # noqa: ANN202
     from twind.bus.session import zenoh_config
     from twind.recording.recorder import Recorder
+    from twind.timeutil import now_gps
 
     Path(folder).mkdir(parents=True, exist_ok=True)
     conf = zenoh_config(connect=[e.replace("0.0.0.0", "127.0.0.1") for e in endpoints],
                         mode="client")
-    recorder = Recorder(conf, Path(folder) / f"{ifo}-twin-{int(gps0)}.mcap", ifo=ifo,
-                        rotate_seconds=3600.0)
+    recorder = Recorder(conf, Path(folder) / f"{ifo}-twin-{int(now_gps())}.mcap", ifo=ifo,
+                        rotate_seconds=3600.0, status_timeout=0.1)
     recorder.start()
     return recorder

@@ -1,0 +1,158 @@
+"""Stream a running twin's channels from Zenoh into Rerun, decimated, until stopped.
+
+Blocks arrive on Zenoh's threads and are queued; the calling thread decodes, decimates
+(:mod:`twind.viz.decimate`, one filter per channel) and sends the series to Rerun every
+`flush_s` seconds with ``send_columns``, under the same entity paths and timelines as
+:mod:`twind.viz.rerun_export` (``sus/ETMX/POS/IN1`` on ``gps`` and ``utc``); injection events
+go to ``events`` as text rows. The layout (a tab per optic) is sent again whenever a new optic
+shows up.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twind.bus.codec import SampleBlock
+from twind.bus.keys import ROOT, all_data, control_key
+from twind.viz.decimate import NS, Decimated, Decimator
+from twind.viz.entities import blueprint, entity_path, matcher, parse_dof_channel
+from twind.viz.rerun_export import EVENTS_ENTITY, event_gps, event_text, gps_columns
+
+
+@dataclass
+class LiveStats:
+    """What :func:`stream` sent."""
+
+    blocks: int = 0
+    rows: dict[str, int] = field(default_factory=dict)  # entity path -> decimated rows
+    events: int = 0
+    dropped: int = 0  # undecodable payloads
+
+
+def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: str = "C1",  # noqa: ANN001, PLR0913
+           channels: Iterable[str] | str | None = None, rate_hz: float = 64.0,
+           flush_s: float = 0.25, stop: threading.Event | None = None,
+           duration: float | None = None, root: str = ROOT) -> LiveStats:
+    """Subscribe to every twin channel and stream it to the Rerun recording `rec`.
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+        Where to send (a viewer, a gRPC server or a file: the caller sets the sink).
+    connect : sequence of str
+        Zenoh endpoints of the twin or its router (a client session is opened).
+    config_file : str, optional
+        A Zenoh JSON5 configuration (credentials, TLS) to start from.
+    ifo : str
+        Interferometer prefix, for the events key ``twin/@/<ifo>/events``.
+    channels : str or iterable of str, optional
+        Shell-style patterns of channels to show (all when None).
+    rate_hz : float
+        Rate of the plotted series.
+    flush_s : float
+        Seconds between sends to Rerun.
+    stop : threading.Event, optional
+        Set it to end the stream (Ctrl-C ends it too).
+    duration : float, optional
+        Wall seconds after which to stop.
+    """
+    import rerun as rr
+    import zenoh
+
+    from twind.bus.session import zenoh_config
+
+    stop = stop or threading.Event()
+    select = matcher(channels)
+    inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+    stats = LiveStats()
+    decimators: dict[str, Decimator] = {}
+    pending: dict[str, list[Decimated]] = {}
+    optics: list[str] = []
+    session = zenoh.open(zenoh_config(connect=connect, mode="client", config_file=config_file))
+    subs = [session.declare_subscriber(all_data(root),
+                                       lambda s: inbox.put(("data", s.payload.to_bytes()))),
+            session.declare_subscriber(control_key(ifo, "events", root),
+                                       lambda s: inbox.put(("event", s.payload.to_bytes())))]
+
+    def flush() -> None:
+        for name, parts in pending.items():
+            if not parts:
+                continue
+            gps_ns = np.concatenate([p.gps_ns for p in parts])
+            values = np.concatenate([p.values for p in parts])
+            rec.send_columns(entity_path(name), indexes=gps_columns(gps_ns),
+                             columns=rr.Scalars.columns(scalars=values))
+            path = entity_path(name)
+            stats.rows[path] = stats.rows.get(path, 0) + values.size
+            pending[name] = []
+
+    def on_block(block: SampleBlock) -> None:
+        name = block.channel
+        if name not in decimators:
+            decimators[name] = Decimator(block.rate_hz, rate_hz)
+            pending[name] = []
+            label = f"{name} [{block.unit}]" if block.unit else name
+            rec.log(entity_path(name), rr.SeriesLines(names=label), static=True)
+            parsed = parse_dof_channel(name)
+            if parsed and parsed[1] not in optics:
+                optics.append(parsed[1])
+                rec.send_blueprint(blueprint(optics), make_active=True, make_default=True)
+        out = decimators[name].feed(block.gps_start, block.samples)
+        if out.values.size:
+            pending[name].append(out)
+
+    def on_event(data: bytes) -> None:
+        try:
+            event = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            stats.dropped += 1
+            return
+        gps = event_gps(event) if isinstance(event, dict) else None
+        if gps is None:
+            return
+        text, level = event_text(event)
+        rec.send_columns(EVENTS_ENTITY, indexes=gps_columns(np.array([int(round(gps * NS))])),
+                         columns=rr.TextLog.columns(text=[text], level=[level]))
+        stats.events += 1
+
+    started = time.monotonic()
+    next_flush = started + flush_s
+    try:
+        while not stop.is_set():
+            now = time.monotonic()
+            if duration is not None and now - started >= duration:
+                break
+            try:
+                kind, data = inbox.get(timeout=max(0.0, min(next_flush - now, 0.1)))
+            except queue.Empty:
+                kind = ""
+            if kind == "data":
+                try:
+                    block = SampleBlock.decode(data)
+                except Exception:  # noqa: BLE001 - a foreign payload under twin/**
+                    stats.dropped += 1
+                else:
+                    stats.blocks += 1
+                    if select(block.channel):
+                        on_block(block)
+            elif kind == "event":
+                on_event(data)
+            if time.monotonic() >= next_flush:
+                flush()
+                next_flush = time.monotonic() + flush_s
+    except KeyboardInterrupt:
+        pass
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+        flush()
+        rec.flush()
+    return stats
