@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -12,6 +13,7 @@ from pathlib import Path
 import zenoh
 
 from twind.config import TwinConfig
+from twind.errors import TwindError
 from twind.service.twin import TwinService
 
 
@@ -50,25 +52,40 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
             service.run(duration=duration, stop=stop)
         finally:
             status = service.status()
-            if recorder is not None:
-                time.sleep(0.2)  # let the last blocks reach the recorder before it closes
-                recorder.stop()
             service.close()
+            if recorder is not None:
+                _stop_recorder(recorder)
     print(f"twind serve: stopped after {status['blocks']} blocks, {status['late_blocks']} late, "
           f"max lag {status['max_lag_s'] * 1e3:.1f} ms, busy {100 * status['cpu_fraction']:.1f} %",
           file=sys.stderr)
     return 0
 
 
-def _recorder(folder: str, endpoints: Sequence[str], ifo: str):  # noqa: ANN202
-    from twind.bus.session import zenoh_config
-    from twind.recording.recorder import Recorder
+def _recorder(folder: str, endpoints: Sequence[str], ifo: str) -> subprocess.Popen:
+    """``twind record`` in a process of its own: it cannot slow the twin's pacing thread
+    (Python threads share one interpreter lock) nor take the twin down if it fails."""
     from twind.timeutil import now_gps
 
     Path(folder).mkdir(parents=True, exist_ok=True)
-    conf = zenoh_config(connect=[e.replace("0.0.0.0", "127.0.0.1") for e in endpoints],
-                        mode="client")
-    recorder = Recorder(conf, Path(folder) / f"{ifo}-twin-{int(now_gps())}.mcap", ifo=ifo,
-                        rotate_seconds=3600.0, status_timeout=0.1)
-    recorder.start()
-    return recorder
+    out = Path(folder) / f"{ifo}-twin-{int(now_gps())}.mcap"
+    connect = [a for e in endpoints for a in ("--connect", e.replace("0.0.0.0", "127.0.0.1"))]
+    proc = subprocess.Popen([sys.executable, "-m", "twind", "record", "-o", str(out),
+                             "--mode", "client", "--rotate-s", "3600", "--ifo", ifo, *connect])
+    first = out.with_name(f"{out.stem}-0001.mcap")
+    deadline = time.monotonic() + 60
+    while not first.exists():  # the recorder subscribes before it creates its first file
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            msg = f"the recorder for {folder} did not start"
+            raise TwindError(msg)
+        time.sleep(0.05)
+    return proc
+
+
+def _stop_recorder(proc: subprocess.Popen) -> None:
+    time.sleep(0.3)  # let the last blocks reach it
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
