@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -151,6 +152,9 @@ def _endpoints(args: argparse.Namespace) -> tuple[list[str], list[str]]:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """The twin as a Zenoh service."""
+    # OpenMP threads that spin between blocks cost a whole core while serving in real time;
+    # set before the engine loads its compiled kernel (the runtime reads it once)
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     from twind.bus.session import zenoh_config
     from twind.config import load_config
     from twind.service.serve import main as serve_main
