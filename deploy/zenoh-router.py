@@ -25,7 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-c", "--config", help="Zenoh JSON5 configuration file")
     p.add_argument("-l", "--listen", action="append", help="endpoint, e.g. tcp/0.0.0.0:7447")
     p.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
-                   help="set a key to a JSON5 value, e.g. 'transport/auth/usrpwd/dictionary_file:\"/x\"'")
+                   help="set a key to a JSON5 value, "
+                        "e.g. 'transport/auth/usrpwd/dictionary_file:\"/x\"'")
     args = p.parse_args(argv)
     conf = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
     conf.insert_json5("mode", '"router"')

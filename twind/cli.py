@@ -146,8 +146,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def _endpoints(args: argparse.Namespace) -> tuple[list[str], list[str]]:
     from twind.bus.session import DEFAULT_ENDPOINT
 
-    listen = args.listen or ([] if args.connect else [DEFAULT_ENDPOINT])
-    return listen, args.connect or []
+    # a Zenoh configuration file brings its own endpoints
+    default = [] if args.connect or getattr(args, "zenoh_config", None) else [DEFAULT_ENDPOINT]
+    return args.listen or default, args.connect or []
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -341,6 +342,15 @@ def build_parser() -> argparse.ArgumentParser:
         cmd = sub.add_parser(name, help=text)
         _arguments_of(module, cmd)
         cmd.set_defaults(func=_delegate(module, function))
+
+    from twind.viz import add_rrd_arguments, add_view_arguments, rrd_main, view_main
+
+    view = sub.add_parser("view", help="live twin channels in a Rerun viewer")
+    add_view_arguments(view)
+    view.set_defaults(func=view_main)
+    rrd = sub.add_parser("rrd", help="MCAP session to a Rerun .rrd (series, events, Bode)")
+    add_rrd_arguments(rrd)
+    rrd.set_defaults(func=rrd_main)
 
     soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")
     soak_p.add_argument("--duration", type=float, default=3600.0, help="seconds of serving")

@@ -472,6 +472,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                     "keys (default C1)")
     parser.add_argument("--no-events", action="store_true",
                         help="do not record twin/@/<IFO>/events")
+    parser.add_argument("--zenoh-config", metavar="FILE.json5",
+                        help="a Zenoh configuration (credentials, TLS) to start from")
 
 
 def record_main(args: argparse.Namespace) -> int:
@@ -483,8 +485,9 @@ def record_main(args: argparse.Namespace) -> int:
         if value is not None and not (value > 0 and math.isfinite(value)):
             msg = f"--{name.replace('_', '-')} must be positive, got {value}"
             raise RecordingError(msg)
-    connect = args.connect or ([] if args.listen else [DEFAULT_ENDPOINT])
-    conf = zenoh_config(listen=args.listen or (), connect=connect, mode=args.mode)
+    connect = args.connect or ([] if args.listen or args.zenoh_config else [DEFAULT_ENDPOINT])
+    conf = zenoh_config(listen=args.listen or (), connect=connect, mode=args.mode,
+                        config_file=args.zenoh_config)
     recorder = Recorder(conf, args.output, args.keyexprs or (all_data(),), ifo=args.ifo,
                         rotate_bytes=int(args.rotate_mb * 1e6) if args.rotate_mb else None,
                         rotate_seconds=args.rotate_s, events=not args.no_events)

@@ -27,26 +27,35 @@ class TransferFunction:
         return np.degrees(np.angle(self.response))
 
 
-def segment_length(n: int, rate_hz: float, min_averages: int = 8) -> int:
-    """A power-of-two Welch segment giving at least `min_averages` segments of `n` samples
-    (50 % overlap gives about twice as many averages), at most 64 s long."""
+def segment_length(n: int, rate_hz: float, min_averages: int = 8,
+                   tone_hz: float | None = None) -> int:
+    """A Welch segment giving at least `min_averages` segments of `n` samples (50 % overlap
+    gives about twice as many averages), at most 64 s long: a power of two, or, for a sine at
+    `tone_hz`, a whole number of its periods, so that one bin falls on the tone (within
+    1e-4 of a bin) and the plotted point is at the frequency it was measured at."""
     longest = min(n // min_averages, int(64 * rate_hz))
     if longest < 16:
         return max(1, n)
+    if tone_hz is not None and 0 < tone_hz < rate_hz / 2:
+        periods = int(np.floor(longest * tone_hz / rate_hz))
+        if periods >= 1:
+            return int(round(periods * rate_hz / tone_hz))
     return 1 << int(np.floor(np.log2(longest)))
 
 
 def measure(exc: NDArray[np.float64], outputs: dict[str, NDArray[np.float64]], rate_hz: float,
-            nperseg: int | None = None, dynamic_range: float = 1e-4
-            ) -> dict[str, TransferFunction]:
-    """Transfer functions from `exc` to each of `outputs` (same length, same rate).
+            nperseg: int | None = None, dynamic_range: float = 1e-4,
+            tone_hz: float | None = None) -> dict[str, TransferFunction]:
+    """Transfer functions from `exc` to each of `outputs` (same length, same rate); `tone_hz`
+    is the frequency of a sine excitation (see :func:`segment_length`).
 
     Only the bins where the excitation carries power are kept: ``P_xx`` above `dynamic_range`
     times its peak (40 dB by default) and ``f > 0``. Elsewhere the ratio of two noise
     estimates means nothing.
     """
     exc = np.asarray(exc, dtype=float)
-    nperseg = nperseg or segment_length(exc.size, rate_hz)
+    nperseg = nperseg or segment_length(exc.size, rate_hz,
+                                        min_averages=4 if tone_hz else 8, tone_hz=tone_hz)
     kw = {"fs": rate_hz, "nperseg": nperseg, "window": "hann", "detrend": "constant"}
     f, pxx = signal.welch(exc, **kw)
     keep = (f > 0) & (pxx > dynamic_range * pxx.max()) if pxx.max() > 0 else np.zeros(f.size, bool)

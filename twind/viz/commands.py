@@ -86,7 +86,9 @@ def view_main(args: argparse.Namespace) -> int:
                    channels=args.channels, rate_hz=args.rate, duration=args.duration)
     rec.disconnect()
     print(f"twind view: {stats.blocks} blocks, {len(stats.rows)} channels, "
-          f"{sum(stats.rows.values())} points, {stats.events} events", file=sys.stderr)
+          f"{sum(stats.rows.values())} points, {stats.events} events"
+          + (f", {stats.dropped} dropped (too far behind, or not twind blocks)"
+             if stats.dropped else ""), file=sys.stderr)
     if stats.blocks == 0:
         print("twind view: no data arrived: is the twin running, and may these credentials "
               "subscribe?", file=sys.stderr)

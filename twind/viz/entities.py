@@ -15,8 +15,9 @@ from collections.abc import Iterable
 from twind import DOFS
 from twind.model.osem import OSEMS
 
-_DOF = re.compile(rf"^(?P<ifo>[^:]+):SUS-(?P<optic>[A-Z0-9]+)_SUS(?P<dof>{'|'.join(DOFS)})_(?P<point>[A-Z0-9]+)$")
-_OSEM = re.compile(rf"^(?P<ifo>[^:]+):SUS-(?P<optic>[A-Z0-9]+)_(?P<osem>{'|'.join(OSEMS)})SEN_OUT$")
+_OPTIC = r"^(?P<ifo>[^:]+):SUS-(?P<optic>[A-Z0-9]+)_"
+_DOF = re.compile(rf"{_OPTIC}SUS(?P<dof>{'|'.join(DOFS)})_(?P<point>[A-Z0-9]+)$")
+_OSEM = re.compile(rf"{_OPTIC}(?P<osem>{'|'.join(OSEMS)})SEN_OUT$")
 
 
 def parse_dof_channel(channel: str) -> tuple[str, str, str, str] | None:
@@ -45,7 +46,8 @@ def matcher(patterns: Iterable[str] | str | None):  # noqa: ANN201 - Callable[[s
     return lambda name: any(fnmatch.fnmatchcase(name, p) for p in pats)
 
 
-def blueprint(optics: Iterable[str], bode: Iterable[str] = (), timeline: str = "gps"):  # noqa: ANN201
+def blueprint(optics: Iterable[str], bode: Iterable[str] = (),  # noqa: ANN201
+              timeline: str = "gps"):
     """The default layout: a tab per optic (a time-series view per DOF and one of the OSEMs),
     a tab of Bode views (one per excitation and transfer function: magnitude, phase,
     coherence) when there are any, and the events log below."""
@@ -55,7 +57,8 @@ def blueprint(optics: Iterable[str], bode: Iterable[str] = (), timeline: str = "
 
     tabs = []
     for optic in optics:
-        views = [rrb.TimeSeriesView(origin=f"sus/{optic}/{dof}", name=f"{optic} {dof}") for dof in DOFS]
+        views = [rrb.TimeSeriesView(origin=f"sus/{optic}/{dof}", name=f"{optic} {dof}")
+                 for dof in DOFS]
         views.append(rrb.TimeSeriesView(origin=f"sus/{optic}/OSEM", name=f"{optic} OSEMs"))
         tabs.append(rrb.Grid(*views, grid_columns=2, name=optic))
     bode = list(bode)

@@ -26,6 +26,9 @@ from twind.viz.entities import blueprint, entity_path, matcher, parse_dof_channe
 from twind.viz.rerun_export import EVENTS_ENTITY, event_gps, event_text, gps_columns
 
 
+MAX_BACKLOG = 20_000  # queued blocks: about 6 s of all 210 channels of the 40m
+
+
 @dataclass
 class LiveStats:
     """What :func:`stream` sent."""
@@ -33,7 +36,7 @@ class LiveStats:
     blocks: int = 0
     rows: dict[str, int] = field(default_factory=dict)  # entity path -> decimated rows
     events: int = 0
-    dropped: int = 0  # undecodable payloads
+    dropped: int = 0  # undecodable payloads, and blocks dropped while too far behind
 
 
 def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: str = "C1",  # noqa: ANN001, PLR0913
@@ -76,8 +79,14 @@ def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: 
     pending: dict[str, list[Decimated]] = {}
     optics: list[str] = []
     session = zenoh.open(zenoh_config(connect=connect, mode="client", config_file=config_file))
-    subs = [session.declare_subscriber(all_data(root),
-                                       lambda s: inbox.put(("data", s.payload.to_bytes()))),
+
+    def on_data(sample: zenoh.Sample) -> None:
+        if inbox.qsize() > MAX_BACKLOG:  # falling behind: drop rather than grow without end
+            stats.dropped += 1
+            return
+        inbox.put(("data", sample.payload.to_bytes()))
+
+    subs = [session.declare_subscriber(all_data(root), on_data),
             session.declare_subscriber(control_key(ifo, "events", root),
                                        lambda s: inbox.put(("event", s.payload.to_bytes())))]
 

@@ -62,7 +62,8 @@ def gps_columns(gps_ns: NDArray[np.int64]) -> list:
 
     gps_ns = np.asarray(gps_ns, dtype=np.int64)
     return [rr.TimeColumn(GPS_TIMELINE, duration=gps_ns.astype("timedelta64[ns]")),
-            rr.TimeColumn(UTC_TIMELINE, timestamp=(gps_ns + GPS_TO_UNIX_NS).astype("datetime64[ns]"))]
+            rr.TimeColumn(UTC_TIMELINE,
+                          timestamp=(gps_ns + GPS_TO_UNIX_NS).astype("datetime64[ns]"))]
 
 
 def is_events_topic(topic: str) -> bool:
@@ -80,8 +81,7 @@ def event_text(event: dict) -> tuple[str, str]:
             what.append(f"{key} {req[key]}{unit}")
     label = event.get("id", "")
     if kind == "refused":
-        channel = (event.get("request") or {}).get("channel", "?") if isinstance(event.get("request"), dict) else "?"
-        return f"refused on {channel}: {event.get('reason', '')}", "WARN"
+        return f"refused on {req.get('channel', '?')}: {event.get('reason', '')}", "WARN"
     text = f"{kind} {label}: {req.get('waveform', '')} on {event.get('channel', '?')}"
     if what:
         text += f" ({', '.join(what)})"
@@ -117,7 +117,8 @@ class SpanTracker:
 
     POINTS = ("EXC", "IN1", "IN2")
 
-    def __init__(self, on_span: Callable[[str, str, str, dict[str, NDArray], float, float, bool], None],
+    def __init__(self,
+                 on_span: Callable[[str, str, str, dict[str, NDArray], float, float, bool], None],
                  lookback: int = 4) -> None:
         self._on_span = on_span
         self._lookback = lookback
@@ -144,7 +145,8 @@ class SpanTracker:
                     for old in self._recent.pop(key, ()):  # the same instants, seen before
                         self._keep(span, old)
                 span.last_ns = last
-            elif span is not None and span.last_ns is not None and start_ns - span.last_ns > GAP_S * NS:
+            elif (span is not None and span.last_ns is not None
+                  and start_ns - span.last_ns > GAP_S * NS):
                 self._close(key)
                 span = None
         if span is None:
@@ -182,7 +184,8 @@ class SpanTracker:
                 starts.append(t)
         if not starts:
             return
-        series = {p: np.concatenate([span.blocks[t][p].samples for t in starts]) for p in self.POINTS}
+        series = {p: np.concatenate([span.blocks[t][p].samples for t in starts])
+                  for p in self.POINTS}
         t0 = starts[0]
         a = max(0, int(round((span.first_ns - t0) * rate / NS)))
         b = min(series["EXC"].size, int(round((span.last_ns - t0) * rate / NS)))
@@ -193,13 +196,25 @@ class SpanTracker:
 
 
 # ------------------------------------------------------------------------------- the export
-def _messages(path: Path) -> Iterator[tuple[str, bytes]]:
+BLOCK_SCHEMA = "twind.v1.SampleBlock"
+
+
+def _messages(path: Path) -> Iterator[tuple[str, str, bytes]]:
+    """``(topic, kind, data)`` of every message in log-time order; kind is ``"block"``,
+    ``"event"`` or ``""`` (anything else, e.g. the ``twin/@config`` snapshot)."""
     from mcap.reader import make_reader
 
     with open(path, "rb") as fh:
         reader = make_reader(fh)
-        for _, channel, message in reader.iter_messages(log_time_order=True):
-            yield channel.topic, message.data
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            if is_events_topic(channel.topic):
+                kind = "event"
+            elif (channel.message_encoding == "protobuf" and channel.topic.startswith("twin/")
+                  and (schema is None or schema.name == BLOCK_SCHEMA)):
+                kind = "block"
+            else:
+                kind = ""
+            yield channel.topic, kind, message.data
 
 
 class _Exporter:
@@ -256,13 +271,14 @@ class _Exporter:
         if isinstance(event, dict) and event_gps(event) is not None:
             self.events.append(event)
 
-    def _label(self, channel: str, start: float, stop: float) -> str:
+    def _start_event(self, channel: str, start: float, stop: float) -> dict | None:
+        """The start event of the excitation that drove `channel` from `start` to `stop`."""
         for ev in self.events:
             if ev.get("event") == "start" and ev.get("channel") == channel and ev.get("id"):
                 t = event_gps(ev)
                 if t is not None and start - 1.0 <= t <= stop:
-                    return str(ev["id"])
-        return f"gps{start:.0f}"
+                    return ev
+        return None
 
     def _bode(self, ifo: str, optic: str, dof: str, series: dict[str, NDArray], start: float,
               rate: float, truncated: bool) -> None:
@@ -270,8 +286,15 @@ class _Exporter:
 
         stop = start + series["EXC"].size / rate
         channel = f"{ifo}:SUS-{optic}_SUS{dof}_EXC"
-        label = self._label(channel, start, stop)
-        tfs = measure(series["EXC"], {"IN1": series["IN1"], "IN2": series["IN2"]}, rate)
+        event = self._start_event(channel, start, stop)
+        label = str(event["id"]) if event else f"gps{start:.0f}"
+        request = event.get("request") if event else None
+        tone = None
+        if isinstance(request, dict) and request.get("waveform") == "sine":
+            freq = request.get("freq")
+            tone = float(freq) if isinstance(freq, (int, float)) and freq > 0 else None
+        tfs = measure(series["EXC"], {"IN1": series["IN1"], "IN2": series["IN2"]}, rate,
+                      tone_hz=tone)
         for point, tf in tfs.items():
             if tf.freq_hz.size == 0:
                 continue
@@ -282,10 +305,12 @@ class _Exporter:
                                        ("phase_deg", tf.phase_deg, "deg"),
                                        ("coherence", tf.coherence, "")):
                 path = f"{base}/{leaf}"
-                name = f"{optic} {dof} {point}/EXC {leaf.split('_')[0]}" + (f" [{unit}]" if unit else "")
+                name = f"{optic} {dof} {point}/EXC {leaf.split('_')[0]}"
+                name += f" [{unit}]" if unit else ""
                 self.rec.log(path, rr.SeriesLines(names=name), rr.SeriesPoints(names=name),
                              static=True)
-                self.rec.send_columns(path, indexes=index, columns=rr.Scalars.columns(scalars=values))
+                self.rec.send_columns(path, indexes=index,
+                                      columns=rr.Scalars.columns(scalars=values))
             self.bode_entities.append(base)
         note = (f"{label}: {optic} {dof} excited from GPS {start:.3f} to {stop:.3f}; "
                 f"IN1/EXC and IN2/EXC under bode/{optic}/{dof}/{label}")
@@ -320,7 +345,8 @@ class ExportSummary:
     bode: list[str]  # bode/<optic>/<dof>/<excitation>/<IN1|IN2>_EXC entities
 
 
-def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path, channels: Iterable[str] | str | None = None,
+def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path,
+                channels: Iterable[str] | str | None = None,
                 decimate_to_hz: float = 256.0, bode: bool = True,
                 recording_id: str | None = None) -> ExportSummary:
     """Convert a twind MCAP session into a Rerun .rrd file.
@@ -363,10 +389,10 @@ def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path, channels: Iterable[
     rec.send_recording_name(mcap_path.name)
     exporter = _Exporter(rec, decimate_to_hz, matcher(channels), bode)
     try:
-        for topic, data in _messages(mcap_path):
-            if is_events_topic(topic):
+        for _topic, kind, data in _messages(mcap_path):
+            if kind == "event":
                 exporter.event(data)
-            elif topic.startswith("twin/"):
+            elif kind == "block":
                 exporter.block(SampleBlock.decode(data))
         exporter.finish()
         optics = sorted({p[1] for n in exporter.decimators if (p := parse_dof_channel(n))})
