@@ -5,11 +5,10 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
-import time
 from contextlib import contextmanager
 from collections.abc import Iterator
 
-from twind.client import TwinClient, TwinUnreachable
+from twind.client import TwinClient
 
 
 def free_port() -> int:
@@ -26,16 +25,7 @@ def serving(*args: str, port: int | None = None) -> Iterator[str]:
     proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--listen", endpoint, *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                with TwinClient(connect=[endpoint], timeout=1.0) as c:
-                    c.status()
-                break
-            except TwinUnreachable:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError(f"twind serve did not start: {proc.communicate()}") from None
-                time.sleep(0.3)
+        TwinClient.wait([endpoint], alive=lambda: proc.poll() is None).close()
         yield endpoint
     finally:
         proc.terminate()

@@ -7,7 +7,6 @@ import io
 import math
 import subprocess
 import sys
-import time
 from contextlib import redirect_stdout
 from pathlib import Path
 
@@ -16,23 +15,11 @@ import pytest
 
 from servicekit import free_port
 from twind.cli import main
-from twind.client import InjectionRefused, TwinClient, TwinUnreachable
+from twind.client import InjectionRefused, TwinClient
 from twind.recording.reader import read_session
 
 POS = "C1:SUS-ETMX_SUSPOS"
 RATE = 16384
-
-
-def _wait_for(endpoint: str, proc: subprocess.Popen) -> TwinClient:
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            client = TwinClient(connect=[endpoint], timeout=2.0)
-            client.status()
-            return client
-        except TwinUnreachable:
-            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-            time.sleep(0.2)
 
 
 @pytest.mark.slow
@@ -43,7 +30,7 @@ def test_serve_record_inject_export(tmp_path: Path) -> None:
                              "--listen", endpoint, "--speed", "4", "--duration", "24",
                              "--record", str(rec)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    with _wait_for(endpoint, proc) as twin:
+    with TwinClient.wait([endpoint], alive=lambda: proc.poll() is None) as twin:
         exc_id = twin.inject(f"{POS}_EXC", "sine", freq=3.0, amp=0.1, duration=20.0)
         for bad in ({"freq": -3.0, "amp": 0.1}, {"freq": 3.0, "amp": math.nan}):
             with pytest.raises(InjectionRefused):

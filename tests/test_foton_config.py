@@ -59,7 +59,7 @@ def test_model_follows_the_coefficients_not_a_stale_design(tmp_path: Path) -> No
 def test_missing_module_and_both_sources_are_errors(tmp_path: Path) -> None:
     path = _config_with_file(tmp_path)
     bad = tmp_path / "both.toml"
-    bad.write_text(path.read_text().replace("[damping]", f"[damping]\nFM4 = [\"x\", 'gain(2)']", 1))
+    bad.write_text(path.read_text().replace("[damping]", "[damping]\nFM4 = [\"x\", 'gain(2)']", 1))
     with pytest.raises(ConfigError, match="not both"):
         load_optic(bad)
     text = path.read_text().replace('name = "ETMX"', 'name = "ETMY"')

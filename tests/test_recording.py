@@ -260,7 +260,7 @@ class _Lines:
 def _start_recorder(out: Path, port: int, *extra: str) -> tuple[subprocess.Popen, _Lines]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "twind.recording.recorder", "twin/**", "-o", str(out),
+        [sys.executable, "-m", "twind", "record", "twin/**", "-o", str(out),
          "--connect", f"tcp/127.0.0.1:{port}", *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
     lines = _Lines(proc.stderr)
@@ -502,15 +502,15 @@ def test_replay_loop_and_stop(tmp_path: Path) -> None:
 
 def test_cli_entry_points_report_errors(tmp_path: Path) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    for module, args, text in [
+    for command, args, text in [
         ("export", [str(tmp_path / "none.mcap"), "-o", str(tmp_path / "x.npz")],
          "no such recording"),
         ("replay", [str(tmp_path / "none.mcap")], "no such recording"),
-        ("recorder", ["-o", str(tmp_path / "no" / "x.mcap")], "no such directory"),
+        ("record", ["-o", str(tmp_path / "no" / "x.mcap")], "no such directory"),
     ]:
-        proc = subprocess.run([sys.executable, "-m", f"twind.recording.{module}", *args],
+        proc = subprocess.run([sys.executable, "-m", "twind", command, *args],
                               capture_output=True, text=True, env=env, cwd=ROOT, timeout=30,
                               check=False)
-        assert proc.returncode == 2 and text in proc.stderr, (module, proc.stderr)
+        assert proc.returncode == 2 and text in proc.stderr, (command, proc.stderr)
         assert "Traceback" not in proc.stderr
     shutil.rmtree(tmp_path, ignore_errors=True)

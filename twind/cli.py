@@ -377,6 +377,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (TwindError, OSError) as err:
         print(f"twind: error: {err}", file=sys.stderr)
         return 2
+    except Exception as err:
+        if type(err).__module__.startswith("zenoh"):  # e.g. an endpoint that cannot be bound
+            print(f"twind: error: {err}", file=sys.stderr)
+            return 2
+        raise
     except KeyboardInterrupt:
         return 130
 

@@ -9,7 +9,8 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from types import TracebackType
 
 import zenoh
@@ -49,6 +50,29 @@ class TwinClient:
         except zenoh.ZError as err:
             msg = f"cannot reach a twin at {', '.join(connect)}: {err}"
             raise TwinUnreachable(msg) from None
+
+    @classmethod
+    def wait(cls, connect: Sequence[str], timeout: float = 60.0,
+             alive: Callable[[], bool] = lambda: True, **kwargs: object) -> TwinClient:
+        """A client to a twin that may still be starting: retries until its status answers.
+
+        `alive` is asked between tries (e.g. ``lambda: proc.poll() is None`` for a service
+        started as a process), so a twin that died ends the wait at once.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                client = cls(connect=connect, **kwargs)
+                try:
+                    client.status()
+                    return client
+                except TwinUnreachable:
+                    client.close()
+                    raise
+            except TwinUnreachable:
+                if not alive() or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
 
     def query(self, verb: str, request: dict | None = None) -> dict:
         """Send one control request and return the reply (raises when none comes)."""

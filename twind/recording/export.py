@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from twind.errors import TwindError
 from twind.recording.reader import Gap, RecordingError, read_session
 
 FORMATS = {".npz": "npz", ".h5": "hdf5", ".hdf5": "hdf5"}
@@ -176,19 +175,3 @@ def export_main(args: argparse.Namespace) -> int:
     print(f"wrote {result.path} ({result.format}): {len(result.channels)} channel(s)"
           + (f", {n_gaps} gap(s) NaN-filled" if n_gaps else ""))
     return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m twind.recording.export``: the same as ``twind export``."""
-    parser = argparse.ArgumentParser(prog="twind export", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return export_main(args)
-    except (TwindError, OSError) as err:
-        print(f"twind: error: {err}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

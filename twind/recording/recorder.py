@@ -496,18 +496,6 @@ def record_main(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m twind.recording.recorder``: the same as ``twind record``."""
-    parser = argparse.ArgumentParser(prog="twind record", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return record_main(args)
-    except (RecordingError, OSError, zenoh.ZError) as err:
-        print(f"twind: error: {err}", file=sys.stderr)
-        return 2
-
-
 # --- benchmark -------------------------------------------------------------------------------
 
 
@@ -643,7 +631,3 @@ def _publish_paced(endpoint: str, n_seq: int, block_samples: int, rate: float) -
             for pub, data in batch:
                 pub.put(data)
         time.sleep(0.2)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

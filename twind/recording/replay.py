@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -240,19 +240,3 @@ def replay_main(args: argparse.Namespace) -> int:
           f"{len(stats.keys)} keys in {stats.elapsed_s:.2f} s ({stats.loops} pass(es); "
           f"recorded span {stats.recorded_span_s:.2f} s)")
     return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m twind.recording.replay``: the same as ``twind replay``."""
-    parser = argparse.ArgumentParser(prog="twind replay", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        return replay_main(args)
-    except (RecordingError, OSError, zenoh.ZError) as err:
-        print(f"twind: error: {err}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -27,7 +27,7 @@ import zenoh
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
 from twind.bus.session import zenoh_config
-from twind.client import TwinClient, TwinUnreachable
+from twind.client import TwinClient
 
 
 @dataclass
@@ -164,7 +164,7 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
                "--record", tmp] + (["--config", config] if config else [])
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            client = _connect(endpoint, proc)
+            client = TwinClient.wait([endpoint], timeout=90, alive=lambda: proc.poll() is None)
             watcher = _Watcher(endpoint)
             status0 = client.status()
             cpu0, t0 = _cpu_seconds(proc.pid), time.monotonic()
@@ -192,20 +192,6 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
         mcap_blocks=sum(len(session[c].sequences) for c in session),
         mcap_gaps=len(session.gaps), latency_s=latencies, hostile_sent=hostile,
         hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"])
-
-
-def _connect(endpoint: str, proc: subprocess.Popen) -> TwinClient:
-    deadline = time.monotonic() + 90
-    while True:
-        try:
-            client = TwinClient(connect=[endpoint], timeout=5.0)
-            client.status()
-            return client
-        except TwinUnreachable:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                msg = f"twind serve did not start: {proc.communicate()[1][-2000:]}"
-                raise RuntimeError(msg) from None
-            time.sleep(0.3)
 
 
 def _inject_periodically(client: TwinClient, watcher: _Watcher, status: dict, until: float,

@@ -87,7 +87,7 @@ class Engine:
         self._build_noise(specs, seed)
 
     def _build_plants(self) -> None:
-        n_opt, dt = len(self.loops), 1.0 / self.rate_hz
+        n_opt = len(self.loops)
         modes = []
         feedthrough, self._to_modal = [], []
         for lp in self.loops:
