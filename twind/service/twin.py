@@ -107,7 +107,11 @@ class TwinService:
         self._started = self._t0 = time.monotonic()
         self._session = session
         names = [name for name, _, _ in block_channels(twin.ifo, self._buf)]
-        self._pubs = {name: session.declare_publisher(data_key(name, root)) for name in names}
+        # Zenoh drops samples under congestion by default; a twin whose recordings have gaps is
+        # worse than one that waits a moment for a slow subscriber
+        self._pubs = {name: session.declare_publisher(
+            data_key(name, root), congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE) for name in names}
         self._events = session.declare_publisher(control_key(twin.ifo, "events", root))
         handlers: dict[str, Callable[[dict], dict]] = {
             "status": lambda _: self.status(), "inject": self.inject, "stop": self.stop,
