@@ -75,15 +75,22 @@ class TwinClient:
                 time.sleep(0.2)
 
     def query(self, verb: str, request: dict | None = None) -> dict:
-        """Send one control request and return the reply (raises when none comes)."""
+        """Send one control request and return the reply (raises when none comes).
+
+        With one twin per host every twin answers; the reply that succeeded wins (the twin
+        that runs the optic), otherwise the first refusal with its reason.
+        """
         key = control_key(self.ifo, verb, self.root)
+        replies = []
         for reply in self._session.get(key, payload=json.dumps(request or {}), timeout=self.timeout):
             if reply.ok is None:
                 msg = f"{key}: {reply.err.payload.to_string()}"
                 raise TwindError(msg)
-            return json.loads(reply.ok.payload.to_string())
-        msg = f"no twin answered on {key} within {self.timeout} s"
-        raise TwinUnreachable(msg)
+            replies.append(json.loads(reply.ok.payload.to_string()))
+        if not replies:
+            msg = f"no twin answered on {key} within {self.timeout} s"
+            raise TwinUnreachable(msg)
+        return next((r for r in replies if r.get("ok")), replies[0])
 
     def status(self) -> dict:
         """The service status: real-time factor, lag, late blocks, excitations, uptime."""
