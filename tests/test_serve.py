@@ -66,6 +66,9 @@ def test_serve_inject_refuse_and_test_points() -> None:
                 with pytest.raises(InjectionRefused, match="unknown excitation channel"):
                     twin.inject("C1:SUS-ETMZ_SUSPOS_EXC", "sine", freq=1.0, amp=0.1)
                 assert [e["id"] for e in twin.status()["excitations"]] == [exc_id]
+                # limits hold per test point: a second sine that would add up past them is refused
+                with pytest.raises(InjectionRefused, match="limit"):
+                    twin.inject(f"{POS}_EXC", "sine", freq=5.0, amp=99.95, duration=1.0)
                 time.sleep(5.5)  # 20 s of twin time at speed 4
                 status = twin.status()
                 twin.stop(exc_id)
@@ -89,18 +92,22 @@ def test_serve_inject_refuse_and_test_points() -> None:
 
 
 def test_live_parameters_and_filters() -> None:
-    with serving("--optics", "ETMX,ITMX", "--speed", "4") as endpoint, \
+    with serving("--optics", "ETMX,ITMX") as endpoint, \
             TwinClient(connect=[endpoint]) as twin:
         before = twin.params("ETMX")
         assert before["params"]["wire_length_m"] == pytest.approx(0.248)
         after = twin.params("ETMX", wire_length_m=0.25)
         assert after["params"]["wire_length_m"] == pytest.approx(0.25)
-        with pytest.raises(Exception, match="unknown parameter"):
-            twin.params("ETMX", wire_lenght_m=0.25)
+        for bad in ({"wire_lenght_m": 0.25}, {"loop_delay_s": 0.01}, {"check": 1}):
+            with pytest.raises(Exception, match="cannot change"):
+                twin.params("ETMX", **bad)
         with pytest.raises(Exception, match="must be positive"):
             twin.params("ETMX", mass_kg=-1.0)
+        with pytest.raises(Exception, match="unstable"):
+            twin.params("ETMX", mass_kg=1e-7)
+        assert twin.params("ETMX")["params"]["mass_kg"] == pytest.approx(0.243)
         state = twin.switch("ITMX", "PIT", 3, False)
         assert state["filters"]["PIT"]["on"] == [1, 2]
         state = twin.set_gain("ITMX", "PIT", 0.2, ramp=0.0)
         assert state["filters"]["PIT"]["gain"] == pytest.approx(0.2)
-        assert twin.status()["late_blocks"] == 0
+        assert twin.status()["blocks"] > 0  # still serving (pacing figures: twind soak)

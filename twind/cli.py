@@ -184,7 +184,11 @@ def cmd_inject(args: argparse.Namespace) -> int:
     if args.start is not None:
         settings["start_gps"] = args.start
     if args.file:
-        settings["samples"] = np.loadtxt(args.file, ndmin=1)
+        try:
+            settings["samples"] = np.loadtxt(args.file, ndmin=1)
+        except ValueError as err:
+            msg = f"{args.file}: not a column of numbers ({err})"
+            raise TwindError(msg) from None
     with _client(args) as twin:
         exc_id = twin.inject(args.channel, args.waveform, **settings)
     print(exc_id)
@@ -300,7 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--optics", default="all", help="comma-separated names, or 'all'")
     serve.add_argument("--listen", action="append", help="endpoint (default tcp/127.0.0.1:7447)")
     serve.add_argument("--connect", action="append", help="endpoint of a router or peer")
-    serve.add_argument("--mode", choices=("peer", "router", "client"), default="peer")
+    serve.add_argument("--mode", choices=("peer", "router", "client"),
+                       help="Zenoh mode (default: the --zenoh-config file's, else peer)")
     serve.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
     serve.add_argument("--record", help="folder for rotating MCAP recordings of the session")
     serve.add_argument("--speed", type=float, default=1.0, help="twin seconds per wall second")

@@ -82,7 +82,9 @@ class TwinClient:
         """
         key = control_key(self.ifo, verb, self.root)
         replies = []
-        for reply in self._session.get(key, payload=json.dumps(request or {}), timeout=self.timeout):
+        # no consolidation: every twin's reply, not only the last one per key
+        for reply in self._session.get(key, payload=json.dumps(request or {}), timeout=self.timeout,
+                                       consolidation=zenoh.ConsolidationMode.NONE):
             if reply.ok is None:
                 msg = f"{key}: {reply.err.payload.to_string()}"
                 raise TwindError(msg)

@@ -10,30 +10,34 @@ import zenoh
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
-def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
-                 config_file: str | None = None, scouting: bool = False) -> zenoh.Config:
+def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (),
+                 mode: str | None = None, config_file: str | None = None,
+                 scouting: bool | None = None) -> zenoh.Config:
     """A Zenoh configuration.
 
     Parameters
     ----------
     listen, connect : sequence of str
         Endpoints such as ``tcp/127.0.0.1:7447``.
-    mode : {"peer", "client", "router"}
+    mode : {"peer", "client", "router"}, optional
+        Default: the configuration file's, else ``"peer"``.
     config_file : str, optional
         A Zenoh JSON5 configuration file (e.g. ``deploy/zenoh-router.json5``) to start from.
-    scouting : bool
-        Multicast scouting; off by default so that tests and twins stay on the endpoints they
-        are given and never find each other by accident.
+    scouting : bool, optional
+        Multicast scouting. Default: the configuration file's, else off, so that tests and
+        twins stay on the endpoints they are given and never find each other by accident.
 
     Returns
     -------
     zenoh.Config
     """
     conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
+    if mode is not None or not config_file:
+        conf.insert_json5("mode", json.dumps(mode or "peer"))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    conf.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
+    if scouting is not None or not config_file:
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
     return conf

@@ -40,21 +40,28 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with zenoh.open(conf) as session:
-        # the recorder subscribes before the service answers anything, so that no block and
-        # no injection event escapes the recording
-        recorder = _recorder(record_dir, endpoints, twin.ifo) if record_dir else None
-        service = TwinService(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
-        print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
-              f"{service.block_s:g} s blocks, {speed:g} x real time, GPS {service.gps0:.3f}, "
-              f"on {' '.join(endpoints)}; Ctrl-C stops", flush=True)
-        try:
-            service.run(duration=duration, stop=stop)
-        finally:
-            status = service.status()
-            service.close()
-            if recorder is not None:
-                _stop_recorder(recorder)
+    if not (speed > 0 and block_s > 0):
+        msg = f"--speed and --block must be positive, got {speed} and {block_s}"
+        raise TwindError(msg)
+    recorder = None
+    try:
+        with zenoh.open(conf) as session:
+            # the recorder subscribes before the service answers anything, so that no block
+            # and no injection event escapes the recording
+            recorder = _recorder(record_dir, endpoints, twin.ifo) if record_dir else None
+            service = TwinService(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
+            print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
+                  f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "
+                  f"{service.gps0:.3f}, on {' '.join(endpoints) or 'the configured endpoints'};"
+                  " Ctrl-C stops", flush=True)
+            try:
+                service.run(duration=duration, stop=stop)
+            finally:
+                status = service.status()
+                service.close()
+    finally:
+        if recorder is not None:
+            _stop_recorder(recorder)
     print(f"twind serve: stopped after {status['blocks']} blocks, {status['late_blocks']} late, "
           f"max lag {status['max_lag_s'] * 1e3:.1f} ms, busy {100 * status['cpu_fraction']:.1f} %",
           file=sys.stderr)

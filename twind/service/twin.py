@@ -14,8 +14,9 @@ import json
 import math
 import threading
 import time
+import uuid
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import zenoh
@@ -25,6 +26,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import ROOT, control_key, data_key
 from twind.channels import block_channels, dof_channel
 from twind.config import OpticConfig, TwinConfig
+from twind.model.params import SOSParams
 from twind.errors import TwindError
 from twind.excitation import ExcitationError, ExcitationRequest, Limits, check, make_waveform
 from twind.simulation.engine import Engine
@@ -32,6 +34,11 @@ from twind.timeutil import now_gps
 
 DEFAULT_LIMITS = Limits(peak=100.0, rms=30.0)  # um or urad at EXC: well inside the OSEM range
 VERBS = ("status", "inject", "stop", "params", "filter")
+# JSON parsing holds the interpreter lock the pacing thread needs: 8 MB parse in ~50 ms
+MAX_REQUEST_BYTES = 8_000_000
+# parameters a running twin may change (rate, delay and identity need a restart)
+LIVE_PARAMS = frozenset(f.name for f in fields(SOSParams)) - {"name", "sample_rate_hz",
+                                                             "loop_delay_s"}
 
 
 @dataclass
@@ -102,8 +109,11 @@ class TwinService:
         self.stats = Stats()
         self._buf = self.engine.new_block(self.n)
         self._lock = threading.Lock()
+        self._params_lock = threading.Lock()  # one parameter change at a time
         self._active: dict[str, Active] = {}
-        self._ids = (f"exc-{i}" for i in itertools.count(1))
+        tag = uuid.uuid4().hex[:6]  # ids stay unique when several twins share a router
+        self._ids = (f"exc-{tag}-{i}" for i in itertools.count(1))
+        self._ended: set[str] = set()
         self._started = self._t0 = time.monotonic()
         self._session = session
         names = [name for name, _, _ in block_channels(twin.ifo, self._buf)]
@@ -163,6 +173,7 @@ class TwinService:
             exc[act.optic, act.dof, a:] += act.waveform.next(self.n - a)
             if act.waveform.done:
                 del self._active[act.id]
+                self._ended.add(act.id)
                 self._publish_event("end", act)
         return exc
 
@@ -170,14 +181,19 @@ class TwinService:
     def _answer(self, handler: Callable[[dict], dict]) -> Callable[[zenoh.Query], None]:
         def on_query(query: zenoh.Query) -> None:
             try:
-                payload = query.payload.to_string() if query.payload is not None else ""
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                if len(payload) > MAX_REQUEST_BYTES:
+                    msg = (f"request of {len(payload)} bytes; at most {MAX_REQUEST_BYTES} "
+                           "(stream long waveforms in several requests)")
+                    raise TwindError(msg)
                 request = json.loads(payload) if payload else {}
                 if not isinstance(request, dict):
                     msg = "the request must be a JSON object"
                     raise TwindError(msg)
                 reply = handler(request)
-            except (TwindError, ValueError, KeyError, TypeError) as err:
-                reply = {"ok": False, "reason": str(err)}
+            except Exception as err:  # noqa: BLE001 - every request gets an answer, never silence
+                reply = {"ok": False, "accepted": False, "reason": f"{type(err).__name__}: {err}"
+                         if not isinstance(err, TwindError) else str(err)}
             query.reply(query.key_expr, json.dumps(reply))
 
         return on_query
@@ -203,9 +219,12 @@ class TwinService:
         try:
             req = ExcitationRequest.from_json(request)
             optic, dof = self._test_point(req.channel)
-            check(req, self.limits, self.rate)
-        except (ExcitationError, TwindError) as err:
-            self._publish_event("refused", None, request=request, reason=str(err))
+        except (ExcitationError, TwindError) as err:  # maybe another twin's channel: no event
+            return {"ok": False, "accepted": False, "reason": str(err)}
+        try:
+            check(req, self._room_left(optic, dof), self.rate)
+        except ExcitationError as err:
+            self._publish_event("refused", None, request=_summary(req.to_json()), reason=str(err))
             return {"ok": False, "accepted": False, "reason": str(err)}
         with self._lock:
             next_sample = self.engine.samples
@@ -226,17 +245,30 @@ class TwinService:
         return {"ok": True, "accepted": True, "id": act.id,
                 "start_gps": self.gps0 + start / self.rate}
 
+    def _room_left(self, optic: int, dof: int) -> Limits:
+        """The limits less what the excitations already on that test point use: two
+        accepted sines must not add up past the limit."""
+        with self._lock:
+            on = [a for a in self._active.values() if (a.optic, a.dof) == (optic, dof)]
+        peak = sum(_peak(a.request) for a in on)
+        rms = math.sqrt(sum(_rms(a.request) ** 2 for a in on))
+        return Limits(peak=max(0.0, self.limits.peak - peak),
+                      rms=math.sqrt(max(0.0, self.limits.rms**2 - rms**2)))
+
     def stop(self, request: dict) -> dict:
         """Stop an excitation by id (``{"id": ...}``), or all with ``{"all": true}``."""
         with self._lock:
-            ids = list(self._active) if request.get("all") else [request.get("id")]
-            missing = [i for i in ids if i not in self._active]
+            ids = list(self._active) if request.get("all") is True else [request.get("id")]
+            ended = [i for i in ids if i in self._ended]
+            missing = [i for i in ids if i not in self._active and i not in self._ended]
             if missing:
-                return {"ok": False, "reason": f"no active excitation {missing[0]!r}"}
-            stopped = [self._active.pop(i) for i in ids]
-        for act in stopped:
+                return {"ok": False, "reason": f"no excitation {missing[0]!r}"}
+            stopping = [self._active[i] for i in ids if i in self._active]
+            for act in stopping:  # ramp down as the request asked, no kick to the optic
+                act.waveform.stop(act.request.ramp)
+        for act in stopping:
             self._publish_event("stop", act)
-        return {"ok": True, "stopped": [a.id for a in stopped]}
+        return {"ok": True, "stopped": [a.id for a in stopping], "already_ended": ended}
 
     def params(self, request: dict) -> dict:
         """Get (``{"optic": "ETMX"}``) or set (``{"optic": ..., "set": {...}}``) parameters."""
@@ -247,20 +279,24 @@ class TwinService:
             if not isinstance(changes, dict):
                 msg = "'set' must be an object of parameter names and values"
                 raise TwindError(msg)
-            cfg = self.optics[index]
-            unknown = [k for k in changes if not hasattr(cfg.sus, k) or k == "name"]
+            unknown = [k for k in changes if k not in LIVE_PARAMS]
             if unknown:
-                msg = f"unknown parameter(s) {', '.join(unknown)}"
+                msg = (f"cannot change {', '.join(unknown)} live; parameters: "
+                       f"{', '.join(sorted(LIVE_PARAMS))}")
                 raise TwindError(msg)
-            sus = cfg.sus.updated(**changes)
-            problems = sus.check()
-            if problems:
-                raise TwindError("; ".join(f"{k}: {p}" for k, p in problems))
-            new = OpticConfig(cfg.name, sus, cfg.damping, cfg.noise, cfg.model, cfg.source)
-            loop = new.loop()
-            with self._lock:
-                self.engine.update_plant(name, loop)
-                self.optics[index] = new
+            with self._params_lock:
+                cfg = self.optics[index]
+                sus = cfg.sus.updated(**changes)
+                problems = sus.check()
+                if problems:
+                    raise TwindError("; ".join(f"{k}: {p}" for k, p in problems))
+                new = OpticConfig(cfg.name, sus, cfg.damping, cfg.noise, cfg.model, cfg.source)
+                loop = new.loop()
+                loop.modules = self.engine.loops[index].modules  # the filters as they run now
+                _check_stable(loop, self.rate)
+                with self._lock:
+                    self.engine.update_plant(name, loop)
+                    self.optics[index] = new
         sus = asdict(self.optics[index].sus)
         modules = {d: {"gain": m.gain, "on": sorted(m.on), "limit": m.limit, "ramp_s": m.ramp_s}
                    for d, m in self.engine.loops[index].modules.items()}
@@ -298,7 +334,7 @@ class TwinService:
         if act is not None:
             body.update(id=act.id, channel=act.request.channel,
                         start_gps=self.gps0 + act.start_sample / self.rate,
-                        request=act.request.to_json())
+                        request=_summary(act.request.to_json()))
         self._events.put(json.dumps(body, default=_jsonable))
 
     def close(self) -> None:
@@ -310,9 +346,35 @@ class TwinService:
         self._events.undeclare()
 
 
-def _jsonable(obj: object) -> object:
-    if isinstance(obj, np.ndarray):
-        return f"<{obj.size} samples>"
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return str(obj)
+def _peak(req: ExcitationRequest) -> float:
+    return 6 * req.amp if req.waveform == "noise" else (
+        float(np.max(np.abs(req.samples))) if req.waveform == "stream" else req.amp)
+
+
+def _rms(req: ExcitationRequest) -> float:
+    if req.waveform == "stream":
+        return float(np.sqrt(np.mean(np.square(req.samples))))
+    return req.amp if req.waveform == "noise" else req.amp / math.sqrt(2)
+
+
+def _check_stable(loop, rate: float) -> None:  # noqa: ANN001 - DampingLoop
+    from twind.simulation.discretize import closed_loop_matrices
+
+    worst = np.abs(np.linalg.eigvals(closed_loop_matrices(loop, rate)[0])).max()
+    if worst >= 1.0:
+        msg = f"refused: with these parameters the damping loop would be unstable (|z| = {worst:.6f})"
+        raise TwindError(msg)
+
+
+def _jsonable(obj: object) -> str:
     return str(obj)
+
+
+def _summary(request: dict) -> dict:
+    """A request for the event log: a stream's samples only by count and RMS."""
+    samples = request.get("samples")
+    if isinstance(samples, list):
+        x = np.asarray(samples, dtype=float)
+        request = {**request, "samples": {"n": int(x.size),
+                                          "rms": float(np.sqrt(np.mean(x**2))) if x.size else 0.0}}
+    return request

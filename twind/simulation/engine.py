@@ -254,8 +254,8 @@ class Engine:
         o, d = self._where(optic, dof)
         module = self.loops[o].modules[dof]
         ramp = module.ramp_s if ramp_s is None else ramp_s
-        if not (np.isfinite(gain) and np.isfinite(ramp) and ramp >= 0):
-            msg = f"gain must be finite and ramp non-negative, got gain {gain}, ramp {ramp} s"
+        if not (np.isfinite(gain) and 0 <= ramp <= 3600):
+            msg = f"gain must be finite and ramp within 0..3600 s, got gain {gain}, ramp {ramp} s"
             raise ValueError(msg)
         steps = int(round(ramp * self.rate_hz))
         self._gain_target[o, d] = gain
