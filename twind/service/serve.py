@@ -54,6 +54,8 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
                   f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "
                   f"{service.gps0:.3f}, on {' '.join(endpoints) or 'the configured endpoints'};"
                   " Ctrl-C stops", flush=True)
+            reporter = threading.Thread(target=_report, args=(service, stop), daemon=True)
+            reporter.start()
             try:
                 service.run(duration=duration, stop=stop)
             finally:
@@ -66,6 +68,15 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
           f"max lag {status['max_lag_s'] * 1e3:.1f} ms, busy {100 * status['cpu_fraction']:.1f} %",
           file=sys.stderr)
     return 0
+
+
+def _report(service: TwinService, stop: threading.Event, every: float = 10.0) -> None:
+    """A status line every `every` seconds, so a terminal shows the twin is alive."""
+    while not stop.wait(every):
+        s = service.status()
+        print(f"twind serve: GPS {s['gps']:.1f}, {s['blocks']} blocks, {s['real_time_factor']:.3f} "
+              f"x real time, lag {1e3 * s['lag_s']:.1f} ms (max {1e3 * s['max_lag_s']:.1f}), "
+              f"{s['late_blocks']} late, {len(s['excitations'])} excitation(s)", flush=True)
 
 
 def _recorder(folder: str, endpoints: Sequence[str], ifo: str) -> subprocess.Popen:
