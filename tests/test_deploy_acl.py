@@ -261,15 +261,6 @@ def serving(*args: str) -> Iterator[subprocess.Popen]:
             proc.kill()
 
 
-def _serve_runs() -> bool:
-    try:
-        import twind.service.twin  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _serve_runs(), reason="twind serve does not import yet")
 def test_usrpwd_acl_on_twind_serve(tmp_path: Path) -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -307,23 +298,14 @@ def router(config_file: Path, port: int, *cfg: str) -> Iterator[str]:
 def test_plain_router_routes_data_and_queries() -> None:
     """deploy/README.md's layout: router, a twin in client mode behind it, a client."""
     with router(DEPLOY / "zenoh-router.json5", free_port()) as endpoint:
-        if _serve_runs():
-            with serving("--mode", "client", "--connect", endpoint,
-                         "--zenoh-config", str(DEPLOY / "zenoh-client.json5")) as proc:
-                wait_until_answering(endpoint, None, proc)  # type: ignore[arg-type]
-                watcher = Watcher(endpoint, None)
-                try:
-                    assert watcher.wait_for_data() > 0
-                finally:
-                    watcher.close()
-        else:
-            with standin(zenoh_config(connect=[endpoint], mode="client")):
-                wait_until_answering(endpoint, None)  # type: ignore[arg-type]
-                watcher = Watcher(endpoint, None)
-                try:
-                    assert watcher.wait_for_data() > 0
-                finally:
-                    watcher.close()
+        with serving("--mode", "client", "--connect", endpoint,
+                     "--zenoh-config", str(DEPLOY / "zenoh-client.json5")) as proc:
+            wait_until_answering(endpoint, None, proc)  # type: ignore[arg-type]
+            watcher = Watcher(endpoint, None)
+            try:
+                assert watcher.wait_for_data() > 0
+            finally:
+                watcher.close()
 
 
 def test_usrpwd_acl_on_the_router() -> None:
@@ -359,7 +341,6 @@ def test_usrpwd_acl_on_the_router() -> None:
                 fake.close()
 
 
-@pytest.mark.skipif(not _serve_runs(), reason="twind serve does not import yet")
 def test_usrpwd_acl_on_the_router_with_twind_serve(tmp_path: Path) -> None:
     """The secured multi-host recipe: twind serve logs in to the ACL router as "twin"."""
     dictionary = f"transport/auth/usrpwd/dictionary_file:{json.dumps(str(CREDENTIALS))}"

@@ -279,15 +279,6 @@ def test_view_explains_what_to_do_without_a_display(monkeypatch: pytest.MonkeyPa
             parser.parse_args(["--save", "a.rrd", "--web"])
 
 
-def _serve_runs() -> bool:
-    try:
-        import twind.service.twin  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _serve_runs(), reason="twind serve does not import yet")
 def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> None:
     """``twind serve --record`` with ``twind view --save`` watching and an operator's sine:
     the live view has the channels and the event; the recording's .rrd has the Bode of the
