@@ -241,7 +241,7 @@ class TwinService:
                     return {"ok": False, "accepted": False, "reason": reason}
             act = Active(next(self._ids), req, optic, dof, start, make_waveform(req, self.rate))
             self._active[act.id] = act
-        self._publish_event("start", act)
+            self._publish_event("start", act)  # under the lock: before any "end" of it
         return {"ok": True, "accepted": True, "id": act.id,
                 "start_gps": self.gps0 + start / self.rate}
 
