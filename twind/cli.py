@@ -251,6 +251,45 @@ def _arguments_of(module: str, parser: argparse.ArgumentParser) -> None:
     importlib.import_module(module).add_arguments(parser)
 
 
+def cmd_tf(args: argparse.Namespace) -> int:
+    """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs."""
+    from twind.analysis.tf import from_diaggui, from_session
+
+    paths = [Path(p) for p in args.inputs]
+    missing = [str(p) for p in paths if not p.exists()]
+    if missing:
+        msg = f"no such input: {', '.join(missing)}"
+        raise TwindError(msg)
+    kinds = {p.suffix.lower() for p in paths}
+    if kinds <= {".xml"}:
+        tfs = from_diaggui(paths)
+    elif kinds <= {".mcap"}:
+        tfs = from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic)
+    else:
+        msg = f"inputs must be all diaggui .xml or all .mcap, got {sorted(kinds)}"
+        raise TwindError(msg)
+    if args.band:
+        tfs = tfs.band(*args.band)
+    if args.json:
+        json.dump(tfs.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    if args.output:
+        from twind.plotting import bode_matrix
+
+        P, _ = tfs.plant()
+        rows = [tfs.responses.index(d) for d in tfs.excited]
+        bode_matrix(tfs.frequency_hz[1:], {"IN1/EXC": tfs.tf["IN1"][1:, rows],
+                                           "IN2/EXC": tfs.tf["IN2"][1:, rows],
+                                           "plant IN1/OUT": P[1:]},
+                    args.output, tfs.excited, title=f"{tfs.optic}: measured transfer functions")
+        print(f"wrote {args.output}", file=sys.stderr)
+    if not args.json and not args.output:
+        print(f"{tfs.optic}: excited {', '.join(tfs.excited)}; {len(tfs.frequency_hz)} bins "
+              f"from {tfs.frequency_hz[0]:g} to {tfs.frequency_hz[-1]:g} Hz, {tfs.averages} "
+              "averages; --json for the numbers, -o FILE.png for a plot")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     """Engine speed, side by side with python-control on the same closed loop."""
     from twind.simulation.benchmark import run_benchmarks
@@ -356,6 +395,17 @@ def build_parser() -> argparse.ArgumentParser:
     rrd = sub.add_parser("rrd", help="MCAP session to a Rerun .rrd (series, events, Bode)")
     add_rrd_arguments(rrd)
     rrd.set_defaults(func=rrd_main)
+
+    tf = sub.add_parser("tf", help="transfer functions and the open-loop plant from "
+                                   "diaggui XML or MCAP sessions")
+    tf.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF) or MCAP")
+    tf.add_argument("--bw", type=float, default=0.01, help="MCAP: Welch resolution (Hz)")
+    tf.add_argument("--overlap", type=float, default=0.5, help="MCAP: Welch overlap")
+    tf.add_argument("--optic", help="MCAP: the optic, when several were excited")
+    tf.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"))
+    tf.add_argument("--json", action="store_true")
+    tf.add_argument("-o", "--output", help="Bode-matrix PNG")
+    tf.set_defaults(func=cmd_tf)
 
     soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")
     soak_p.add_argument("--duration", type=float, default=3600.0, help="seconds of serving")

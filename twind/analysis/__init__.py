@@ -1,0 +1,1 @@
+"""Measurement and identification: transfer functions, plant recovery."""
