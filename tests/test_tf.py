@@ -128,6 +128,19 @@ def test_session_plant_recovered_from_a_twin_recording(tmp_path: Path) -> None:
     assert np.array(obj["plant"]["re"]).shape == (len(tfs.frequency_hz), 3, 3)
 
 
+def test_results_written_as_hdf5_and_csv(tmp_path: Path) -> None:
+    import h5py
+
+    tfs = from_diaggui(NULL).band(0.5, 2.0)
+    with h5py.File(tfs.write(tmp_path / "tf.h5")) as f:
+        np.testing.assert_array_equal(f["IN1_per_EXC"][()], tfs.tf["IN1"])
+        assert list(f.attrs["excited"]) == ["POS", "PIT", "YAW"]
+    csv = np.genfromtxt(tfs.write(tmp_path / "tf.csv"), delimiter=",", names=True)
+    np.testing.assert_allclose(csv["IN2_PIT_per_POS_re"], tfs.tf["IN2"][:, 1, 0].real)
+    with pytest.raises(TFError, match="exists"):
+        tfs.write(tmp_path / "tf.csv")
+
+
 def test_bad_inputs_are_named(tmp_path: Path) -> None:
     bad = tmp_path / "bad.xml"
     bad.write_text("<not diaggui/>")

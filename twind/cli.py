@@ -273,7 +273,9 @@ def cmd_tf(args: argparse.Namespace) -> int:
     if args.json:
         json.dump(tfs.to_json(), sys.stdout)
         sys.stdout.write("\n")
-    if args.output:
+    if args.output and not args.output.lower().endswith(".png"):
+        print(f"wrote {tfs.write(args.output)}", file=sys.stderr)
+    elif args.output:
         from twind.plotting import bode_matrix
 
         P, _ = tfs.plant()
@@ -404,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     tf.add_argument("--optic", help="MCAP: the optic, when several were excited")
     tf.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"))
     tf.add_argument("--json", action="store_true")
-    tf.add_argument("-o", "--output", help="Bode-matrix PNG")
+    tf.add_argument("-o", "--output", help=".h5/.hdf5 or .csv results, or a .png Bode matrix")
     tf.set_defaults(func=cmd_tf)
 
     soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")

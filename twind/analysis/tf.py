@@ -79,6 +79,46 @@ class TFSet:
                      {k: v[keep] for k, v in self.tf.items()},
                      {k: v[keep] for k, v in self.coherence.items()}, self.averages)
 
+    def write(self, path: str | Path) -> Path:
+        """HDF5 (``.h5``/``.hdf5``: one complex dataset per test point, coherence, errors,
+        plant) or CSV (``.csv``: one row per frequency, columns named like
+        ``IN1_POS_per_PIT_re``). An existing file is refused."""
+        path = Path(path)
+        if path.exists():
+            msg = f"{path} exists; twind does not overwrite results"
+            raise TFError(msg)
+        P, Ps = self.plant()
+        if path.suffix.lower() in (".h5", ".hdf5"):
+            import h5py
+
+            with h5py.File(path, "x") as f:
+                f.attrs.update(optic=self.optic, excited=self.excited, responses=self.responses,
+                               averages=self.averages)
+                f["frequency_hz"] = self.frequency_hz
+                for p in POINTS:
+                    f[f"{p}_per_EXC"] = self.tf[p]
+                    f[f"coherence_{p}"] = self.coherence[p]
+                    f[f"sigma_{p}"] = self.sigma(p)
+                f["plant"], f["plant_sigma"] = P, Ps
+            return path
+        if path.suffix.lower() == ".csv":
+            cols, names = [self.frequency_hz], ["frequency_hz"]
+            for p in POINTS:
+                for i, r in enumerate(self.responses):
+                    for j, e in enumerate(self.excited):
+                        h = self.tf[p][:, i, j]
+                        cols += [h.real, h.imag, self.coherence[p][:, i, j], self.sigma(p)[:, i, j]]
+                        names += [f"{p}_{r}_per_{e}_{x}" for x in ("re", "im", "coh", "sigma")]
+            for i, r in enumerate(self.excited):
+                for j, e in enumerate(self.excited):
+                    cols += [P[:, i, j].real, P[:, i, j].imag, Ps[:, i, j]]
+                    names += [f"plant_{r}_per_{e}_{x}" for x in ("re", "im", "sigma")]
+            np.savetxt(path, np.column_stack(cols), delimiter=",", header=",".join(names),
+                       comments="")
+            return path
+        msg = f"{path}: write .h5, .hdf5 or .csv (or .png for a plot)"
+        raise TFError(msg)
+
     def to_json(self) -> dict:
         """The ``twind tf --json`` object."""
         P, Ps = self.plant()
