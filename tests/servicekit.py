@@ -5,8 +5,8 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
-from contextlib import contextmanager
 from collections.abc import Iterator
+from contextlib import contextmanager
 
 from twind.client import TwinClient
 
@@ -18,18 +18,23 @@ def free_port() -> int:
 
 
 @contextmanager
-def serving(*args: str, port: int | None = None) -> Iterator[str]:
-    """Run ``twind serve`` on a loopback port in a subprocess; yields its endpoint."""
-    port = port or free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--listen", endpoint, *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def running(cmd: list[str], timeout: float = 20) -> Iterator[subprocess.Popen]:
+    """A subprocess with piped output, terminated (killed if it must be) on exit."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        TwinClient.wait([endpoint], alive=lambda: proc.poll() is None).close()
-        yield endpoint
+        yield proc
     finally:
         proc.terminate()
         try:
-            proc.wait(timeout=20)
+            proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+@contextmanager
+def serving(*args: str, port: int | None = None) -> Iterator[str]:
+    """Run ``twind serve`` on a loopback port in a subprocess; yields its endpoint."""
+    endpoint = f"tcp/127.0.0.1:{port or free_port()}"
+    with running([sys.executable, "-m", "twind", "serve", "--listen", endpoint, *args]) as proc:
+        TwinClient.wait([endpoint], alive=lambda: proc.poll() is None).close()
+        yield endpoint

@@ -22,18 +22,18 @@ import datetime
 import ipaddress
 import json
 import shutil
-import socket
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
+from servicekit import free_port, running
 
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key, data_key
@@ -45,12 +45,6 @@ CREDENTIALS = DEPLOY / "acl" / "credentials.example.txt"
 CHANNEL = "C1:SUS-ETMX_SUSPOS_IN1"
 VERBS = ("status", "inject", "stop", "params", "filter")
 NO_REPLY_S = 1.5  # how long a refused query is given to (not) get an answer
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def config(path: Path | str | None, **keys: object) -> zenoh.Config:
@@ -246,19 +240,10 @@ def test_usrpwd_acl_on_the_twin() -> None:
                                                transport__auth__usrpwd__password="guess"))
 
 
-@contextmanager
-def serving(*args: str) -> Iterator[subprocess.Popen]:
-    """``twind serve --optics ETMX ARGS`` in a subprocess."""
-    proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--optics", "ETMX", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        yield proc
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+def serving(*args: str) -> AbstractContextManager[subprocess.Popen]:
+    """``twind serve --optics ETMX ARGS`` in a subprocess (not waited for: its clients may
+    need credentials to see it)."""
+    return running([sys.executable, "-m", "twind", "serve", "--optics", "ETMX", *args])
 
 
 def test_usrpwd_acl_on_twind_serve(tmp_path: Path) -> None:
@@ -282,17 +267,10 @@ def router(config_file: Path, port: int, *cfg: str) -> Iterator[str]:
             "--listen", endpoint]
     for item in cfg:
         args += ["--cfg", item]
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+    with running(args, timeout=10) as proc:
         line = proc.stdout.readline()  # printed once the session is open
         assert "listening" in line, proc.communicate()[1][-2000:]
         yield endpoint
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
 
 
 def test_plain_router_routes_data_and_queries() -> None:

@@ -11,7 +11,6 @@ import os
 import queue
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -25,12 +24,13 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
+from servicekit import free_port
 
 from twind.bus.codec import SampleBlock
 from twind.bus.session import zenoh_config
 from twind.channels import block_channels
-from twind.recording.export import export, export_main
 from twind.recording.export import add_arguments as export_arguments
+from twind.recording.export import export, export_main
 from twind.recording.reader import (
     GapWarning,
     JsonDecoderFactory,
@@ -47,12 +47,6 @@ from twind.timeutil import gps_to_unix_ns
 GPS0 = 1_400_000_000.0
 ROOT = Path(__file__).resolve().parents[1]
 SYNTH = ["C1:SUS-ETMX_SUSPOS_IN1", "C1:SUS-ETMX_SUSPIT_IN1", "C1:SUS-ETMX_ULSEN_OUT"]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _expected(channel: str, seqs) -> np.ndarray:  # noqa: ANN001
@@ -272,6 +266,13 @@ def _start_recorder(out: Path, port: int, *extra: str) -> tuple[subprocess.Popen
     return proc, lines
 
 
+def _publish_synthetic(pubs: dict, n: int, first: int = 0) -> None:
+    """Blocks ``first .. n-1`` of every channel of `pubs`, block by block."""
+    for k in range(first, n):
+        for c, pub in pubs.items():
+            pub.put(synthetic_block(c, k))
+
+
 def _publishers(session: zenoh.Session, channels: list[str]) -> dict:
     pubs = {c: session.declare_publisher(f"twin/{c}",
                                          congestion_control=zenoh.CongestionControl.BLOCK)
@@ -289,7 +290,7 @@ def _matching(pub) -> bool:  # noqa: ANN001
 
 
 def test_recorder_sigterm_writes_a_complete_file(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     out = tmp_path / "rec.mcap"
     status = {"ifo": "C1", "optics": ["ETMX"], "model_rate_hz": 16384}
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
@@ -335,16 +336,13 @@ def test_recorder_sigterm_writes_a_complete_file(tmp_path: Path) -> None:
 
 
 def test_recorder_sigkill_leaves_a_readable_file(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     out = tmp_path / "killed.mcap"
     n = 150  # 3 x 150 blocks of 8.3 kB: about 15 chunks
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         proc, _ = _start_recorder(out, port)
         try:
-            pubs = _publishers(session, SYNTH)
-            for k in range(n):
-                for c in SYNTH:
-                    pubs[c].put(synthetic_block(c, k))
+            _publish_synthetic(_publishers(session, SYNTH), n)
             deadline = time.monotonic() + 10
             while out.stat().st_size < 2_000_000 and time.monotonic() < deadline:
                 time.sleep(0.02)
@@ -368,7 +366,7 @@ def test_recorder_sigkill_leaves_a_readable_file(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("rotate", [{"rotate_bytes": 800_000}, {"rotate_seconds": 2.0}])
 def test_rotation_reads_back_seamlessly(tmp_path: Path, rotate: dict) -> None:
-    port = _free_port()
+    port = free_port()
     out = tmp_path / "rot.mcap"
     n = 120  # 3 MB of blocks, 7.5 s of data
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
@@ -376,10 +374,7 @@ def test_rotation_reads_back_seamlessly(tmp_path: Path, rotate: dict) -> None:
                        status_timeout=0.2, log=lambda line: None)
         rec.start()
         try:
-            pubs = _publishers(session, SYNTH)
-            for k in range(n):
-                for c in SYNTH:
-                    pubs[c].put(synthetic_block(c, k))
+            _publish_synthetic(_publishers(session, SYNTH), n)
             deadline = time.monotonic() + 10
             while rec.stats.blocks < 3 * n and time.monotonic() < deadline:
                 time.sleep(0.02)
@@ -422,7 +417,7 @@ def test_recorder_refuses_to_overwrite(tmp_path: Path) -> None:
 
 
 def test_getdata_from_the_bus(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     names = SYNTH[:2]
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         def publish() -> None:
@@ -452,7 +447,7 @@ def test_replay_same_bytes_in_order_and_paced(tmp_path: Path) -> None:
     expected = [(f"twin/{h.channel}", d) for d in
                 (synthetic_block(c, k) for k in range(40) for c in SYNTH[:2])
                 for h in [scan_block(d)]]
-    port = _free_port()
+    port = free_port()
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         got: queue.SimpleQueue = queue.SimpleQueue()
         subs = [session.declare_subscriber(
@@ -483,7 +478,7 @@ def test_replay_same_bytes_in_order_and_paced(tmp_path: Path) -> None:
 def test_replay_loop_and_stop(tmp_path: Path) -> None:
     path = tmp_path / "short.mcap"
     _synthetic_file(path, {SYNTH[0]: list(range(4))})  # 4 blocks: 0.25 s a pass
-    port = _free_port()
+    port = free_port()
     stop = threading.Event()
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         got: list[int] = []
