@@ -1,0 +1,652 @@
+"""Fast reading of the sample channels of MCAP sessions, for long recordings.
+
+:func:`read_channels` returns the same :class:`~twind.recording.reader.Session` as
+:func:`~twind.recording.reader.read_session` (same truncation and gap handling, same
+warnings), for the channels a predicate selects. It is built for an hour of 16 kHz channels
+(700 000 blocks): mcap's :func:`~mcap.stream_reader.breakup_chunk` and the protobuf scanner
+cost some 20 us of Python per block, so here a chunk's records are indexed, its
+SampleBlocks scanned and their samples copied out by numba kernels, a chunk at a time; the
+decompression and CRC check (which release the GIL) run one chunk ahead in a worker thread.
+
+Anything unusual (a block whose channel name differs from its topic, samples in several
+runs, a schema other than SampleBlock) sends its chunk through the plain Python path, which
+applies :func:`read_session`'s rules message by message; a channel with gaps, duplicates or
+overlaps is joined by the reader's own ``_join``.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import warnings
+import zlib
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from io import BytesIO
+from pathlib import Path
+from typing import Any
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from twind.recording.reader import (
+    Channel,
+    RecordingError,
+    Session,
+    TruncatedRecordingWarning,
+    _Block,
+    _join,
+    _some,
+    _warn_gaps,
+    session_files,
+)
+from twind.recording.writer import (
+    BLOCK_SCHEMA,
+    CONFIG_METADATA,
+    CONFIG_TOPIC,
+    EVENTS_TOPIC,
+    TOPIC_ROOT,
+    scan_block,
+)
+
+_OP_MESSAGE, _OP_SCHEMA, _OP_CHANNEL = 0x05, 0x03, 0x04
+# what a channel id of a file is to the kernels
+_UNDEFINED, _IGNORED, _PYTHON = -3, -2, -1  # >= 0: a slot (a wanted block channel)
+_PREFETCH = 4  # chunks decompressed ahead of the kernels
+
+
+# ------------------------------------------------------------------------------ kernels
+@nb.njit(cache=True, nogil=True)
+def _index_records(buf: NDArray[np.uint8]) -> tuple[NDArray, NDArray, NDArray, int]:
+    """Opcode, content offset and content length of every record of a decompressed chunk;
+    and how many there are (-1 if the last is cut)."""
+    n = buf.size
+    # count first: arrays sized for the worst case (9-byte records) would be fresh memory to
+    # fault in on every chunk, which costs more than this pass
+    k = 0
+    i = 0
+    while i + 9 <= n:
+        length = 0
+        for b in range(8):
+            length |= np.int64(buf[i + 1 + b]) << (8 * b)
+        if length < 0 or i + 9 + length > n:
+            break
+        k += 1
+        i += 9 + length
+    ops = np.empty(k, np.uint8)
+    starts = np.empty(k, np.int64)
+    lens = np.empty(k, np.int64)
+    i = 0
+    for r in range(k):
+        length = 0
+        for b in range(8):
+            length |= np.int64(buf[i + 1 + b]) << (8 * b)
+        ops[r] = buf[i]
+        starts[r] = i + 9
+        lens[r] = length
+        i += 9 + length
+    return ops, starts, lens, k if i == n else -1
+
+
+@nb.njit(cache=True, nogil=True)
+def _varint(buf: NDArray[np.uint8], i: int, end: int) -> tuple[int, int]:
+    value = 0
+    shift = 0
+    while True:
+        if i >= end or shift > 63:
+            return -1, -1
+        byte = np.int64(buf[i])
+        i += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, i
+        shift += 7
+
+
+@nb.njit(cache=True, nogil=True)
+def _f8(buf: NDArray[np.uint8], i: int) -> float:
+    return buf[i:i + 8].copy().view(np.float64)[0]
+
+
+_NO_I = np.empty((6, 0), np.int64)
+_NO_F = np.empty((2, 0), np.float64)
+
+
+@nb.njit(cache=True, nogil=True)
+def _scan_blocks(buf: NDArray[np.uint8], ops: NDArray, starts: NDArray, lens: NDArray,
+                 count: int, kinds: NDArray[np.int64], names: NDArray[np.uint8],
+                 name_lens: NDArray[np.int64], n_slots: int):
+    """The SampleBlocks of one chunk's wanted channels, their samples copied out grouped by
+    slot (in record order within a slot).
+
+    Returns ``status, bad, out, first, meta_i, meta_f``: status 0 if every wanted block was
+    scanned, 1 if the chunk needs the Python path (a name, run or field the kernel does not
+    handle; ``bad`` is the record), 2 if a message refers to a channel not defined.
+    ``first[s]:first[s + 1]`` are slot ``s``'s entries of ``meta_i`` (rows: record, sequence,
+    number of samples, message data start, data length, slot) and ``meta_f`` (rows: GPS
+    start, rate); ``out`` holds their samples in that order.
+    """
+    empty = np.empty(0, np.float64)
+    first = np.zeros(n_slots + 1, np.int64)
+    m = 0
+    for r in range(count):
+        if ops[r] == 5:
+            m += 1
+    mi = np.empty((6, m), np.int64)
+    mf = np.empty((2, m), np.float64)
+    s_off = np.empty(m, np.int64)
+    k = 0
+    for r in range(count):
+        if ops[r] != 5:
+            continue
+        a = starts[r]
+        if lens[r] < 22:
+            return 1, r, empty, first, mi[:, :0], mf[:, :0]
+        cid = np.int64(buf[a]) | (np.int64(buf[a + 1]) << 8)
+        slot = kinds[cid] if cid < kinds.size else -3
+        if slot == -3:
+            return 2, r, empty, first, mi[:, :0], mf[:, :0]
+        if slot < 0:
+            continue
+        i = a + 22
+        end = a + lens[r]
+        g = 0.0
+        rt = 0.0
+        sq = 0
+        runs = 0
+        off = 0
+        nbytes = 0
+        ok = True
+        while i < end and ok:
+            key, i = _varint(buf, i, end)
+            if key < 0:
+                ok = False
+                break
+            fld = key >> 3
+            wire = key & 7
+            if wire == 0:
+                v, i = _varint(buf, i, end)
+                if v < 0:
+                    ok = False
+                elif fld == 4:
+                    sq = v
+            elif wire == 1:
+                if i + 8 > end:
+                    ok = False
+                    break
+                if fld == 2:
+                    g = _f8(buf, i)
+                elif fld == 3:
+                    rt = _f8(buf, i)
+                elif fld == 5:
+                    runs += 1
+                    off = i
+                    nbytes = 8
+                i += 8
+            elif wire == 2:
+                ln, i = _varint(buf, i, end)
+                if ln < 0 or i + ln > end:
+                    ok = False
+                    break
+                if fld == 1 and ln != 0:
+                    # the channel name must be the topic's (an empty name means the topic's)
+                    if ln != name_lens[slot]:
+                        ok = False
+                    else:
+                        for b in range(ln):
+                            if buf[i + b] != names[slot, b]:
+                                ok = False
+                                break
+                elif fld == 5:
+                    if ln % 8:
+                        ok = False
+                    elif ln:
+                        runs += 1
+                        off = i
+                        nbytes = ln
+                i += ln
+            elif wire == 5:
+                i += 4
+            else:
+                ok = False
+        if not ok or i != end or runs > 1:
+            return 1, r, empty, first, mi[:, :0], mf[:, :0]
+        mi[0, k] = r
+        mi[1, k] = sq
+        mi[2, k] = nbytes // 8
+        mi[3, k] = a + 22
+        mi[4, k] = end - a - 22
+        mi[5, k] = slot
+        mf[0, k] = g
+        mf[1, k] = rt
+        s_off[k] = off
+        first[slot + 1] += 1
+        k += 1
+    for s in range(n_slots):
+        first[s + 1] += first[s]
+    fill = first[:n_slots].copy()
+    order = np.empty(k, np.int64)
+    total = 0
+    for j in range(k):
+        s = mi[5, j]
+        order[fill[s]] = j
+        fill[s] += 1
+        total += mi[2, j]
+    out = np.empty(total, np.float64)
+    raw = out.view(np.uint8)
+    gi = np.empty((6, k), np.int64)
+    gf = np.empty((2, k), np.float64)
+    pos = 0
+    for q in range(k):
+        j = order[q]
+        n = mi[2, j] * 8
+        raw[pos:pos + n] = buf[s_off[j]:s_off[j] + n]
+        pos += n
+        gi[:, q] = mi[:, j]
+        gf[:, q] = mf[:, j]
+    return 0, -1, out, first, gi, gf
+
+
+# ------------------------------------------------------------------------------ the reader
+class _Slot:
+    """The samples of one wanted channel, in recorded order, in one growing buffer."""
+
+    def __init__(self, name: str, blocks: int = 0) -> None:
+        self.name = name
+        self.unit: str | None = None
+        self.buf = np.empty(0, dtype=np.float64)
+        self.n = 0
+        self.blocks = blocks  # expected, from the files' summaries (0: unknown)
+
+    def add(self, x: NDArray[np.float64]) -> None:
+        need = self.n + x.size
+        if self.buf.size == 0 and self.blocks and x.size:
+            # sized once from the summary's message count: growing is a copy (resize
+            # zero-fills the new part), and fresh memory is slow to fault in
+            self.buf = np.empty(max(need, self.blocks * x.size), dtype=np.float64)
+        if need > self.buf.size:
+            # realloc: a large buffer is moved by remapping its pages, not copied
+            self.buf.resize(max(need, 2 * self.buf.size, 1 << 16), refcheck=False)
+        self.buf[self.n:need] = x
+        self.n = need
+
+    def join(self, meta_i: NDArray[np.int64], meta_f: NDArray[np.float64]) -> Channel:
+        """One channel from its blocks' (sequence, samples) and (GPS, rate); the common case
+        (consecutive blocks, one rate) without a Python loop over blocks, anything else by
+        the reader's ``_join``."""
+        seq, nsamp = meta_i
+        gps, rate = meta_f
+        self.buf.resize(self.n, refcheck=False)
+        samples, self.buf = self.buf, np.empty(0)
+        r0 = float(rate[0])
+        simple = r0 > 0 and bool(np.all(rate == r0))
+        if simple and len(seq) > 1:
+            end = gps[:-1] + nsamp[:-1] / r0
+            offset = (gps[1:] - end) * r0
+            k = np.round(offset)
+            simple = bool(np.all((np.abs(offset - k) <= 0.05) & (k == 0))
+                          and np.all(np.diff(seq) == 1))
+        if not simple:
+            blocks = [_Block(int(s), float(g), float(r), self.unit or "", x)
+                      for s, g, r, x in zip(seq, gps, rate,
+                                            np.split(samples, np.cumsum(nsamp)[:-1]),
+                                            strict=True)]
+            return _join(self.name, blocks)
+        return Channel(self.name, self.unit or "", r0, float(gps[0]), samples,
+                       seq.astype(np.int64), gps.astype(np.float64), [])
+
+
+def _decompress(compression: str, data: bytes, size: int, crc: int) -> bytes:
+    import zstandard
+
+    if compression == "zstd":
+        out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    elif compression == "lz4":
+        import lz4.frame
+
+        out = lz4.frame.decompress(data)
+    elif compression == "":
+        out = data
+    else:
+        msg = f"unsupported chunk compression {compression!r}"
+        raise ValueError(msg)
+    if crc != 0 and zlib.crc32(out) != crc:
+        msg = f"crc validation failed in Chunk, expected: {crc}, calculated: {zlib.crc32(out)}"
+        raise ValueError(msg)
+    return out
+
+
+class _FileReader:
+    """The state of reading one file: schemas, channels and what each channel id is."""
+
+    def __init__(self, path: Path, state: _State) -> None:
+        self.path = path
+        self.state = state
+        self.schemas: dict[int, Any] = {}
+        self.channels: dict[int, Any] = {}
+        self.kind = np.full(1, _UNDEFINED, dtype=np.int64)  # by channel id, for the kernels
+
+    def _define(self, ch: Any) -> None:
+        self.channels[ch.id] = ch
+        if ch.id >= self.kind.size:
+            grown = np.full(max(ch.id + 1, 2 * self.kind.size), _UNDEFINED, dtype=np.int64)
+            grown[:self.kind.size] = self.kind
+            self.kind = grown
+        schema = self.schemas.get(ch.schema_id)
+        topic = ch.topic
+        name = topic.removeprefix(f"{TOPIC_ROOT}/")
+        if topic in (EVENTS_TOPIC, CONFIG_TOPIC):
+            self.kind[ch.id] = _PYTHON
+        elif not topic.startswith(f"{TOPIC_ROOT}/") or name.startswith("@") or \
+                not self.state.wanted(name) or ch.message_encoding != "protobuf" or \
+                schema is None or schema.name != BLOCK_SCHEMA:
+            self.kind[ch.id] = _IGNORED  # read_session skips these messages too
+        else:
+            self.kind[ch.id] = self.state.slot(name)
+
+    def record(self, rec: Any) -> None:
+        """A record outside the kernels (Schema, Channel, Message outside chunks, ...)."""
+        from mcap.records import Channel as McapChannel
+        from mcap.records import Message, Metadata, Schema
+
+        if isinstance(rec, Schema):
+            self.schemas[rec.id] = rec
+        elif isinstance(rec, McapChannel):
+            self._define(rec)
+        elif isinstance(rec, Message):
+            self.message(rec.channel_id, rec.data)
+        elif isinstance(rec, Metadata):
+            self.state.metadata[rec.name] = dict(rec.metadata)
+
+    def message(self, channel_id: int, data: bytes) -> None:
+        """One message by :func:`read_session`'s rules."""
+        from twind.recording.reader import _block_samples
+
+        channel = self.channels.get(channel_id)
+        if channel is None:
+            msg = f"{self.path}: message on channel {channel_id}, never defined"
+            raise RecordingError(msg)
+        topic = channel.topic
+        if topic == EVENTS_TOPIC:
+            self.state.events.append(_json(self.path, topic, data))
+            return
+        if topic == CONFIG_TOPIC:
+            self.state.configs.append(_json(self.path, topic, data))
+            self.state.config_seen = True
+            return
+        if self.kind[channel_id] < 0:
+            return
+        try:
+            header = scan_block(data)
+        except ValueError as err:
+            msg = f"{topic}: not a twind.v1.SampleBlock ({err})"
+            raise RecordingError(msg) from None
+        name = header.channel or topic.removeprefix(f"{TOPIC_ROOT}/")
+        if not self.state.wanted(name):
+            return
+        s = self.state.slot(name)
+        slot = self.state.slots[s]
+        if slot.unit is None:
+            slot.unit = header.unit
+        x = _block_samples(data, header)
+        slot.add(x)
+        self.state.meta_i.append(np.array([[header.sequence], [x.size], [s]], np.int64))
+        self.state.meta_f.append(np.array([[header.gps_start], [header.rate_hz]]))
+
+    def chunk(self, buf: bytes) -> None:
+        """The records of one decompressed chunk."""
+        arr = np.frombuffer(buf, dtype=np.uint8)
+        ops, starts, lens, count = _index_records(arr)
+        if count < 0:
+            msg = "a record overruns its chunk"
+            raise ValueError(msg)
+        ops, starts, lens = ops[:count], starts[:count], lens[:count]
+        if np.any(ops != _OP_MESSAGE):
+            # schemas and channels defined here (the first chunks): record by record, so
+            # that a message before its channel's definition is refused as read_session does
+            self._chunk_in_python(buf, ops, starts, lens)
+            return
+        state = self.state
+        status, _, out, first, mi, mf = _scan_blocks(
+            arr, ops, starts, lens, count, self.kind, state.names, state.name_lens,
+            len(state.slots))
+        if status != 0:
+            self._chunk_in_python(buf, ops, starts, lens)
+            return
+        bounds = np.concatenate(([0], np.cumsum(mi[2])))
+        for s in np.flatnonzero(np.diff(first)):
+            a, b = first[s], first[s + 1]
+            slot = state.slots[s]
+            if slot.unit is None:
+                slot.unit = scan_block(buf[mi[3, a]:mi[3, a] + mi[4, a]]).unit
+            slot.add(out[bounds[a]:bounds[b]])
+        state.meta_i.append(mi[[1, 2, 5]])
+        state.meta_f.append(mf)
+        if self.state.python_topics:
+            cids = arr[starts].astype(np.int64) | (arr[starts + 1].astype(np.int64) << 8)
+            for r in np.flatnonzero(self.kind[cids] == _PYTHON):
+                a = int(starts[r])
+                self.message(int(cids[r]), buf[a + 22:a + int(lens[r])])
+
+    def _chunk_in_python(self, buf: bytes, ops: NDArray, starts: NDArray, lens: NDArray
+                         ) -> None:
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Channel as McapChannel
+        from mcap.records import Schema
+
+        for op, a, n in zip(ops.tolist(), starts.tolist(), lens.tolist(), strict=True):
+            if op == _OP_MESSAGE:
+                self.message(int(buf[a]) | (int(buf[a + 1]) << 8), buf[a + 22:a + n])
+            elif op in (_OP_SCHEMA, _OP_CHANNEL):
+                stream = ReadDataStream(BytesIO(buf[a:a + n]))
+                self.record(Schema.read(stream) if op == _OP_SCHEMA else McapChannel.read(stream))
+
+
+def _json(path: Path, topic: str, data: bytes) -> dict[str, Any]:
+    try:
+        return json.loads(data)
+    except ValueError as err:
+        msg = f"{path}: {topic}: a message is not JSON ({err})"
+        raise RecordingError(msg) from None
+
+
+@dataclass
+class _State:
+    """What the files of a session give, together."""
+
+    wanted: Callable[[str], bool]
+    slots: list[_Slot] = field(default_factory=list)
+    by_name: dict[str, int] = field(default_factory=dict)
+    events: list[dict[str, Any]] = field(default_factory=list)
+    configs: list[dict[str, Any]] = field(default_factory=list)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    config_seen: bool = False
+    python_topics: bool = True  # events and config are read by Python, message by message
+    # per chunk: (sequence, samples, slot) and (GPS, rate) of every wanted block
+    meta_i: list[NDArray[np.int64]] = field(default_factory=list)
+    meta_f: list[NDArray[np.float64]] = field(default_factory=list)
+    expected: dict[str, int] = field(default_factory=dict)  # messages by topic (summaries)
+    names: NDArray[np.uint8] = field(default_factory=lambda: np.zeros((0, 1), np.uint8))
+    name_lens: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def slot(self, name: str) -> int:
+        """The slot of channel `name`, made on first use."""
+        if name not in self.by_name:
+            self.by_name[name] = len(self.slots)
+            self.slots.append(_Slot(name, self.expected.get(f"{TOPIC_ROOT}/{name}", 0)))
+            raw = [n.encode() for n in self.by_name]
+            self.names = np.zeros((len(raw), max(map(len, raw))), np.uint8)
+            for i, r in enumerate(raw):
+                self.names[i, :len(r)] = np.frombuffer(r, np.uint8)
+            self.name_lens = np.array([len(r) for r in raw], np.int64)
+        return self.by_name[name]
+
+    def channels(self) -> dict[str, Channel]:
+        """Every slot with data, joined, in the order first seen."""
+        if not self.meta_i:
+            return {}
+        mi = np.concatenate(self.meta_i, axis=1)
+        mf = np.concatenate(self.meta_f, axis=1)
+        self.meta_i, self.meta_f = [], []
+        order = np.argsort(mi[2], kind="stable")
+        cuts = np.searchsorted(mi[2], np.arange(len(self.slots) + 1), sorter=order)
+        out = {}
+        for s, slot in enumerate(self.slots):
+            take = order[cuts[s]:cuts[s + 1]]
+            if take.size:
+                out[slot.name] = slot.join(mi[:2, take], mf[:, take])
+        return out
+
+
+def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolExecutor
+               ) -> None:
+    """Every record of one file, by :func:`~twind.recording.reader.iter_raw_messages`'s rules
+    for a file cut short."""
+    import zstandard
+    from mcap.exceptions import EndOfFile, InvalidMagic, McapError
+    from mcap.records import Chunk, DataEnd, Footer
+    from mcap.stream_reader import StreamReader
+
+    size = path.stat().st_size
+    reader = _FileReader(path, state)
+    state.metadata = {}
+    state.config_seen = False
+    chunks = 0
+    data_end = footer = False
+    pending: deque[Future | Any] = deque()
+
+    def drain(keep: int) -> None:
+        nonlocal chunks
+        while len(pending) > keep:
+            item = pending.popleft()
+            try:
+                if isinstance(item, Future):
+                    reader.chunk(item.result())
+                    chunks += 1
+                else:
+                    reader.record(item)
+            except BaseException:
+                pending.clear()  # what follows a damaged chunk is not read, as in read_session
+                raise
+
+    truncation = (EndOfFile, McapError, ValueError, struct.error, zstandard.ZstdError)
+    with open(path, "rb") as fh:
+        stream = StreamReader(fh, emit_chunks=True, validate_crcs=True, record_size_limit=size)
+        try:
+            try:
+                for record in stream.records:
+                    if isinstance(record, Chunk):
+                        pending.append(pool.submit(_decompress, record.compression,
+                                                   record.data, record.uncompressed_size,
+                                                   record.uncompressed_crc))
+                    elif isinstance(record, DataEnd):
+                        data_end = True
+                    elif isinstance(record, Footer):
+                        footer = True
+                    elif not data_end:  # the summary repeats schemas and channels
+                        pending.append(record)
+                    drain(_PREFETCH)
+            except truncation:
+                # the chunks read before the error count; a damaged one among them is the
+                # reason given
+                drain(0)
+                raise
+            drain(0)
+        except InvalidMagic as err:
+            if fh.tell() <= 8 and size >= 8:
+                msg = f"{path}: not an MCAP file ({err})"
+                raise RecordingError(msg) from None
+            footer = False
+            reason = str(err)
+        except truncation as err:
+            footer = False
+            reason = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+            if size < 8:
+                reason = "shorter than the MCAP magic"
+        else:
+            reason = ""
+    if not footer:
+        where = "after its data" if data_end else f"after {chunks} complete chunk(s)"
+        text = (f"{path}: the recording ends {where} without its summary and footer "
+                f"({size} bytes; the writer was killed or the disk filled?); read up to there"
+                + (f" [{reason}]" if reason else ""))
+        problems.append(text)
+        warnings.warn(text, TruncatedRecordingWarning, stacklevel=4)
+    if not state.config_seen and CONFIG_METADATA in state.metadata:
+        state.configs.append(json.loads(state.metadata[CONFIG_METADATA].get("json", "{}")))
+
+
+def _message_counts(files: list[Path]) -> dict[str, int]:
+    """Messages per topic over `files`, from their summaries; partial if one has none."""
+    from mcap.reader import make_reader
+
+    counts: dict[str, int] = {}
+    for path in files:
+        try:
+            with open(path, "rb") as fh:
+                summary = make_reader(fh).get_summary()
+        except Exception:  # noqa: BLE001 - a file cut short: no summary, sizes unknown
+            summary = None
+        if summary is None or summary.statistics is None:
+            continue
+        for cid, n in summary.statistics.channel_message_counts.items():
+            ch = summary.channels.get(cid)
+            if ch is not None:
+                counts[ch.topic] = counts.get(ch.topic, 0) + n
+    return counts
+
+
+def read_channels(path_or_paths: str | Path | Iterable[str | Path],
+                  wanted: Callable[[str], bool] | Iterable[str]) -> Session:
+    """Read the channels `wanted` selects from a recording, fast.
+
+    Parameters
+    ----------
+    path_or_paths : path or iterable of paths
+        See :func:`~twind.recording.reader.session_files`.
+    wanted : callable or iterable of str
+        ``wanted(name)`` is true for the channels to read; or their names, every one of
+        which must be in the recording.
+
+    Returns
+    -------
+    Session
+        As :func:`~twind.recording.reader.read_session` returns it: the channels in the
+        order first recorded (or in the order of `wanted`'s names), every event and
+        configuration snapshot.
+
+    Raises
+    ------
+    RecordingError
+        As :func:`~twind.recording.reader.read_session`.
+
+    Warns
+    -----
+    TruncatedRecordingWarning, GapWarning
+        As :func:`~twind.recording.reader.read_session`.
+    """
+    files = session_files(path_or_paths)
+    order: list[str] | None = None
+    if not callable(wanted):
+        order = list(dict.fromkeys(wanted))
+        names = set(order)
+        wanted = names.__contains__
+    state = _State(wanted, expected=_message_counts(files))
+    problems: list[str] = []
+    with ThreadPoolExecutor(1, thread_name_prefix="twind-mcap") as pool:
+        for path in files:
+            _read_file(path, state, problems, pool)
+    joined = state.channels()
+    if order is not None:
+        missing = [n for n in order if n not in joined]
+        if missing:
+            msg = (f"{_some(sorted(missing))} not in {files[0]}"
+                   f"{f' (and {len(files) - 1} more files)' if len(files) > 1 else ''}")
+            raise RecordingError(msg)
+        joined = {name: joined[name] for name in order}
+    complete = not problems
+    _warn_gaps(joined, problems)
+    return Session(files, joined, state.events, state.configs, complete, problems)
