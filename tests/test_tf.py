@@ -10,16 +10,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import REFERENCE
+from measurekit import record_excited_session
+
 from twind import DOFS
-from twind.analysis.tf import TFError, from_diaggui, from_session, welch_tf, xml_transfer
+from twind.analysis.tf import (
+    TFError,
+    from_diaggui,
+    from_session,
+    welch_tf,
+    xml_transfer,
+)
 from twind.cli import main
 from twind.config import load_config
 from twind.loop.plant import Plant
 from twind.model.analytical import analytical_mechanics
-from twind.recording.writer import SessionWriter
-from twind.simulation.engine import Engine
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 
@@ -93,25 +98,8 @@ def test_session_plant_recovered_from_a_twin_recording(tmp_path: Path) -> None:
     """MCAP route: an engine run with one band-limited excitation per DOF, recorded with
     its injection events; the recovered plant equals the model's within the errors."""
     cfg = load_config(None, ["ETMX"]).optics["ETMX"]
-    eng = Engine([cfg.loop()], cfg.noise, seed=4)
-    rate, seg = 16384, 60
-    amps = {"POS": 2.0, "PIT": 5.0, "YAW": 5.0}  # RMS, in band: white below 10 Hz
-    from scipy import signal
-
-    band = signal.butter(4, 10.0, fs=rate, output="sos")
-    path = tmp_path / "twin.mcap"
-    rng = np.random.default_rng(7)
-    gps0 = 1.4e9
-    with SessionWriter(path, "C1", gps0) as w:
-        for k, (dof, amp) in enumerate(amps.items()):
-            start = gps0 + k * seg
-            w.write_event({"event": "start", "id": f"e{k}", "channel": f"C1:SUS-ETMX_SUS{dof}_EXC",
-                           "gps": start, "start_gps": start, "request": {"duration": seg}})
-            for _ in range(seg):
-                exc = np.zeros((1, 4, rate))
-                exc[0, DOFS.index(dof)] = amp * signal.sosfilt(band, rng.standard_normal(rate)) \
-                    * np.sqrt(rate / 2 / 10)
-                w.write_block(eng.step(rate, exc=exc))
+    path = record_excited_session(cfg, tmp_path / "twin.mcap",
+                                  {"POS": 2.0, "PIT": 5.0, "YAW": 5.0}, seconds=60)
     tfs = from_session([path], bw=0.25).band(0.3, 8.0)
     assert tfs.excited == ["POS", "PIT", "YAW"]
     power = _normalised_power(tfs, cfg.sus, min_coherence=0.7)
@@ -148,3 +136,67 @@ def test_bad_inputs_are_named(tmp_path: Path) -> None:
         from_diaggui([bad])
     with pytest.raises(TFError, match="at least|expected one"):
         from_diaggui([REFERENCE / "real" / "H1_DARM_OLGTF_swept_sine_2020-01-03.xml"])
+
+
+@pytest.mark.parametrize(("n", "nperseg", "overlap"),
+                         [(40000, 1000, 0.5), (30001, 777, 0.3), (50000, 4096, 0.75),
+                          (20000, 2000, 0.0), (9999, 1001, 0.5)])
+def test_welch_tfs_equal_scipy_csd_welch_coherence(n: int, nperseg: int, overlap: float) -> None:
+    """One FFT per segment and signal gives scipy.signal's three estimates (to 1e-10),
+    for even and odd segments, with and without overlap, a DC offset, and two threads."""
+    from scipy import signal
+
+    from twind.analysis.tf import welch_tfs
+
+    rng = np.random.default_rng(n)
+    x = rng.standard_normal(n) + 3.0
+    ys = [signal.lfilter([0.3, 0.2], [1, -0.5], x) + 0.1 * rng.standard_normal(n),
+          5.0 * rng.standard_normal(n) - 2.0]
+    kw = {"fs": 512.0, "window": "hann", "nperseg": nperseg, "noverlap": int(nperseg * overlap)}
+    for workers in (1, 2):
+        f, h, g2, avg = welch_tfs(x, ys, 512.0, nperseg, overlap, workers=workers)
+        for i, y in enumerate(ys):
+            f0, pxy = signal.csd(x, y, **kw)
+            _, pxx = signal.welch(x, **kw)
+            _, coh = signal.coherence(x, y, **kw)
+            np.testing.assert_array_equal(f, f0)
+            np.testing.assert_allclose(h[i], pxy / pxx, rtol=1e-10)
+            np.testing.assert_allclose(g2[i], coh, rtol=1e-10)
+        assert avg == 1 + (n - nperseg) // (nperseg - int(nperseg * overlap))
+
+
+def test_fast_reader_equals_read_session(tmp_path: Path) -> None:
+    """read_channels gives read_session's channels, events and configuration."""
+    from twind.analysis.benchmark import session_channels, write_session
+    from twind.recording.fastread import read_channels
+    from twind.recording.reader import read_session
+
+    path = write_session(tmp_path / "s.mcap", duration=6.0)
+    names = session_channels()
+    slow, fast = read_session(path, names), read_channels(path, names)
+    assert list(fast.channels) == names and fast.events == slow.events
+    assert fast.configs == slow.configs and fast.complete and not fast.problems
+    for name in names:
+        a, b = slow[name], fast[name]
+        np.testing.assert_array_equal(a.samples, b.samples)
+        np.testing.assert_array_equal(a.sequences, b.sequences)
+        np.testing.assert_array_equal(a.gps_starts, b.gps_starts)
+        assert (a.unit, a.rate, a.t0, a.gaps) == (b.unit, b.rate, b.t0, b.gaps)
+    exc = read_channels(path, lambda n: n.endswith("_EXC"))
+    assert list(exc.channels) == [n for n in names if n.endswith("_EXC")]
+
+
+def test_tf_benchmark_runs_end_to_end(tmp_path: Path) -> None:
+    """``twind bench --suite tf`` machinery on 60 s: a session written, timed in process and
+    as the CLI, and removed unless kept."""
+    from twind.analysis.benchmark import run_tf_benchmark
+
+    res = run_tf_benchmark(60.0, workdir=tmp_path, echo=False)
+    assert res.channels == 12 and res.in_process_s > 0 and res.cli_s > 0
+    assert res.target_s == pytest.approx(20.0 / 60)
+    assert not list(tmp_path.glob("*.mcap"))
+    out = io.StringIO()
+    with redirect_stdout(out):
+        assert main(["bench", "--suite", "tf", "--duration", "60", "--workdir",
+                     str(tmp_path), "--keep"]) == 0
+    assert "x the" in out.getvalue() and len(list(tmp_path.glob("*.mcap"))) == 1

@@ -251,8 +251,8 @@ def _arguments_of(module: str, parser: argparse.ArgumentParser) -> None:
     importlib.import_module(module).add_arguments(parser)
 
 
-def cmd_tf(args: argparse.Namespace) -> int:
-    """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs."""
+def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
+    """The TFs of ``args.inputs``: all diaggui XML or all MCAP sessions."""
     from twind.analysis.tf import from_diaggui, from_session
 
     paths = [Path(p) for p in args.inputs]
@@ -262,12 +262,25 @@ def cmd_tf(args: argparse.Namespace) -> int:
         raise TwindError(msg)
     kinds = {p.suffix.lower() for p in paths}
     if kinds <= {".xml"}:
-        tfs = from_diaggui(paths)
-    elif kinds <= {".mcap"}:
-        tfs = from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic)
-    else:
-        msg = f"inputs must be all diaggui .xml or all .mcap, got {sorted(kinds)}"
-        raise TwindError(msg)
+        return from_diaggui(paths)
+    if kinds <= {".mcap"}:
+        return from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic)
+    msg = f"inputs must be all diaggui .xml or all .mcap, got {sorted(kinds)}"
+    raise TwindError(msg)
+
+
+def _input_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF) or MCAP")
+    p.add_argument("--bw", type=float, default=0.01, help="MCAP: Welch resolution (Hz)")
+    p.add_argument("--overlap", type=float, default=0.5, help="MCAP: Welch overlap")
+    p.add_argument("--optic", help="MCAP: the optic, when several were excited")
+    p.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"))
+    p.add_argument("--json", action="store_true")
+
+
+def cmd_tf(args: argparse.Namespace) -> int:
+    """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs."""
+    tfs = _measured_tfs(args)
     if args.band:
         tfs = tfs.band(*args.band)
     if args.json:
@@ -292,12 +305,71 @@ def cmd_tf(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
+def cmd_fit(args: argparse.Namespace) -> int:
+    """Fit the nominal parameters to measured TFs; print them with calibrated sigmas."""
+    from twind.analysis.fit import FIT_PARAMS, fit, plot_fit
+    from twind.config import load_config
+
+    tfs = _measured_tfs(args)
+    cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
+    band = tuple(args.band) if args.band else None
+    result = fit(tfs, cfg, args.params or FIT_PARAMS, args.min_coherence, band)
+    if args.json:
+        json.dump(result.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(result.lines()))
+    if args.output:
+        print(f"wrote {plot_fit(tfs, cfg, result, args.output)}", file=sys.stderr)
+    return 0
+
+
+def _bench_engine(args: argparse.Namespace) -> int:
     """Engine speed, side by side with python-control on the same closed loop."""
     from twind.simulation.benchmark import run_benchmarks
 
-    run_benchmarks(args.config, args.duration, marginal=not args.no_marginal)
+    duration = 20.0 if args.duration is None else args.duration
+    run_benchmarks(args.config, duration, marginal=not args.no_marginal)
     return 0
+
+
+def _bench_tf(args: argparse.Namespace) -> int:
+    """``twind tf`` on a written session (default 1 h of 12 channels at 16384 Hz)."""
+    from twind.analysis.benchmark import run_tf_benchmark
+
+    duration = 3600.0 if args.duration is None else args.duration
+    run_tf_benchmark(duration, workdir=args.workdir, keep=args.keep)
+    return 0
+
+
+def _bench_pull(args: argparse.Namespace) -> int:
+    """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
+    from twind.analysis.calibration import pull_test
+    from twind.config import load_config
+
+    cfg = load_config(args.config, ["ETMX"]).optics["ETMX"]
+    report = pull_test(cfg, n=args.realisations, bw=args.bw)
+    print("\n".join(report.lines()))
+    return 0
+
+
+def _bench_information(args: argparse.Namespace) -> int:
+    """D-optimal multisines against white noise of equal RMS, measured and fitted on the twin."""
+    from twind.analysis.calibration import information_benchmark
+    from twind.config import load_config
+
+    cfg = load_config(args.config, ["ETMX"]).optics["ETMX"]
+    print("\n".join(information_benchmark(cfg)))
+    return 0
+
+
+BENCH_SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
+                "information": _bench_information}
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Run the benchmark suite chosen with ``--suite``."""
+    return BENCH_SUITES[args.suite](args)
 
 
 def _seed(text: str) -> int:
@@ -384,7 +456,11 @@ def build_parser() -> argparse.ArgumentParser:
     for name, module, function, text in [
             ("record", "twind.recording.recorder", "record_main", "record twin channels to MCAP"),
             ("replay", "twind.recording.replay", "replay_main", "republish a recording on Zenoh"),
-            ("export", "twind.recording.export", "export_main", "MCAP session to .npz or .h5")]:
+            ("export", "twind.recording.export", "export_main", "MCAP session to .npz or .h5"),
+            ("excite", "twind.excitation.excite", "excite_main",
+             "design an excitation: a coherence in a band, or the most information"),
+            ("campaign", "twind.analysis.campaign", "campaign_main",
+             "identify an optic: design, inject, record, fit, redesign to a target")]:
         cmd = sub.add_parser(name, help=text)
         _arguments_of(module, cmd)
         cmd.set_defaults(func=_delegate(module, function))
@@ -400,14 +476,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     tf = sub.add_parser("tf", help="transfer functions and the open-loop plant from "
                                    "diaggui XML or MCAP sessions")
-    tf.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF) or MCAP")
-    tf.add_argument("--bw", type=float, default=0.01, help="MCAP: Welch resolution (Hz)")
-    tf.add_argument("--overlap", type=float, default=0.5, help="MCAP: Welch overlap")
-    tf.add_argument("--optic", help="MCAP: the optic, when several were excited")
-    tf.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"))
-    tf.add_argument("--json", action="store_true")
+    _input_arguments(tf)
     tf.add_argument("-o", "--output", help=".h5/.hdf5 or .csv results, or a .png Bode matrix")
     tf.set_defaults(func=cmd_tf)
+
+    fitp = sub.add_parser("fit", help="fit the nominal physical parameters to measured TFs")
+    _input_arguments(fitp)
+    fitp.add_argument("--config", help="twin config (TOML) holding the optic's nominal model")
+    fitp.add_argument("--params", nargs="+", metavar="NAME",
+                      help="parameters to fit (default: all nine of MODEL.md)")
+    fitp.add_argument("--min-coherence", type=float, default=0.5,
+                      help="IN1/EXC bins less coherent (averaged over neighbours) are unused")
+    fitp.add_argument("-o", "--output", help=".png: measured, nominal and fitted Bode matrix")
+    fitp.set_defaults(func=cmd_fit)
 
     soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")
     soak_p.add_argument("--duration", type=float, default=3600.0, help="seconds of serving")
@@ -417,9 +498,20 @@ def build_parser() -> argparse.ArgumentParser:
     soak_p.add_argument("--config")
     soak_p.set_defaults(func=cmd_soak)
 
-    bench = sub.add_parser("bench", help="engine speed against python-control")
+    bench = sub.add_parser("bench", help="engine speed against python-control, or twind tf")
+    bench.add_argument("--suite", choices=list(BENCH_SUITES), default="engine",
+                       help="engine: simulation speed; tf: twind tf on a written session; "
+                            "pull: calibration of twind fit's sigmas; information: D-optimal "
+                            "excitation against white noise on the twin")
     bench.add_argument("--config")
-    bench.add_argument("--duration", type=float, default=20.0, help="simulated seconds per run")
+    bench.add_argument("--duration", type=float, default=None,
+                       help="engine: simulated seconds per run (default 20); tf: seconds of "
+                            "recording (default 3600)")
+    bench.add_argument("--workdir", help="tf: directory for the session file (default a "
+                                         "temporary one)")
+    bench.add_argument("--keep", action="store_true", help="tf: keep the session file")
+    bench.add_argument("--realisations", type=int, default=100, help="pull: noise realisations")
+    bench.add_argument("--bw", type=float, default=0.02, help="pull: Welch resolution (Hz)")
     bench.add_argument("--no-marginal", action="store_true",
                        help="skip the 200 s - 20 s marginal speed of 'twind simulate'")
     bench.set_defaults(func=cmd_bench)

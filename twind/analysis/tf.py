@@ -13,10 +13,11 @@ with scipy.signal). The standard error of a Welch estimate is Bendat & Piersol's
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
@@ -46,6 +47,7 @@ class TFSet:
     tf: dict[str, NDArray[np.complex128]]  # "IN1", "IN2", "OUT" per EXC
     coherence: dict[str, NDArray[np.float64]]
     averages: int
+    window: str = "hann"  # of the spectral estimates: "hann" smooths H over ~1 bin
 
     def sigma(self, point: str) -> NDArray[np.float64]:
         """Standard error of each element of ``point``/EXC (Bendat & Piersol)."""
@@ -77,7 +79,8 @@ class TFSet:
         keep = (self.frequency_hz >= lo) & (self.frequency_hz <= hi)
         return TFSet(self.optic, self.frequency_hz[keep], self.excited, self.responses,
                      {k: v[keep] for k, v in self.tf.items()},
-                     {k: v[keep] for k, v in self.coherence.items()}, self.averages)
+                     {k: v[keep] for k, v in self.coherence.items()}, self.averages,
+                     self.window)
 
     def write(self, path: str | Path) -> Path:
         """HDF5 (``.h5``/``.hdf5``: one complex dataset per test point, coherence, errors,
@@ -171,7 +174,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                     raise TFError(msg)
                 column[(dof, point)] = (h, g2)
         columns[m["dof"]] = column
-    return _assemble(optic, freq, columns, averages)
+    return assemble(optic, freq, columns, averages)
 
 
 def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201
@@ -186,7 +189,8 @@ def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201
             np.asarray(x.coh, dtype=float), int(x.averages))
 
 
-def _assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
+def assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
+    """A TFSet from ``columns[excited][(response, point)] = (tf, coherence)``."""
     excited = [d for d in DOFS if d in columns]
     responses = [d for d in DOFS if all((d, p) in columns[e] for e in excited for p in POINTS)]
     if not excited or not set(excited) <= set(responses):
@@ -204,17 +208,59 @@ def _assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
 
 
 # ------------------------------------------------------------------------------ MCAP sessions
+def _test_point(optic: str | None) -> Callable[[str], bool]:
+    """The channels ``from_session`` may use: EXC, IN1, IN2, OUT of a DOF (of `optic`)."""
+
+    def wanted(name: str) -> bool:
+        m = _CHANNEL.match(name)
+        return bool(m) and m["point"] in ("EXC", *POINTS) and optic in (None, m["optic"])
+
+    return wanted
+
+
 def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float = 0.5,
-                 optic: str | None = None) -> TFSet:
+                 optic: str | None = None, window: str = "hann", settle_s: float = 0.0,
+                 highpass_hz: float | None = None) -> TFSet:
     """Welch transfer functions of the excitations recorded in MCAP sessions.
 
     Each excited DOF's segment runs from its injection's start to its end (the recorded
-    ``start``/``end``/``stop`` events); Hann windows of ``1/bw`` seconds.
-    """
-    from twind.recording.reader import read_session
+    ``start``/``end``/``stop`` events); Hann windows of ``1/bw`` seconds. Only the test
+    points (EXC, IN1, IN2, OUT) are read, of `optic` if given; the response DOFs are those
+    whose IN1, IN2 and OUT were recorded.
 
-    session = read_session(list(paths))
-    segments = _segments(session.events)
+    Parameters
+    ----------
+    paths : sequence of path
+        MCAP files of one session (see :func:`twind.recording.reader.session_files`).
+    bw : float
+        Resolution (Hz): segments of ``round(rate / bw)`` samples.
+    overlap : float
+        Fraction of a segment shared with the next.
+    optic : str, optional
+        The optic, when several were excited.
+    window : str
+        ``"hann"``, or ``"boxcar"`` for periodic excitations of period ``1/bw``.
+    settle_s : float
+        Seconds skipped at the start of each excitation (the loop's transient).
+    highpass_hz : float, optional
+        High-pass EXC and responses alike from the excitation's start (see
+        :func:`highpassed`).
+
+    Returns
+    -------
+    TFSet
+
+    Raises
+    ------
+    TFError
+        If no excitation is found, several optics were excited and `optic` is not given, or
+        an excitation is shorter than ``1/bw``.
+    """
+    from twind.recording.fastread import read_channels
+
+    session = read_channels(list(paths), _test_point(optic))
+    rates = {ch.rate for ch in session.channels.values()}
+    segments = _segments(session.events, max(rates) if rates else 16384.0)
     if optic is not None:
         segments = {k: v for k, v in segments.items() if k[1] == optic}
     if not segments:
@@ -226,48 +272,209 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         raise TFError(msg)
     columns, freq, averages = {}, None, None
     for (ifo, name, dof), (start, end) in segments.items():
-        exc_ch = session[f"{ifo}:SUS-{name}_SUS{dof}_EXC"]
-        a, b = (int(round((t - exc_ch.t0) * exc_ch.rate)) for t in (start, end))
-        x = exc_ch.samples[max(a, 0):b]
-        nperseg = int(round(exc_ch.rate / bw))
+        keys = [(r, p) for r in DOFS for p in POINTS
+                if all(f"{ifo}:SUS-{name}_SUS{r}_{q}" in session for q in POINTS)]
+        chans = [session[f"{ifo}:SUS-{name}_SUS{dof}_EXC"]] + [
+            session[f"{ifo}:SUS-{name}_SUS{r}_{p}"] for r, p in keys]
+        rate = chans[0].rate
+        # channels of a recording joined mid-stream may begin a block apart: each is cut
+        # by its own start time, over what all of them hold
+        first = max([start] + [c.t0 for c in chans])
+        last = min([end] + [c.t0 + c.samples.size / c.rate for c in chans])
+        skip = max(int(round((start + settle_s - first) * rate)), 0)
+        n = int(round((last - first) * rate))
+        whole = [c.samples[int(round((first - c.t0) * c.rate)):][:n] for c in chans]
+        if highpass_hz:
+            x, *ys = highpassed(whole, rate, highpass_hz, skip)
+        else:
+            x, *ys = (w[skip:] for w in whole)
+        nperseg = int(round(rate / bw))
         if x.size < nperseg:
-            msg = f"the {dof} excitation lasts {x.size / exc_ch.rate:.1f} s, less than 1/bw = {1 / bw:g} s"
+            msg = (f"the {dof} excitation holds {x.size / rate:.1f} s of recorded data after "
+                   f"{settle_s:g} s of settling, less than 1/bw = {1 / bw:g} s")
             raise TFError(msg)
-        column = {}
-        for r in DOFS:
-            for p in POINTS:
-                y = session[f"{ifo}:SUS-{name}_SUS{r}_{p}"].samples[max(a, 0):b]
-                f, h, g2, n = welch_tf(x, y, exc_ch.rate, nperseg, overlap)
-                column[(r, p)] = (h, g2)
-        freq, averages = f, n
-        columns[dof] = column
-    return _assemble(next(iter(optics)), freq, columns, averages)
+        f, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
+        freq, averages = f, navg
+        columns[dof] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
+    tfs = assemble(next(iter(optics)), freq, columns, averages)
+    tfs.window = window
+    return tfs
 
 
-def welch_tf(x: NDArray, y: NDArray, rate: float, nperseg: int, overlap: float = 0.5
-             ) -> tuple[NDArray, NDArray, NDArray, int]:
-    """``H = CSD(x, y) / PSD(x)``, coherence, and the number of averages (scipy.signal)."""
-    kw = {"fs": rate, "window": "hann", "nperseg": nperseg, "noverlap": int(nperseg * overlap)}
-    f, pxy = signal.csd(x, y, **kw)
-    _, pxx = signal.welch(x, **kw)
-    _, g2 = signal.coherence(x, y, **kw)
-    n = 1 + (len(x) - nperseg) // (nperseg - kw["noverlap"])
-    return f, pxy / pxx, g2, n
+def highpassed(signals: Sequence[NDArray], rate: float, f_hz: float, skip: int
+               ) -> list[NDArray[np.float64]]:
+    """Each signal through the same 8th-order Butterworth high-pass, less its first `skip`
+    samples (where the filter's transient lives).
+
+    A rectangular window leaks the large sub-0.2 Hz seismic motion into every bin, and its
+    error barely changes from one short segment to the next, so the coherence cannot see
+    it; filtering excitation and response alike leaves their ratio, and the periodic steady
+    state, untouched.
+    """
+    sos = signal.butter(8, f_hz, btype="highpass", fs=rate, output="sos")
+    return [signal.sosfilt(sos, np.asarray(x, dtype=float))[skip:] for x in signals]
 
 
-def _segments(events: list[dict]) -> dict[tuple[str, str, str], tuple[float, float]]:
+def welch_tf(x: NDArray, y: NDArray, rate: float, nperseg: int, overlap: float = 0.5,
+             window: str = "hann") -> tuple[NDArray, NDArray, NDArray, int]:
+    """``H = CSD(x, y) / PSD(x)``, coherence, and the number of averages.
+
+    The values of ``scipy.signal.csd``, ``welch`` and ``coherence`` (Hann window, constant
+    detrend, one-sided density), from one FFT per segment of each signal: see
+    :func:`welch_tfs`.
+    """
+    f, h, g2, n = welch_tfs(x, [y], rate, nperseg, overlap, window=window)
+    return f, h[0], g2[0], n
+
+
+def welch_tfs(x: NDArray, ys: Sequence[NDArray], rate: float, nperseg: int,
+              overlap: float = 0.5, workers: int | None = None, window: str = "hann"
+              ) -> tuple[NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64], int]:
+    """Transfer functions ``CSD(x, y) / PSD(x)`` and coherences of several responses to one
+    excitation, as ``scipy.signal`` estimates them.
+
+    scipy computes every segment's FFT again for each of ``csd``, ``welch`` and
+    ``coherence`` (seven FFTs per pair); here each signal's segments are transformed once,
+    with scipy's steps (mean removed, periodic Hann window, ``rfft``), and the cross and
+    auto spectra summed from them. The results equal scipy's to rounding.
+
+    Parameters
+    ----------
+    x : ndarray
+        Excitation.
+    ys : sequence of ndarray
+        Responses, each as long as `x`.
+    rate : float
+        Sample rate (Hz).
+    nperseg : int
+        Samples per segment.
+    overlap : float
+        Fraction of a segment shared with the next (``noverlap = int(nperseg * overlap)``).
+    window : str
+        scipy window name: ``"hann"`` (diaggui's default) or ``"boxcar"`` for a periodic
+        excitation whose period is the segment (no leakage, no smoothing of H).
+    workers : int, optional
+        Threads, each summing its share of the segments; default the CPU count, at most 2
+        (the FFTs of a few-megasample segment are memory bound).
+
+    Returns
+    -------
+    frequency_hz : ndarray, shape (nperseg // 2 + 1,)
+    tf : ndarray of complex, shape (len(ys), nfreq)
+    coherence : ndarray, shape (len(ys), nfreq)
+    averages : int
+        Segments averaged.
+
+    Raises
+    ------
+    TFError
+        If a response is not as long as `x`, or `x` is shorter than a segment.
+    """
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from scipy import fft
+
+    x = np.asarray(x, dtype=np.float64)
+    ys = [np.asarray(y, dtype=np.float64) for y in ys]
+    if any(y.shape != x.shape for y in ys) or x.ndim != 1:
+        msg = f"responses of {[y.shape for y in ys]} samples for an excitation of {x.shape}"
+        raise TFError(msg)
+    noverlap = int(nperseg * overlap)
+    step = nperseg - noverlap
+    if x.size < nperseg or step < 1:
+        msg = f"{x.size} samples, segments of {nperseg} overlapping by {noverlap}: no average"
+        raise TFError(msg)
+    n = 1 + (x.size - nperseg) // step
+    win = signal.get_window(window, nperseg)
+    nf = nperseg // 2 + 1
+    workers = max(1, min(workers or min(os.cpu_count() or 1, 2), n))
+
+    def part(segs: range) -> tuple[NDArray, NDArray, NDArray]:
+        sxx = np.zeros(nf)
+        sxy = np.zeros((len(ys), nf), dtype=np.complex128)
+        syy = np.zeros((len(ys), nf))
+        buf = np.empty(nperseg)
+        for k in segs:
+            cut = slice(k * step, k * step + nperseg)
+            X = _segment_fft(x[cut], win, buf, fft)
+            _accumulate_auto(X, sxx)
+            for i, y in enumerate(ys):
+                _accumulate_cross(X, _segment_fft(y[cut], win, buf, fft), sxy[i], syy[i])
+        return sxx, sxy, syy
+
+    bounds = np.linspace(0, n, workers + 1).astype(int)
+    ranges = [range(bounds[i], bounds[i + 1]) for i in range(workers)]
+    if workers == 1:
+        parts = [part(ranges[0])]
+    else:
+        with ThreadPoolExecutor(workers, thread_name_prefix="twind-welch") as pool:
+            parts = list(pool.map(part, ranges))
+    sxx, sxy, syy = (sum(p[j] for p in parts) for j in range(3))
+    # scipy's density scaling and one-sided doubling; they cancel in H and the coherence
+    # except through rounding, so they are applied as scipy applies them
+    scale = np.full(nf, 1.0 / (rate * (win * win).sum()) / n)
+    scale[1:-1 if nperseg % 2 == 0 else None] *= 2
+    pxx = sxx * scale
+    pxy = sxy * scale
+    pyy = syy * scale
+    freq = fft.rfftfreq(nperseg, 1.0 / rate)
+    with np.errstate(invalid="ignore", divide="ignore"):  # bins a periodic EXC leaves empty
+        return freq, pxy / pxx, np.abs(pxy) ** 2 / pxx / pyy, n
+
+
+def _segment_fft(seg: NDArray, win: NDArray, buf: NDArray, fft) -> NDArray:
+    """scipy.signal's segment: constant detrend, window, one-sided FFT."""
+    np.subtract(seg, seg.mean(), out=buf)
+    buf *= win
+    return fft.rfft(buf, overwrite_x=True)
+
+
+@nb.njit(cache=True, nogil=True)
+def _accumulate_auto(X: NDArray, sxx: NDArray) -> None:  # pragma: no cover - numba
+    for i in range(X.size):
+        sxx[i] += X[i].real * X[i].real + X[i].imag * X[i].imag
+
+
+@nb.njit(cache=True, nogil=True)
+def _accumulate_cross(X: NDArray, Y: NDArray, sxy: NDArray, syy: NDArray
+                      ) -> None:  # pragma: no cover - numba
+    # one pass for conj(X) Y and |Y|^2, instead of numpy's three temporaries
+    for i in range(X.size):
+        xr, xi, yr, yi = X[i].real, X[i].imag, Y[i].real, Y[i].imag
+        sxy[i] += complex(xr * yr + xi * yi, xr * yi - xi * yr)
+        syy[i] += yr * yr + yi * yi
+
+
+def _segments(events: list[dict], rate_hz: float = 16384.0
+              ) -> dict[tuple[str, str, str], tuple[float, float]]:
+    """The excitation interval of each excited test point.
+
+    A stream lasts its samples, anything else its requested duration, cut short by a
+    ``stop``.  Injections that follow each other on one channel without a gap (a long
+    waveform streamed in several requests, as the service asks) are one excitation; of
+    several separate ones the longest is used.
+    """
     starts, ends = {}, {}
     for ev in events:
         if ev.get("event") == "start":
             starts[ev["id"]] = (ev["channel"], ev["start_gps"])
-            duration = (ev.get("request") or {}).get("duration")
+            req = ev.get("request") or {}
+            samples = req.get("samples")
+            duration = (samples["n"] / rate_hz if req.get("waveform") == "stream"
+                        and isinstance(samples, dict) else req.get("duration"))
             if isinstance(duration, (int, float)) and np.isfinite(duration):
                 ends[ev["id"]] = ev["start_gps"] + duration
         elif ev.get("event") == "stop" and ev.get("id") in starts:
             ends[ev["id"]] = min(ends.get(ev["id"], np.inf), ev["gps"])
-    out = {}
-    for exc_id, (channel, start) in starts.items():
+    runs: dict[tuple[str, str, str], list[list[float]]] = {}
+    for exc_id, (channel, start) in sorted(starts.items(), key=lambda kv: kv[1][1]):
         m = _CHANNEL.match(channel)
-        if m and exc_id in ends:
-            out[(m["ifo"], m["optic"], m["dof"])] = (start, ends[exc_id])
-    return out
+        if not (m and exc_id in ends):
+            continue
+        chain = runs.setdefault((m["ifo"], m["optic"], m["dof"]), [])
+        if chain and abs(start - chain[-1][1]) < 0.5 / rate_hz:
+            chain[-1][1] = ends[exc_id]
+        else:
+            chain.append([start, ends[exc_id]])
+    return {k: tuple(max(v, key=lambda r: r[1] - r[0])) for k, v in runs.items()}

@@ -1,0 +1,103 @@
+"""twind fit: parameters with calibrated uncertainties, and what the data cannot determine."""
+
+from __future__ import annotations
+
+import glob
+import io
+import json
+import math
+from contextlib import redirect_stdout
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REFERENCE
+from measurekit import record_excited_session
+
+from twind.analysis.fit import FIT_PARAMS, FitError, fit, param_value, with_params
+from twind.analysis.tf import from_diaggui, from_session
+from twind.cli import main
+from twind.config import load_config
+
+NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
+DRIFT = {"wire_length_m": 0.2437963230477589, "b_m": 0.0007186926839598156,
+         "R1_m": 0.006704947641614116, "coil_N_per_ct": 2.420818165429093e-09}
+
+
+@pytest.fixture(scope="module")
+def etmx():  # noqa: ANN201
+    return load_config(None, ["ETMX"]).optics["ETMX"]
+
+
+@pytest.fixture(scope="module")
+def null_fit(etmx):  # noqa: ANN001, ANN201
+    return fit(from_diaggui(NULL), etmx)
+
+
+def _truth() -> dict[str, float]:
+    t = json.loads((REFERENCE / "example_null" / "truth.json").read_text())["drifted_params"]
+    return {**{k: v for k, v in t.items() if k != "Q"},
+            **{f"Q_{d}": t["Q"][d] for d in ("POS", "PIT", "YAW", "SIDE")}}
+
+
+def test_example_null_recovers_its_drift_within_3_sigma(null_fit) -> None:  # noqa: ANN001
+    truth, got = _truth(), null_fit.as_dict()
+    sigma = dict(zip(null_fit.names, null_fit.sigma, strict=True))
+    for name in ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct"):
+        assert abs(got[name] - truth[name]) < 3 * sigma[name], (name, got[name], sigma[name])
+        # and the drift was worth measuring: nominal is far outside the errors
+    assert abs(param_value(load_config(None, ["ETMX"]).optics["ETMX"].sus, "wire_length_m")
+               - got["wire_length_m"]) > 5 * sigma["wire_length_m"]
+    assert "Q_SIDE" in null_fit.unidentifiable and math.isnan(sigma["Q_SIDE"])
+    # errors from coherence, checked against the scatter: Hann bins are correlated
+    assert 0.8 < null_fit.noise_scale < 1.5
+    assert 0.3 < null_fit.bin_correlation[0] < 0.6
+
+
+def test_fit_json_has_the_issue_layout(tmp_path: Path) -> None:
+    out = io.StringIO()
+    with redirect_stdout(out):
+        assert main(["fit", *NULL, "--json", "--band", "0.3", "3",
+                     "-o", str(tmp_path / "fit.png")]) == 0
+    obj = json.loads(out.getvalue())
+    assert set(obj["params"]) == set(FIT_PARAMS)
+    assert obj["params"]["Q_SIDE"]["sigma"] is None and "Q_SIDE" in obj["unidentifiable"]
+    assert obj["params"]["b_m"]["sigma"] > 0 and obj["chi2_nu"] > 0
+    assert (tmp_path / "fit.png").stat().st_size > 10_000
+
+
+def test_singular_fisher_names_the_determined_combination(etmx) -> None:  # noqa: ANN001
+    """PIT alone is driven by coil x lever and read independently of the lever: only their
+    product is determined, the ratio is named unidentifiable, nothing raises."""
+    pit = [p for p in NULL if p.endswith("PIT_exc.xml")]
+    r = fit(from_diaggui(pit), etmx, ["coil_N_per_ct", "osem_lever_m", "Q_SIDE"])
+    assert r.unidentifiable.count("coil_N_per_ct/osem_lever_m") == 1
+    assert "Q_SIDE" in r.unidentifiable and np.all(np.isnan(r.sigma))
+    (combo, d), = r.determined.items()
+    assert combo == "coil_N_per_ct*osem_lever_m"
+    truth = DRIFT["coil_N_per_ct"] * 0.019
+    assert abs(d["value"] - truth) < 3 * d["sigma"] and d["sigma"] < 0.01 * truth
+
+
+def test_bad_requests_are_named(etmx) -> None:  # noqa: ANN001
+    tfs = from_diaggui(NULL)
+    with pytest.raises(FitError, match="unknown fit parameter"):
+        fit(tfs, etmx, ["wire_length"])
+    with pytest.raises(FitError, match="coherence"):
+        fit(tfs, etmx, band=(40.0, 50.0))
+    with pytest.raises(FitError, match="coherence"):
+        fit(tfs, etmx, min_coherence=1.01)
+
+
+def test_twin_recording_of_a_drifted_optic(tmp_path: Path, etmx) -> None:  # noqa: ANN001
+    """MCAP route: the twin serves a drifted ETMX; the fit finds the drift within 3 sigma."""
+    real = replace(etmx, sus=with_params(etmx.sus, {**DRIFT, "osem_lever_m": 0.0195}))
+    path = record_excited_session(real, tmp_path / "drifted.mcap",
+                                  {"POS": 2.0, "PIT": 5.0, "YAW": 5.0}, seconds=55)
+    r = fit(from_session([path], bw=0.1), etmx)
+    got, sigma = r.as_dict(), dict(zip(r.names, r.sigma, strict=True))
+    for name in (*DRIFT, "osem_lever_m"):
+        truth = param_value(real.sus, name)
+        assert abs(got[name] - truth) < 3 * sigma[name], (name, got[name], truth, sigma[name])
+    assert r.chi2_nu < 2.0

@@ -1,0 +1,325 @@
+"""``twind campaign``: design -> inject -> record -> TF -> fit -> redesign, until the fitted
+parameters reach a target uncertainty, pushing each round's fit into a running twin.
+
+Each round designs D-optimal multisines (:mod:`twind.excitation.information`) at the current
+best parameters, measures every excited DOF for ``averages`` periods (after a settling
+period), estimates the TFs with a rectangular window (a periodic excitation has no leakage),
+and fits all rounds' data jointly.  Twin time counts the DOFs one after the other, as on a
+real optic.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from twind.analysis.fit import FIT_PARAMS, FitResult, fit, with_params
+from twind.analysis.tf import TFSet, from_session
+from twind.config import OpticConfig
+from twind.errors import TwindError
+from twind.excitation.information import InformationDesign, design_information
+from twind.simulation.measurement import SETTLE_S, measure_tfs
+
+MIN_AVERAGES = 4
+"""Fewer periods leave the coherence estimate (and the errors made from it) meaningless."""
+STREAM_CHUNK = 262144
+"""Samples per stream request (16 s at 16384 Hz, ~5 MB of JSON)."""
+STREAM_LEAD_S = 1.0
+"""Wall seconds allowed per stream request (and one more) before the first one starts."""
+
+
+class Twin(Protocol):
+    """Where a campaign measures, and where it pushes what it learnt."""
+
+    def measure(self, design: InformationDesign, averages: int) -> TFSet:
+        """TFs of the design's excitations, ``averages`` periods of each DOF."""
+
+    def push(self, values: dict[str, float]) -> None:
+        """Give a twin the fitted parameters (nothing, when there is none to update)."""
+
+
+class LocalTwin:
+    """An in-process twin of the "real" optic, no bus (fast; for benchmarks and tests)."""
+
+    def __init__(self, real: OpticConfig, seed: int = 0) -> None:
+        self.real, self.seed, self.rounds = real, seed, 0
+
+    def measure(self, design: InformationDesign, averages: int) -> TFSet:
+        rate = self.real.sus.sample_rate_hz
+        n = int(round((SETTLE_S + averages * design.period_s) * rate))
+        exc = {d: design.waveform(d, n, rate) for d in design.tones}
+        self.rounds += 1
+        return measure_tfs(self.real, list(design.tones), bw=1 / design.period_s,
+                           averages=averages, overlap=0.0, excitation=exc, window="boxcar",
+                           seed=self.seed + self.rounds, highpass_hz=_highpass(design))
+
+    def push(self, values: dict[str, float]) -> None:
+        pass
+
+
+class BusTwin:
+    """A running twin (``twind serve``): each DOF's multisine is injected as a stream, the
+    optic's test points are recorded to MCAP, and the TFs estimated from the recording."""
+
+    def __init__(self, connect: Sequence[str], optic: str, ifo: str = "C1",
+                 update: Sequence[str] | None = None, workdir: str | Path | None = None
+                 ) -> None:
+        from twind.client import TwinClient
+
+        self.connect, self.optic, self.ifo = list(connect), optic, ifo
+        self.client = TwinClient(self.connect, ifo=ifo)
+        self.updated = TwinClient(list(update), ifo=ifo) if update else None
+        self.workdir = Path(workdir or tempfile.mkdtemp(prefix="twind-campaign-"))
+        self.rounds = 0
+
+    def measure(self, design: InformationDesign, averages: int) -> TFSet:
+        from twind.bus.keys import data_key
+        from twind.bus.session import zenoh_config
+        from twind.recording.recorder import Recorder
+
+        rate = float(self.client.params(self.optic)["params"]["sample_rate_hz"])
+        self.rounds += 1
+        path = self.workdir / f"{self.optic}-round{self.rounds}.mcap"
+        keys = [data_key(f"{self.ifo}:SUS-{self.optic}_SUS{d}_{p}")
+                for d in ("POS", "PIT", "YAW", "SIDE") for p in ("EXC", "IN1", "IN2", "OUT")]
+        n = int(round((SETTLE_S + averages * design.period_s) * rate))
+        with Recorder(zenoh_config(connect=self.connect, mode="client"), path, keys,
+                      ifo=self.ifo, log=lambda line: None):
+            for dof in design.tones:
+                self._stream(f"{self.ifo}:SUS-{self.optic}_SUS{dof}_EXC",
+                             design.waveform(dof, n, rate), rate)
+            time.sleep(0.5)  # the last blocks on their way to the recorder
+        return from_session([path], bw=1 / design.period_s, overlap=0.0, optic=self.optic,
+                            window="boxcar", settle_s=SETTLE_S, highpass_hz=_highpass(design))
+
+    def _stream(self, channel: str, samples: np.ndarray, rate: float) -> None:
+        """Inject `samples` as back-to-back streams (a request holds at most ~8 MB), then
+        wait for the last to end; ``twind tf`` joins them into one excitation."""
+        status = self.client.status()
+        chunks = -(-samples.size // STREAM_CHUNK)
+        start = status["gps"] + status.get("speed", 1.0) * STREAM_LEAD_S * (1 + chunks)
+        ids = []
+        for a in range(0, samples.size, STREAM_CHUNK):
+            ids.append(self.client.inject(channel, "stream", samples=samples[a:a + STREAM_CHUNK],
+                                          start_gps=start + a / rate))
+        while any(e.get("id") in ids for e in self.client.status().get("excitations", [])):
+            time.sleep(0.2)
+
+    def push(self, values: dict[str, float]) -> None:
+        if self.updated is None:
+            return
+        q = {k[2:]: v for k, v in values.items() if k.startswith("Q_")}
+        changes = {k: v for k, v in values.items() if not k.startswith("Q_")}
+        self.updated.params(self.optic, **changes, **({"Q": q} if q else {}))
+
+
+def _highpass(design: InformationDesign) -> float:
+    """Half the lowest tone: below the design, above most of the seismic motion."""
+    return 0.5 * min(float(t.min()) for t in design.tones.values())
+
+
+@dataclass
+class Round:
+    """One round: its design, the joint fit after it, the twin time spent so far."""
+
+    index: int
+    twin_s: float
+    design: InformationDesign
+    fit: FitResult
+    relative_sigma: dict[str, float] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.relative_sigma = {n: float(s / v) for n, v, s in
+                               zip(self.fit.names, self.fit.values, self.fit.sigma, strict=True)
+                               if not math.isnan(s)}
+
+    @property
+    def worst(self) -> tuple[str, float]:
+        """The identifiable parameter known worst, and its relative sigma."""
+        name = max(self.relative_sigma, key=self.relative_sigma.get)
+        return name, self.relative_sigma[name]
+
+
+def run_campaign(nominal: OpticConfig, twin: Twin, dofs: Sequence[str] = ("POS", "PIT", "YAW"),
+                 band: tuple[float, float] = (0.1, 10.0), rms: float = 10.0,
+                 period_s: float = 20.0, averages: int = 5, params: Sequence[str] = FIT_PARAMS,
+                 target: float = 0.01, max_rounds: int = 8, verbose: bool = True
+                 ) -> list[Round]:
+    """Measure and fit until every identifiable parameter is known to `target` (relative).
+
+    Parameters
+    ----------
+    nominal : OpticConfig
+        The model the campaign starts from.
+    twin : Twin
+        Where to measure (:class:`LocalTwin`, :class:`BusTwin`) and push fits.
+    dofs, band, rms, period_s, averages
+        Excited DOFs, design band (Hz), RMS per DOF, multisine period (s) and periods
+        averaged per round.
+    params : sequence of str
+        Parameters to identify.
+    target : float
+        Relative one-sigma uncertainty to reach.
+    max_rounds : int
+
+    Returns
+    -------
+    list of Round
+    """
+    if averages < MIN_AVERAGES:
+        msg = (f"{averages} averages per round: at least {MIN_AVERAGES} are needed for "
+               "coherence-based errors worth fitting with")
+        raise TwindError(msg)
+    current, measured, rounds, twin_s = nominal, [], [], 0.0
+    t0 = time.perf_counter()
+    for k in range(1, max_rounds + 1):
+        design = design_information(current, dofs, band, rms, averages * period_s, period_s,
+                                    params)
+        _progress(verbose, k, "measuring", twin_s, rounds, t0)
+        measured.append(tones_only(twin.measure(design, averages), design))
+        twin_s += len(dofs) * (SETTLE_S + averages * period_s)
+        _progress(verbose, k, "fitting", twin_s, rounds, t0)
+        result = fit(measured, current, params)
+        values = {n: v for n, v in result.as_dict().items()
+                  if not math.isnan(result.sigma[result.names.index(n)])}
+        current = replace(current, sus=with_params(current.sus, values))
+        twin.push(values)
+        rounds.append(Round(k, twin_s, design, result))
+        _progress(verbose, k, "done", twin_s, rounds, t0)
+        if rounds[-1].worst[1] <= target:
+            break
+    if verbose:
+        sys.stderr.write("\n")
+    return rounds
+
+
+def tones_only(tfs: TFSet, design: InformationDesign) -> TFSet:
+    """`tfs` with every bin but its column's tones marked incoherent: between the tones of a
+    periodic excitation there is no excitation, and the ratio there is noise over zero."""
+    coherence = {p: c.copy() for p, c in tfs.coherence.items()}
+    for j, dof in enumerate(tfs.excited):
+        k = np.rint(design.tones[dof] / (tfs.frequency_hz[1] - tfs.frequency_hz[0])).astype(int)
+        off = np.ones(tfs.frequency_hz.size, dtype=bool)
+        off[k[k < off.size]] = False
+        for c in coherence.values():
+            c[off, :, j] = 0.0
+    return replace(tfs, coherence=coherence)
+
+
+def _progress(verbose: bool, k: int, what: str, twin_s: float, rounds: list[Round],
+              t0: float) -> None:
+    if not verbose:
+        return
+    worst = f"worst {rounds[-1].worst[0]} {100 * rounds[-1].worst[1]:.3g} %" if rounds else ""
+    sys.stderr.write(f"\rround {k} {what:9s} twin {twin_s / 60:5.1f} min  {worst:32s} "
+                     f"wall {time.perf_counter() - t0:5.0f} s")
+    sys.stderr.flush()
+
+
+def plot_rounds(rounds: list[Round], target: float, path: str | Path) -> Path:
+    """Relative uncertainty of each parameter after each round, against twin time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    names = sorted({n for r in rounds for n in r.relative_sigma})
+    t = [r.twin_s / 60 for r in rounds]
+    for n in names:
+        ax.semilogy(t, [100 * r.relative_sigma.get(n, np.nan) for r in rounds], "o-", label=n)
+    ax.axhline(100 * target, color="k", ls="--", lw=0.8, label="target")
+    ax.set_xlabel("twin time [min]")
+    ax.set_ylabel("relative sigma [%]")
+    ax.set_title(f"{rounds[0].fit.optic}: identification campaign, {len(rounds)} rounds")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+# ------------------------------------------------------------------------------ command line
+def add_arguments(parser) -> None:  # noqa: ANN001 - argparse.ArgumentParser
+    """Arguments of ``twind campaign``."""
+    from twind import DOFS
+
+    parser.add_argument("--connect", action="append", metavar="ENDPOINT",
+                        help="measure a running twin (twind serve) at this Zenoh endpoint; "
+                             "default: an in-process twin of the optic drifted by --drift")
+    parser.add_argument("--update", action="append", metavar="ENDPOINT",
+                        help="push each round's fit into the twin at this endpoint")
+    parser.add_argument("--config", help="twin config (TOML): the nominal model")
+    parser.add_argument("--optic", default="ETMX")
+    parser.add_argument("--ifo", default="C1")
+    parser.add_argument("--dof", action="append", choices=DOFS, metavar="DOF",
+                        help="excited DOF, repeatable (default POS, PIT, YAW)")
+    parser.add_argument("--band", type=float, nargs=2, default=(0.1, 10.0), metavar=("LO", "HI"))
+    parser.add_argument("--rms", type=float, default=10.0, help="RMS at each EXC")
+    parser.add_argument("--period", type=float, default=20.0, help="multisine period (s)")
+    parser.add_argument("--averages", type=int, default=5, help="periods per DOF per round")
+    parser.add_argument("--params", nargs="+", metavar="NAME", default=list(FIT_PARAMS))
+    parser.add_argument("--target", type=float, default=0.01,
+                        help="relative sigma to reach on every identifiable parameter")
+    parser.add_argument("--max-rounds", type=int, default=8)
+    parser.add_argument("--drift", type=float, default=1.0,
+                        help="in-process twin: scale of the built-in drift of the 'real' optic")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workdir", help="running twin: where the rounds' MCAP files go")
+    parser.add_argument("--json", action="store_true")
+    parser.add_argument("-o", "--output", help=".png: relative sigma per round")
+
+
+def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
+    """``twind campaign``: run rounds until the target; print each round and the result."""
+    import json
+
+    from twind.analysis.calibration import DRIFT
+    from twind.analysis.fit import param_value
+    from twind.config import load_config
+
+    nominal = load_config(args.config, [args.optic]).select([args.optic])[0]
+    if args.connect:
+        twin: Twin = BusTwin(args.connect, args.optic, args.ifo, args.update, args.workdir)
+        truth = None
+    else:
+        truth = {k: param_value(nominal.sus, k) * (1 + args.drift * (f - 1))
+                 for k, f in DRIFT.items()}
+        twin = LocalTwin(replace(nominal, sus=with_params(nominal.sus, truth)), args.seed)
+    rounds = run_campaign(nominal, twin, args.dof or ["POS", "PIT", "YAW"], tuple(args.band),
+                          args.rms, args.period, args.averages, args.params, args.target,
+                          args.max_rounds)
+    last = rounds[-1]
+    if args.json:
+        out = {"rounds": [{"round": r.index, "twin_s": r.twin_s,
+                           "relative_sigma": r.relative_sigma} for r in rounds],
+               "fit": last.fit.to_json(), "reached": last.worst[1] <= args.target}
+        if truth:
+            out["truth"] = truth
+        print(json.dumps(out))
+    else:
+        for r in rounds:
+            name, worst = r.worst
+            print(f"round {r.index}: twin {r.twin_s / 60:.1f} min, chi2/nu "
+                  f"{r.fit.chi2_nu:.3f}, worst {name} {100 * worst:.3g} %")
+        print("\n".join(last.fit.lines()))
+        if truth:
+            pulls = ", ".join(f"{n} {(v - truth[n]) / s:+.2f}" for n, v, s in
+                              zip(last.fit.names, last.fit.values, last.fit.sigma, strict=True)
+                              if n in truth and not math.isnan(s))
+            print(f"  (fitted - truth) / sigma: {pulls}")
+        print(("reached" if last.worst[1] <= args.target else "did not reach")
+              + f" {100 * args.target:g} % in {last.twin_s / 60:.1f} min of twin time")
+    if args.output:
+        print(f"wrote {plot_rounds(rounds, args.target, args.output)}", file=sys.stderr)
+    return 0

@@ -1,0 +1,515 @@
+"""Fit an optic's nominal physical parameters to its measured closed-loop transfer functions.
+
+The data are the ``IN1/EXC`` columns of the excited DOFs, each bin weighted by its
+Bendat-Piersol error; the model is MODEL.md's ``IN1/EXC = (I - P K)^-1 - I`` with the optic's
+configured mechanics (analytical or geometric) and controller. ``IN1/EXC`` is fitted rather
+than the recovered plant because its errors are those of one Welch estimate, while the plant's
+mix the correlated errors of IN1 and OUT; ``OUT/EXC = K IN2/EXC`` holds no further information.
+
+Parameters are fitted in ``log(p / p_nominal)`` so every one is positive and the Fisher matrix
+compares relative changes. What the data cannot fix (a singular value of the whitened
+Jacobian whose direction would have a log-sigma above :data:`MAX_LOG_SIGMA`) is named
+unidentifiable, is held at its nominal value and gets no sigma; the fit runs in the remaining
+subspace, so no input can make it invert a singular matrix.
+
+Uncertainties are the Cramer-Rao bound of that weighted least squares, with two corrections
+taken from the residuals rather than trusted from the coherence: the scatter (``chi2_nu``,
+which also absorbs the heavy tails of errors normalised by an estimated coherence) and the
+correlation of neighbouring frequency bins (a Hann window correlates the errors of adjacent
+bins, so ``n`` bins carry less than ``n`` bins' information). Both enter as a sandwich
+covariance ``s^2 A^+ (J^T R J) A^+`` with ``A = J^T J`` and ``R`` the banded bin correlation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.optimize import least_squares
+
+from twind import DOFS
+from twind.analysis.tf import TFSet
+from twind.config import OpticConfig
+from twind.errors import TwindError
+from twind.loop.plant import Plant
+from twind.model.params import SOSParams
+
+FIT_PARAMS = ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct", "osem_lever_m",
+              "Q_POS", "Q_PIT", "Q_YAW", "Q_SIDE")
+MAX_LOG_SIGMA = 1.0
+"""A direction of log-parameter space known worse than a factor e is unidentifiable."""
+MIN_COHERENCE = 0.5
+"""Below this the Bendat-Piersol error (and the estimate's bias) is no longer trustworthy."""
+SURE_COHERENCE = 0.95
+"""A bin at least this coherent is used whatever its neighbours (a multisine's tone)."""
+SMOOTH_BINS = 11
+"""Bins chosen by the coherence averaged over this many neighbours."""
+CORRELATION_LAGS = 3
+"""Neighbouring bins whose error correlation is estimated (Hann: lag 1 dominates)."""
+_NULL_COMPONENT = 0.05
+_STEP = 1e-4  # log-parameter step of the finite-difference Jacobian
+
+
+class FitError(TwindError):
+    """Parameters cannot be fitted to these measurements."""
+
+
+# ------------------------------------------------------------------------------ parameters
+def param_value(sus: SOSParams, name: str) -> float:
+    """The value of fit parameter `name` (``Q_<DOF>`` reads ``sus.Q``)."""
+    if name.startswith("Q_"):
+        return float(sus.Q[name[2:]])
+    return float(getattr(sus, name))
+
+
+def with_params(sus: SOSParams, values: Mapping[str, float]) -> SOSParams:
+    """A copy of `sus` with fit parameters set (``Q_POS`` etc. go into ``Q``)."""
+    q = {k[2:]: v for k, v in values.items() if k.startswith("Q_")}
+    other = {k: v for k, v in values.items() if not k.startswith("Q_")}
+    return sus.updated(**other, Q=q) if q else sus.updated(**other)
+
+
+def check_names(names: Sequence[str]) -> list[str]:
+    """`names` if every one is a fit parameter; else a FitError listing the valid ones."""
+    unknown = [n for n in names if n not in FIT_PARAMS]
+    if unknown or not names:
+        msg = (f"unknown fit parameter(s) {unknown}; choose from {', '.join(FIT_PARAMS)}"
+               if unknown else "no parameter to fit")
+        raise FitError(msg)
+    return list(dict.fromkeys(names))
+
+
+# ------------------------------------------------------------------------------ data and model
+@dataclass(frozen=True)
+class FitData:
+    """Measured ``IN1/EXC`` bins a fit uses, with their errors.
+
+    Attributes
+    ----------
+    frequency_hz : ndarray, shape (nf,)
+    rows, cols : list of int
+        Model indices (into POS, PIT, YAW, SIDE) of the responses and excited DOFs.
+    H, sigma : ndarray, shape (nf, nr, ne)
+        Measured ``IN1/EXC`` and the standard error of its real and imaginary parts.
+    mask : ndarray of bool, shape (nf, nr, ne)
+        Bins used: coherent enough, finite, inside the band.
+    averages : int
+    resolution_hz : float
+        Bin width of a Hann-windowed estimate (0 for a rectangular window).
+    """
+
+    frequency_hz: NDArray[np.float64]
+    responses: list[str]
+    excited: list[str]
+    H: NDArray[np.complex128]
+    sigma: NDArray[np.float64]
+    mask: NDArray[np.bool_]
+    averages: int
+    resolution_hz: float = 0.0
+
+    @classmethod
+    def from_tfset(cls, tfs: TFSet, min_coherence: float = MIN_COHERENCE,
+                   band: tuple[float, float] | None = None) -> FitData:
+        """The bins of `tfs` worth fitting; a FitError when none is."""
+        f = tfs.frequency_hz
+        H, sigma = tfs.tf["IN1"], tfs.sigma("IN1")
+        g2 = tfs.coherence["IN1"]
+        # a bin this coherent on its own is no fluke (P < 1e-5 from zero coherence with 5
+        # averages): it keeps the tones of a sparse multisine, which smoothing would dilute
+        coherent = (_smoothed(g2) >= min_coherence) | (g2 >= max(SURE_COHERENCE, min_coherence))
+        mask = coherent & np.isfinite(H) & (sigma > 0)
+        mask &= (f > 0)[:, None, None]
+        if band is not None:
+            mask &= ((f >= band[0]) & (f <= band[1]))[:, None, None]
+        if not mask.any():
+            msg = (f"no bin of {tfs.optic}'s IN1/EXC reaches coherence {min_coherence:g}"
+                   + (f" in {band[0]:g}-{band[1]:g} Hz" if band else ""))
+            raise FitError(msg)
+        resolution = float(np.median(np.diff(f))) if tfs.window == "hann" and f.size > 1 else 0.0
+        return cls(f, list(tfs.responses), list(tfs.excited), H, sigma, mask, tfs.averages,
+                   resolution)
+
+    @property
+    def bins(self) -> int:
+        """Number of complex bins used."""
+        return int(self.mask.sum())
+
+    def whiten(self, model: NDArray[np.complex128]) -> NDArray[np.float64]:
+        """``(H - model) / sigma`` over the used bins, real parts then imaginary parts."""
+        r = (self.H[self.mask] - model[self.mask]) / self.sigma[self.mask]
+        return np.concatenate([r.real, r.imag])
+
+
+def _smoothed(coherence: NDArray[np.float64], bins: int = SMOOTH_BINS) -> NDArray[np.float64]:
+    """Running mean over `bins` neighbouring frequencies.
+
+    Bins are chosen by this, not by their own coherence: with few averages the estimate
+    scatters upward, and choosing the bins that happen to look coherent picks exactly those
+    whose error the coherence understates.
+    """
+    return ndimage.uniform_filter1d(coherence, bins, axis=0, mode="nearest")
+
+
+class ClosedLoopModel:
+    """``IN1/EXC`` (all four DOFs) of an optic's damping loop as a function of its fit
+    parameters, at fixed frequencies, as a spectral estimate of resolution `resolution_hz`
+    sees it.
+
+    A Hann-windowed Welch estimate is the true TF averaged over the window's power kernel,
+    whose second moment is 1/3 bin^2: to second order it is the mean of the TF half a
+    kernel width either side, ``f +- resolution / sqrt(3)``.  Near the closed-loop
+    resonances (a few bins wide at 0.04 Hz) leaving this out biases the fitted Qs by
+    several sigma; periodic excitations analysed with a rectangular window need none.
+    """
+
+    def __init__(self, cfg: OpticConfig, f_hz: NDArray[np.float64],
+                 resolution_hz: float = 0.0) -> None:
+        self.cfg = cfg
+        self.f = np.asarray(f_hz, dtype=float)
+        a = resolution_hz / math.sqrt(3.0)
+        self._at = np.concatenate([self.f - a, self.f + a]) if a > 0 else self.f
+        self._K = cfg.loop().controller(self._at)[:, :, None] * np.eye(len(DOFS))
+        self.resolution_hz = resolution_hz
+
+    def sus(self, values: Mapping[str, float]) -> SOSParams:
+        """The configured suspension with `values` set."""
+        return with_params(self.cfg.sus, values)
+
+    def __call__(self, values: Mapping[str, float]) -> NDArray[np.complex128]:
+        """``IN1/EXC``, shape (len(f), 4, 4)."""
+        sus = self.sus(values)
+        P = Plant.from_params(sus, replace(self.cfg, sus=sus).mechanics()).response(self._at)
+        eye = np.eye(len(DOFS))
+        T = np.linalg.inv(eye - P @ self._K) - eye
+        return 0.5 * (T[: self.f.size] + T[self.f.size :]) if self._at is not self.f else T
+
+    def for_data(self, data: FitData) -> Callable[[Mapping[str, float]], NDArray]:
+        """The model shaped like `data` (its responses and excited DOFs; zeros in unused
+        bins), evaluated only at the frequencies `data` uses."""
+        keep = data.mask.any(axis=(1, 2))
+        sub = ClosedLoopModel(self.cfg, self.f[keep], self.resolution_hz)
+        rows = [DOFS.index(d) for d in data.responses]
+        cols = [DOFS.index(d) for d in data.excited]
+
+        def predict(values: Mapping[str, float]) -> NDArray[np.complex128]:
+            out = np.zeros(data.H.shape, dtype=complex)
+            out[keep] = sub(values)[:, rows][:, :, cols]
+            return out
+
+        return predict
+
+
+# ------------------------------------------------------------------------------ result
+@dataclass
+class FitResult:
+    """Fitted parameters with calibrated uncertainties.
+
+    Attributes
+    ----------
+    names : list of str
+    values : ndarray
+        Fitted values (nominal for unidentifiable ones).
+    sigma : ndarray
+        One-sigma uncertainties; ``nan`` where unidentifiable.
+    covariance : ndarray
+        Of ``log(value)``; rows and columns of unidentifiable parameters are ``nan``.
+    unidentifiable : list of str
+        Parameters or combinations (``"coil_N_per_ct/osem_lever_m"``) the data cannot fix.
+    determined : dict
+        For each unidentifiable pair, the combination that is determined, ``{value, sigma}``.
+    chi2, nu : float, int
+        Weighted residual sum of squares and degrees of freedom.
+    noise_scale : float
+        ``sqrt(chi2_nu)``: how much the scatter exceeds the coherence-based errors.
+    bin_correlation : list of float
+        Correlation of residuals 1, 2, 3 bins apart.
+    """
+
+    optic: str
+    names: list[str]
+    values: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    unidentifiable: list[str]
+    determined: dict[str, dict[str, float]]
+    chi2: float
+    nu: int
+    noise_scale: float
+    bin_correlation: list[float]
+    bins: int
+    nominal: NDArray[np.float64] = field(repr=False)
+
+    @property
+    def chi2_nu(self) -> float:
+        """Reduced chi-square of the fit."""
+        return self.chi2 / max(self.nu, 1)
+
+    def as_dict(self) -> dict[str, float]:
+        """``{name: value}``."""
+        return dict(zip(self.names, self.values.tolist(), strict=True))
+
+    def to_json(self) -> dict:
+        """The ``twind fit --json`` object (unidentifiable sigmas are null)."""
+        params = {n: {"value": float(v), "sigma": None if math.isnan(s) else float(s),
+                      "nominal": float(p0)}
+                  for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal,
+                                         strict=True)}
+        return {"optic": self.optic, "params": params, "unidentifiable": self.unidentifiable,
+                "determined": self.determined, "chi2_nu": self.chi2_nu, "nu": self.nu,
+                "noise_scale": self.noise_scale, "bin_correlation": self.bin_correlation,
+                "bins": self.bins}
+
+    def lines(self) -> list[str]:
+        """A human-readable table."""
+        out = [f"{self.optic}: {self.bins} bins, chi2/nu = {self.chi2_nu:.3f} "
+               f"(noise scale {self.noise_scale:.2f}, bin correlation "
+               f"{', '.join(f'{c:+.2f}' for c in self.bin_correlation)})"]
+        for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal, strict=True):
+            err = "unidentifiable" if math.isnan(s) else f"+- {s:.4g} ({100 * s / v:.2g} %)"
+            out.append(f"  {n:15s} {v:12.6g} {err:26s} start {p0:.6g}")
+        for combo, d in self.determined.items():
+            out.append(f"  determined: {combo} = {d['value']:.6g} +- {d['sigma']:.3g}")
+        if self.unidentifiable:
+            out.append(f"  unidentifiable: {', '.join(self.unidentifiable)}")
+        return out
+
+
+# ------------------------------------------------------------------------------ the fit
+def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = FIT_PARAMS,
+        min_coherence: float = MIN_COHERENCE, band: tuple[float, float] | None = None
+        ) -> FitResult:
+    """Fit `params` of `cfg`'s optic to the measured transfer functions `tfs`.
+
+    Parameters
+    ----------
+    tfs : TFSet or sequence of TFSet
+        Closed-loop TFs (``twind tf``) of the optic; several measurements (rounds of a
+        campaign) are fitted jointly.
+    cfg : OpticConfig
+        The optic's configuration: the fit starts from its values; model, controller.
+    params : sequence of str
+        Names from :data:`FIT_PARAMS`.
+    min_coherence : float
+        Bins of ``IN1/EXC`` below this coherence are not used.
+    band : (float, float), optional
+        Only bins in this band (Hz).
+
+    Returns
+    -------
+    FitResult
+    """
+    names = check_names(params)
+    sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
+    datas = [FitData.from_tfset(t, min_coherence, band) for t in sets]
+    models = [ClosedLoopModel(cfg, d.frequency_hz, d.resolution_hz).for_data(d) for d in datas]
+    p0 = np.array([param_value(cfg.sus, n) for n in names])
+
+    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        values = dict(zip(names, p0 * np.exp(x), strict=True))
+        return np.concatenate([d.whiten(m(values)) for d, m in zip(datas, models, strict=True)])
+
+    x = np.zeros(len(names))
+    null = np.zeros((len(names), 0))
+    for _ in range(4):
+        # a direction found unidentifiable stays so (and at nominal): otherwise a weakly
+        # determined Q that the fit drives to infinity would flip back and forth
+        null = _union(null, _split(_jacobian(residuals, x))[0])
+        x = x - null @ (null.T @ x)
+        basis = _complement(null)
+        if basis.shape[1]:
+            sol = least_squares(lambda z, b=basis, x0=x: residuals(x0 + b @ z),
+                                np.zeros(basis.shape[1]), method="lm", x_scale="jac")
+            x = x + basis @ sol.x
+        J = _jacobian(residuals, x)
+        if _union(null, _split(J)[0]).shape[1] == null.shape[1]:
+            break
+    r = residuals(x)
+    return _result(cfg.name, names, p0, x, r, J, null, datas)
+
+
+def _jacobian(fun, x: NDArray[np.float64]) -> NDArray[np.float64]:  # noqa: ANN001
+    """Central differences, ``d residual / d log p``."""
+    cols = []
+    for i in range(len(x)):
+        dx = np.zeros_like(x)
+        dx[i] = _STEP
+        cols.append((fun(x + dx) - fun(x - dx)) / (2 * _STEP))
+    return np.stack(cols, axis=1)
+
+
+def _split(J: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Orthonormal bases of the unidentifiable and identifiable log-parameter directions."""
+    if not np.all(np.isfinite(J)):
+        msg = "the model is not finite at these parameters (an unstable or singular loop?)"
+        raise FitError(msg)
+    _, s, vt = np.linalg.svd(J, full_matrices=True)
+    s = np.concatenate([s, np.zeros(vt.shape[0] - len(s))])
+    weak = s * MAX_LOG_SIGMA < 1.0
+    return vt[weak].T, vt[~weak].T
+
+
+def _union(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """`a` extended by the directions of `b` that are substantially new (a null direction
+    found again slightly rotated at another point must not widen the span)."""
+    out = a
+    for v in b.T:
+        rest = v - out @ (out.T @ v)
+        if np.linalg.norm(rest) > 0.5:
+            out = np.hstack([out, (rest / np.linalg.norm(rest))[:, None]])
+    return out
+
+
+def _complement(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Orthonormal basis of the directions orthogonal to the columns of `a`."""
+    u, s, _ = np.linalg.svd(a, full_matrices=True)
+    return u[:, int(np.sum(s > 1e-6)):]
+
+
+def _slices(datas: Sequence[FitData]) -> list[tuple[FitData, slice]]:
+    """Each data set with its rows of the stacked residual vector."""
+    out, start = [], 0
+    for d in datas:
+        out.append((d, slice(start, start + 2 * d.bins)))
+        start += 2 * d.bins
+    return out
+
+
+def _lag_pairs(data: FitData, k: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Indices (into the data's bins) of used bins ``k`` apart in one element."""
+    idx = np.full(data.mask.shape, -1)
+    idx[data.mask] = np.arange(data.bins)
+    both = data.mask[k:] & data.mask[:-k]
+    return idx[:-k][both], idx[k:][both]
+
+
+def _bin_correlation(r: NDArray[np.float64], datas: Sequence[FitData]) -> list[float]:
+    """Correlation of whitened complex residuals ``k`` bins apart, pooled over elements."""
+    power, lagged = 0.0, np.zeros(CORRELATION_LAGS)
+    for data, rows in _slices(datas):
+        n = data.bins
+        z = r[rows][:n] + 1j * r[rows][n:]
+        power += float(np.sum(np.abs(z) ** 2))
+        for k in range(1, CORRELATION_LAGS + 1):
+            a, b = _lag_pairs(data, k)
+            lagged[k - 1] += float(np.real(np.sum(z[b] * np.conj(z[a]))))
+    return (lagged / power).tolist() if power > 0 else [0.0] * CORRELATION_LAGS
+
+
+def _sandwich(J: NDArray[np.float64], rho: list[float], datas: Sequence[FitData]
+              ) -> NDArray[np.float64]:
+    """``J^T R J`` for errors correlated ``rho[k-1]`` between bins ``k`` apart."""
+    B = J.T @ J
+    for data, rows in _slices(datas):
+        Jd, n = J[rows], data.bins
+        for k, c in enumerate(rho, start=1):
+            a, b = _lag_pairs(data, k)
+            cross = Jd[a].T @ Jd[b] + Jd[a + n].T @ Jd[b + n]  # real with real, imag with imag
+            B += c * (cross + cross.T)
+    return B
+
+
+def _result(optic: str, names: list[str], p0: NDArray, x: NDArray, r: NDArray,
+            J: NDArray, null: NDArray, datas: Sequence[FitData]) -> FitResult:
+    chi2 = float(r @ r)
+    ident = len(names) - null.shape[1]
+    nu = r.size - ident
+    # the scatter, robustly: the median of |z|^2 / 2 is ln 2 for Gaussian errors, and unlike
+    # chi2/nu it is not pulled up by the heavy tails of errors divided by an estimated sigma
+    z2 = r[: r.size // 2] ** 2 + r[r.size // 2 :] ** 2
+    scale2 = float(np.median(z2) / 2 / math.log(2)) * r.size / max(nu, 1)
+    rho = _bin_correlation(r, datas)
+    A_pinv = np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
+    if null.shape[1]:
+        proj = np.eye(len(names)) - null @ null.T
+        A_pinv = proj @ A_pinv @ proj
+    cov = scale2 * A_pinv @ _sandwich(J, rho, datas) @ A_pinv
+    lost = np.any(np.abs(null) > _NULL_COMPONENT, axis=1) if null.size else np.zeros(len(names), bool)
+    values = p0 * np.exp(x)
+    sigma = values * np.sqrt(np.clip(np.diag(cov), 0, None))
+    unident, determined = _name_null(names, null, values, cov)
+    sigma[lost] = np.nan
+    cov[lost, :] = np.nan
+    cov[:, lost] = np.nan
+    return FitResult(optic, names, values, sigma, cov, unident, determined, chi2, nu,
+                     math.sqrt(scale2), rho, sum(d.bins for d in datas), p0)
+
+
+def _name_null(names: list[str], null: NDArray, values: NDArray, cov: NDArray
+               ) -> tuple[list[str], dict[str, dict[str, float]]]:
+    """Name each unidentifiable direction; for a pair, also the product that is determined."""
+    unident, determined = [], {}
+    for v in null.T:
+        involved = list(np.flatnonzero(np.abs(v) > _NULL_COMPONENT * np.abs(v).max()))
+        v = v / v[involved[0]]  # the first parameter, to the power one, leads the name
+        unident.append(_monomial([names[i] for i in involved], v[involved]))
+        if len(involved) == 2:
+            # the direction orthogonal to v within the pair is what the data fix
+            i, j = involved
+            u = np.zeros(len(names))
+            u[i], u[j] = v[j], -v[i]
+            u /= u[i]
+            var = float(u @ cov @ u)  # u is orthogonal to the null direction
+            value = float(np.exp(u @ np.log(values)))
+            determined[_monomial([names[i], names[j]], u[[i, j]])] = {
+                "value": value, "sigma": value * math.sqrt(max(var, 0.0))}
+    return unident, determined
+
+
+def _monomial(names: list[str], powers: NDArray) -> str:
+    """``a*b/c^0.5``-style name of ``prod name_i^power_i``."""
+    def term(n: str, p: float) -> str:
+        p = abs(p)
+        return n if abs(p - 1) < 0.05 else f"{n}^{p:.2g}"
+
+    num = [term(n, p) for n, p in zip(names, powers, strict=True) if p > 0]
+    den = [term(n, p) for n, p in zip(names, powers, strict=True) if p < 0]
+    text = "*".join(num) or "1"
+    return text + ("/" + "/".join(den) if den else "")
+
+
+def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
+    """Per element: measured ``IN1/EXC`` with the nominal and fitted models, and beneath it
+    the residual of each in units of the measurement's sigma (what the fit minimised)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = FitData.from_tfset(tfs, min_coherence=0.0)
+    model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz).for_data(data)
+    used = FitData.from_tfset(tfs).mask
+    fitted = {n: v for n, v in result.as_dict().items() if not math.isnan(v)}
+    curves = {"nominal": model({}), "fitted": model(fitted)}
+    n_r, n_e = len(data.responses), len(data.excited)
+    fig, axes = plt.subplots(2 * n_r, n_e, figsize=(3.4 * n_e, 3.0 * n_r), sharex=True,
+                             squeeze=False)
+    f = data.frequency_hz
+    for i, r in enumerate(data.responses):
+        for j, e in enumerate(data.excited):
+            top, bottom = axes[2 * i, j], axes[2 * i + 1, j]
+            k = used[:, i, j]
+            top.set_title(f"{r} / {e}: {int(k.sum())} bins", fontsize=9)
+            if not k.any():
+                top.text(0.5, 0.5, "not coherent", ha="center", transform=top.transAxes)
+                continue
+            top.loglog(f[k], np.abs(data.H[k, i, j]), ".", ms=2, color="0.4", label="measured")
+            for c, (name, h) in zip(("C0", "C1"), curves.items(), strict=True):
+                top.loglog(f[k], np.abs(h[k, i, j]), color=c, lw=1, label=name)
+                z = np.abs(data.H[k, i, j] - h[k, i, j]) / data.sigma[k, i, j]
+                bottom.semilogx(f[k], z, ".", ms=2, color=c)
+            bottom.axhline(3, color="k", lw=0.5, ls="--")
+            bottom.set_ylabel("|res|/sigma", fontsize=8)
+            for ax in (top, bottom):
+                ax.grid(True, which="both", alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("frequency [Hz]")
+    fig.suptitle(f"{result.optic} IN1/EXC: chi2/nu {result.chi2_nu:.3g} after the fit")
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
