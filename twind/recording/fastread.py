@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import struct
-import warnings
 import zlib
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -36,11 +35,11 @@ from twind.recording.reader import (
     Channel,
     RecordingError,
     Session,
-    TruncatedRecordingWarning,
     _Block,
     _join,
     _some,
     _warn_gaps,
+    report_truncation,
     session_files,
 )
 from twind.recording.writer import (
@@ -569,12 +568,7 @@ def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolE
         else:
             reason = ""
     if not footer:
-        where = "after its data" if data_end else f"after {chunks} complete chunk(s)"
-        text = (f"{path}: the recording ends {where} without its summary and footer "
-                f"({size} bytes; the writer was killed or the disk filled?); read up to there"
-                + (f" [{reason}]" if reason else ""))
-        problems.append(text)
-        warnings.warn(text, TruncatedRecordingWarning, stacklevel=4)
+        report_truncation(path, data_end, chunks, size, reason, problems, stacklevel=5)
     if not state.config_seen and CONFIG_METADATA in state.metadata:
         state.configs.append(json.loads(state.metadata[CONFIG_METADATA].get("json", "{}")))
 

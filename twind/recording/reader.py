@@ -200,13 +200,7 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
         else:
             reason = ""
     if not footer:
-        where = "after its data" if data_end else f"after {chunks} complete chunk(s)"
-        text = (f"{path}: the recording ends {where} without its summary and footer "
-                f"({size} bytes; the writer was killed or the disk filled?); read up to there"
-                + (f" [{reason}]" if reason else ""))
-        if problems is not None:
-            problems.append(text)
-        warnings.warn(text, TruncatedRecordingWarning, stacklevel=3)
+        report_truncation(path, data_end, chunks, size, reason, problems, stacklevel=4)
 
 
 # --- sessions ------------------------------------------------------------------------------
@@ -726,3 +720,15 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
             for s in subs:
                 s.undeclare()
     return assembler.channels()
+
+
+def report_truncation(path: Path, data_end: bool, chunks: int, size: int, reason: str,
+                      problems: list[str] | None, stacklevel: int) -> None:
+    """Warn (and note in `problems`) that `path` stops without its summary and footer."""
+    where = "after its data" if data_end else f"after {chunks} complete chunk(s)"
+    text = (f"{path}: the recording ends {where} without its summary and footer "
+            f"({size} bytes; the writer was killed or the disk filled?); read up to there"
+            + (f" [{reason}]" if reason else ""))
+    if problems is not None:
+        problems.append(text)
+    warnings.warn(text, TruncatedRecordingWarning, stacklevel=stacklevel)
