@@ -123,7 +123,7 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
     from scipy import signal
 
     from twind.analysis.campaign import LocalTwin, tones_only
-    from twind.excitation.information import design_information
+    from twind.excitation.information import design_information, det_root
 
     real = replace(cfg, sus=with_params(cfg.sus, {k: param_value(cfg.sus, k) * v
                                                   for k, v in drift.items()}))
@@ -148,7 +148,7 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
         result = fit(tones_only(twin.measure(design, averages), design), current)
         common = np.isfinite(np.diag(result.covariance)) & np.isfinite(np.diag(ref.covariance))
         names = [nm for nm, c in zip(result.names, common, strict=True) if c]
-        ratio = _det_root(ref.covariance[np.ix_(common, common)]) / _det_root(
+        ratio = det_root(ref.covariance[np.ix_(common, common)]) / det_root(
             result.covariance[np.ix_(common, common)])
         lines.append(f"round {k}: D-optimal multisine (predicted {design.gain:.1f}x), chi2/nu "
                      f"{result.chi2_nu:.3f}: det(Cov)^(1/p) {ratio:.1f}x smaller than white "
@@ -158,7 +158,3 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
             if np.isfinite(s)}))
     return lines
 
-
-def _det_root(cov: NDArray[np.float64]) -> float:
-    sign, logdet = np.linalg.slogdet(cov)
-    return float(np.exp(logdet / cov.shape[0])) if sign > 0 else float("inf")

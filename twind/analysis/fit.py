@@ -13,11 +13,12 @@ unidentifiable, is held at its nominal value and gets no sigma; the fit runs in 
 subspace, so no input can make it invert a singular matrix.
 
 Uncertainties are the Cramer-Rao bound of that weighted least squares, with two corrections
-taken from the residuals rather than trusted from the coherence: the scatter (``chi2_nu``,
-which also absorbs the heavy tails of errors normalised by an estimated coherence) and the
-correlation of neighbouring frequency bins (a Hann window correlates the errors of adjacent
-bins, so ``n`` bins carry less than ``n`` bins' information). Both enter as a sandwich
-covariance ``s^2 A^+ (J^T R J) A^+`` with ``A = J^T J`` and ``R`` the banded bin correlation.
+taken from the residuals rather than trusted from the coherence: the scatter (a median-based
+noise scale ``s``, robust to the heavy tails of errors divided by an estimated coherence) and
+the correlation of neighbouring frequency bins (a Hann window correlates the errors of
+adjacent bins, so ``n`` bins carry less than ``n`` bins' information). Both enter as a
+sandwich covariance ``s^2 A^+ (J^T R J) A^+`` with ``A = J^T J`` and ``R`` the banded bin
+correlation.  ``twind bench --suite pull`` checks the result on the twin.
 """
 
 from __future__ import annotations
@@ -224,7 +225,7 @@ class FitResult:
     chi2, nu : float, int
         Weighted residual sum of squares and degrees of freedom.
     noise_scale : float
-        ``sqrt(chi2_nu)``: how much the scatter exceeds the coherence-based errors.
+        How much the residuals' scatter (median-based) exceeds the coherence-based errors.
     bin_correlation : list of float
         Correlation of residuals 1, 2, 3 bins apart.
     """
@@ -255,7 +256,7 @@ class FitResult:
     def to_json(self) -> dict:
         """The ``twind fit --json`` object (unidentifiable sigmas are null)."""
         params = {n: {"value": float(v), "sigma": None if math.isnan(s) else float(s),
-                      "nominal": float(p0)}
+                      "start": float(p0)}
                   for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal,
                                          strict=True)}
         return {"optic": self.optic, "params": params, "unidentifiable": self.unidentifiable,

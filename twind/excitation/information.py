@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +27,6 @@ from twind.analysis.fit import (
     ClosedLoopModel,
     check_names,
     param_value,
-    with_params,
 )
 from twind.config import OpticConfig
 from twind.excitation.coherence import ExcitationDesignError, in1_noise_asd
@@ -77,7 +76,7 @@ class InformationDesign:
     @property
     def gain(self) -> float:
         """``det(Cov_white)^(1/p) / det(Cov)^(1/p)``: how much better than white noise."""
-        return _det_root(self.covariance_white) / _det_root(self.covariance)
+        return det_root(self.covariance_white) / det_root(self.covariance)
 
     def waveform(self, dof: str, n: int, rate_hz: float) -> NDArray[np.float64]:
         """`n` samples of the DOF's multisine (Schroeder phases, exactly periodic)."""
@@ -235,12 +234,8 @@ def _d_optimal(F: NDArray[np.float64], start: NDArray[np.float64], budget: NDArr
     return p
 
 
-def _det_root(cov: NDArray[np.float64]) -> float:
+def det_root(cov: NDArray[np.float64]) -> float:
+    """``det(cov)^(1/p)``: the geometric-mean variance (inf for a singular matrix)."""
     sign, logdet = np.linalg.slogdet(cov)
     return float(np.exp(logdet / cov.shape[0])) if sign > 0 else math.inf
 
-
-def at_params(cfg: OpticConfig, values: dict[str, float]) -> OpticConfig:
-    """`cfg` with fitted parameter values (nan ones skipped)."""
-    return replace(cfg, sus=with_params(cfg.sus, {k: v for k, v in values.items()
-                                                  if not math.isnan(v)}))
