@@ -116,6 +116,19 @@ def test_session_plant_recovered_from_a_twin_recording(tmp_path: Path) -> None:
     assert np.array(obj["plant"]["re"]).shape == (len(tfs.frequency_hz), 3, 3)
 
 
+def test_channels_joined_late_are_cut_by_their_own_start(tmp_path: Path) -> None:
+    """A recorder that joins mid-stream can miss one channel's first block: each channel is
+    cut by its own start time, so the TFs are those of a complete recording."""
+    cfg = load_config(None, ["ETMX"]).optics["ETMX"]
+    amps = {"POS": 2.0}
+    whole = record_excited_session(cfg, tmp_path / "whole.mcap", amps, seconds=12)
+    late = record_excited_session(cfg, tmp_path / "late.mcap", amps, seconds=12,
+                                  late=("_IN2", "_OUT"))
+    a = from_session([whole], bw=0.5, settle_s=1.0)
+    b = from_session([late], bw=0.5, settle_s=1.0)
+    np.testing.assert_allclose(b.tf["OUT"], a.tf["OUT"], rtol=1e-9, atol=1e-12)
+
+
 def test_results_written_as_hdf5_and_csv(tmp_path: Path) -> None:
     import h5py
 
