@@ -309,9 +309,16 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     models = [ClosedLoopModel(cfg, d.frequency_hz, d.resolution_hz).for_data(d) for d in datas]
     p0 = np.array([param_value(cfg.sus, n) for n in names])
 
+    size = sum(2 * d.bins for d in datas)
+
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
         values = dict(zip(names, p0 * np.exp(x), strict=True))
-        return np.concatenate([d.whiten(m(values)) for d, m in zip(datas, models, strict=True)])
+        try:
+            r = np.concatenate([d.whiten(m(values)) for d, m in zip(datas, models, strict=True)])
+        except np.linalg.LinAlgError:
+            r = np.full(size, np.inf)  # a singular loop: a step the optimiser must reject
+        # a huge but finite misfit, so that least_squares backs off instead of failing
+        return np.nan_to_num(r, nan=1e150, posinf=1e150, neginf=-1e150)
 
     x = np.zeros(len(names))
     null = np.zeros((len(names), 0))
