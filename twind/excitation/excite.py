@@ -181,9 +181,9 @@ def plot_information(design: Any, path: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 7))
-    for dof in design.tones:
-        top.stem(design.tones[dof], design.amps[dof], label=dof, linefmt=None,
-                 basefmt=" ").markerline.set_markersize(4)
+    for i, dof in enumerate(design.tones):
+        top.stem(design.tones[dof], design.amps[dof], label=dof, linefmt=f"C{i}-",
+                 markerfmt=f"C{i}o", basefmt=" ").markerline.set_markersize(4)
     top.set_xscale("log")
     top.set_xlabel("frequency [Hz]")
     top.set_ylabel("tone amplitude (peak)")
