@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +34,8 @@ class Plant:
         DOF ct -> coil ct.
     delay_s : float
         Pure delay in the drive path.
+    drive_pole_hz : float
+        A real pole in every coil-driver chain (``inf``: none; MODEL.md's ``actuator_pole``).
     """
 
     mechanics: Mechanics
@@ -41,6 +44,7 @@ class Plant:
     input_matrix: NDArray[np.float64]
     output_matrix: NDArray[np.float64]
     delay_s: float
+    drive_pole_hz: float = math.inf
 
     @classmethod
     def from_params(cls, p: SOSParams, mech: Mechanics) -> Plant:
@@ -53,12 +57,21 @@ class Plant:
         s = 2j * np.pi * np.asarray(f_hz, dtype=float)
         H = self.mechanics.admittance(s)
         P = self.input_matrix @ self.sensing @ H @ self.actuation @ self.output_matrix
-        return P * np.exp(-s * self.delay_s)[:, None, None]
+        drive = np.exp(-s * self.delay_s) / (1 + s / (2 * np.pi * self.drive_pole_hz))
+        return P * drive[:, None, None]
 
     def osem_state_space(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Continuous ``(A, B_coil, B_sp, C)``: coil counts (5) and suspension point (3) in,
-        OSEM readings (m, 5) out, state ``[q, q']``. The loop delay is not included."""
+        OSEM readings (m, 5) out, state ``[q, q']`` (then the coil drivers', with a drive
+        pole). The loop delay is not included."""
         A, B = self.mechanics.state_space()
         n = self.mechanics.n
         C = np.hstack([self.sensing, np.zeros((5, n))])
-        return A, B @ self.actuation, B @ self.mechanics.suspension_point_forces(), C
+        B_coil, B_sp = B @ self.actuation, B @ self.mechanics.suspension_point_forces()
+        if math.isinf(self.drive_pole_hz):
+            return A, B_coil, B_sp, C
+        # five coil-driver states, each a first-order low-pass ahead of its coil
+        w = 2 * np.pi * self.drive_pole_hz
+        A = np.block([[A, B_coil], [np.zeros((5, 2 * n)), -w * np.eye(5)]])
+        return (A, np.vstack([np.zeros((2 * n, 5)), w * np.eye(5)]),
+                np.vstack([B_sp, np.zeros((5, B_sp.shape[1]))]), np.hstack([C, np.zeros((5, 5))]))

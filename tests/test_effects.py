@@ -1,0 +1,85 @@
+"""The catalogue of physics left out (MODEL.md): each effect against an identity it must obey."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twind import DOFS
+from twind.loop.plant import Plant
+from twind.model.analytical import analytical_mechanics
+from twind.model.effects import CATALOGUE, EffectError, with_effect
+from twind.model.params import SOSParams
+
+F = np.logspace(-1, 1.5, 60)
+S = 2j * np.pi * F
+
+
+@pytest.fixture(scope="module")
+def sus() -> SOSParams:
+    return SOSParams()
+
+
+@pytest.fixture(scope="module")
+def plant(sus: SOSParams) -> Plant:
+    return Plant.from_params(sus, analytical_mechanics(sus))
+
+
+@pytest.mark.parametrize("effect", list(CATALOGUE))
+def test_every_effect_nests_the_nominal_model(effect: str, plant: Plant, sus: SOSParams) -> None:
+    zero = with_effect(plant, sus, effect, dict.fromkeys(CATALOGUE[effect].params, 0.0))
+    np.testing.assert_array_equal(zero.response(F), plant.response(F))
+    moved = with_effect(plant, sus, effect, CATALOGUE[effect].scale)
+    assert np.max(np.abs(moved.response(F) - plant.response(F))) > 0
+
+
+def test_equal_imbalances_are_a_common_gain(plant: Plant, sus: SOSParams) -> None:
+    g = {f"gain_{f}": 0.03 for f in ("UL", "UR", "LL", "LR")}
+    stronger = Plant.from_params(sus.updated(coil_N_per_ct=sus.coil_N_per_ct * 1.03),
+                                 analytical_mechanics(sus))
+    P = with_effect(plant, sus, "coil_imbalance", g).response(F)
+    face = [0, 1, 2]  # SIDE has its own coil
+    tiny = 1e-12 * np.abs(P).max()  # elements zero by symmetry differ in round-off only
+    np.testing.assert_allclose(P[:, :, face], stronger.response(F)[:, :, face], rtol=1e-12,
+                               atol=tiny)
+    P = with_effect(plant, sus, "osem_imbalance", g).response(F)
+    np.testing.assert_allclose(P[:, face], 1.03 * plant.response(F)[:, face], rtol=1e-12,
+                               atol=tiny)
+
+
+def test_delay_and_pole_multiply_the_drive(plant: Plant, sus: SOSParams) -> None:
+    P0 = plant.response(F)
+    P = with_effect(plant, sus, "loop_delay", {"extra_s": 2e-4}).response(F)
+    np.testing.assert_allclose(P, P0 * np.exp(-S * 2e-4)[:, None, None], rtol=1e-12)
+    P = with_effect(plant, sus, "actuator_pole", {"inv_f_hz": 1 / 40.0}).response(F)
+    np.testing.assert_allclose(P, P0 / (1 + S / (2 * np.pi * 40.0))[:, None, None], rtol=1e-12)
+
+
+def test_drive_pole_is_in_the_state_space_the_engine_integrates(plant: Plant,
+                                                                sus: SOSParams) -> None:
+    poled = with_effect(plant, sus, "actuator_pole", {"inv_f_hz": 1 / 25.0})
+    A, B, _, C = poled.osem_state_space()
+    H = np.array([C @ np.linalg.solve(s * np.eye(len(A)) - A, B) for s in S])
+    P = poled.input_matrix @ H @ poled.output_matrix * np.exp(-S * poled.delay_s)[:, None, None]
+    np.testing.assert_allclose(P, poled.response(F), rtol=1e-8, atol=1e-12 * np.abs(P).max())
+
+
+def test_side_sensing_coupling_reads_side_in_pos(plant: Plant, sus: SOSParams) -> None:
+    """Each face OSEM reading kappa * y makes POS read kappa * SIDE, exactly."""
+    P = with_effect(plant, sus, "side_coupling", {"sensing": 0.02}).response(F)
+    pos, side = DOFS.index("POS"), DOFS.index("SIDE")
+    np.testing.assert_allclose(P[:, pos, side], 0.02 * P[:, side, side], rtol=1e-12)
+
+
+def test_wire_asymmetry_couples_pos_and_yaw_symmetrically(plant: Plant, sus: SOSParams) -> None:
+    K = with_effect(plant, sus, "wire_asymmetry", {"delta_m": 1e-4}).mechanics.K
+    i, j = DOFS.index("POS"), DOFS.index("YAW")
+    expected = -sus.mass_kg * sus.g_mps2 * 1e-4 / sus.wire_length_m
+    assert K[i, j] == K[j, i] == pytest.approx(expected, rel=1e-12)
+
+
+def test_bad_effects_are_named(plant: Plant, sus: SOSParams) -> None:
+    with pytest.raises(EffectError, match="catalogue has"):
+        with_effect(plant, sus, "gremlins", {})
+    with pytest.raises(EffectError, match="extra_s"):
+        with_effect(plant, sus, "loop_delay", {"delay": 1e-4})
