@@ -354,10 +354,10 @@ def _split(J: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.floa
     if not np.all(np.isfinite(J)):
         msg = "the model is not finite at these parameters (an unstable or singular loop?)"
         raise FitError(msg)
-    _, s, vt = np.linalg.svd(J, full_matrices=True)
-    s = np.concatenate([s, np.zeros(vt.shape[0] - len(s))])
+    _, s, vt = np.linalg.svd(J, full_matrices=False)  # the full U would be bins x bins
     weak = s * MAX_LOG_SIGMA < 1.0
-    return vt[weak].T, vt[~weak].T
+    null = np.hstack([vt[weak].T, _complement(vt.T)])  # fewer residuals than parameters
+    return null, vt[~weak].T
 
 
 def _union(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
