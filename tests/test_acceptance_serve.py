@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from servicekit import free_port
+
 from twind.cli import main
 from twind.client import InjectionRefused, TwinClient
 from twind.recording.reader import read_session

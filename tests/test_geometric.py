@@ -10,7 +10,6 @@ import pytest
 from twind.errors import TwindError
 from twind.model.analytical import analytical_mechanics
 from twind.model.compare import compare_models, eigenfrequencies_by_dof
-from twind.plotting import plot_comparison
 from twind.model.geometric import (
     DOFS,
     GeometryError,
@@ -23,6 +22,7 @@ from twind.model.geometric import (
     wire_stiffness,
 )
 from twind.model.params import SOSParams
+from twind.plotting import plot_comparison
 
 P = SOSParams()
 M_KG, G, L, B, R1, R2 = P.mass_kg, P.g_mps2, P.wire_length_m, P.b_m, P.R1_m, P.R2_m

@@ -10,8 +10,8 @@ from contextlib import redirect_stdout
 
 import numpy as np
 import pytest
-
 from conftest import complex_array
+
 from twind.cli import main
 
 KEYS = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC", "closed_loop_IN2_per_EXC")

@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 import zenoh
-
 from servicekit import serving
+
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data
 from twind.bus.session import zenoh_config

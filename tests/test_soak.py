@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import pytest
-
 from servicekit import free_port
+
 from twind.service.soak import soak
 
 

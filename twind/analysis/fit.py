@@ -37,6 +37,7 @@ from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.loop.plant import Plant
+from twind.model.effects import CATALOGUE, with_effect
 from twind.model.params import SOSParams
 
 FIT_PARAMS = ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct", "osem_lever_m",
@@ -168,8 +169,8 @@ class ClosedLoopModel:
     """
 
     def __init__(self, cfg: OpticConfig, f_hz: NDArray[np.float64],
-                 resolution_hz: float = 0.0) -> None:
-        self.cfg = cfg
+                 resolution_hz: float = 0.0, effect: str | None = None) -> None:
+        self.cfg, self.effect = cfg, effect
         self.f = np.asarray(f_hz, dtype=float)
         a = resolution_hz / math.sqrt(3.0)
         self._at = np.concatenate([self.f - a, self.f + a]) if a > 0 else self.f
@@ -177,13 +178,17 @@ class ClosedLoopModel:
         self.resolution_hz = resolution_hz
 
     def sus(self, values: Mapping[str, float]) -> SOSParams:
-        """The configured suspension with `values` set."""
-        return with_params(self.cfg.sus, values)
+        """The configured suspension with the nominal parameters of `values` set."""
+        return with_params(self.cfg.sus, {k: v for k, v in values.items() if k in FIT_PARAMS})
 
     def __call__(self, values: Mapping[str, float]) -> NDArray[np.complex128]:
-        """``IN1/EXC``, shape (len(f), 4, 4)."""
+        """``IN1/EXC``, shape (len(f), 4, 4); `values` may hold the effect's parameters."""
         sus = self.sus(values)
-        P = Plant.from_params(sus, replace(self.cfg, sus=sus).mechanics()).response(self._at)
+        plant = Plant.from_params(sus, replace(self.cfg, sus=sus).mechanics())
+        if self.effect:
+            plant = with_effect(plant, sus, self.effect,
+                                {k: v for k, v in values.items() if k not in FIT_PARAMS})
+        P = plant.response(self._at)
         eye = np.eye(len(DOFS))
         T = np.linalg.inv(eye - P @ self._K) - eye
         return 0.5 * (T[: self.f.size] + T[self.f.size :]) if self._at is not self.f else T
@@ -192,7 +197,7 @@ class ClosedLoopModel:
         """The model shaped like `data` (its responses and excited DOFs; zeros in unused
         bins), evaluated only at the frequencies `data` uses."""
         keep = data.mask.any(axis=(1, 2))
-        sub = ClosedLoopModel(self.cfg, self.f[keep], self.resolution_hz)
+        sub = ClosedLoopModel(self.cfg, self.f[keep], self.resolution_hz, self.effect)
         rows = [DOFS.index(d) for d in data.responses]
         cols = [DOFS.index(d) for d in data.excited]
 
@@ -243,6 +248,18 @@ class FitResult:
     bin_correlation: list[float]
     bins: int
     nominal: NDArray[np.float64] = field(repr=False)
+    effect: str | None = None
+
+    @property
+    def bic(self) -> float:
+        """``chi2 + k ln(n)`` with ``k`` identified parameters over ``n`` real residuals."""
+        n = self.nu + self.k
+        return self.chi2 + self.k * math.log(max(n, 1))
+
+    @property
+    def k(self) -> int:
+        """Number of parameters the data identified."""
+        return int(np.sum(np.isfinite(self.sigma)))
 
     @property
     def chi2_nu(self) -> float:
@@ -259,7 +276,8 @@ class FitResult:
                       "start": float(p0)}
                   for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal,
                                          strict=True)}
-        return {"optic": self.optic, "params": params, "unidentifiable": self.unidentifiable,
+        return {"optic": self.optic, "effect": self.effect, "params": params,
+                "unidentifiable": self.unidentifiable,
                 "determined": self.determined, "chi2_nu": self.chi2_nu, "nu": self.nu,
                 "noise_scale": self.noise_scale, "bin_correlation": self.bin_correlation,
                 "bins": self.bins}
@@ -281,8 +299,8 @@ class FitResult:
 
 # ------------------------------------------------------------------------------ the fit
 def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = FIT_PARAMS,
-        min_coherence: float = MIN_COHERENCE, band: tuple[float, float] | None = None
-        ) -> FitResult:
+        min_coherence: float = MIN_COHERENCE, band: tuple[float, float] | None = None,
+        effect: str | None = None) -> FitResult:
     """Fit `params` of `cfg`'s optic to the measured transfer functions `tfs`.
 
     Parameters
@@ -298,21 +316,30 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         Bins of ``IN1/EXC`` below this coherence are not used.
     band : (float, float), optional
         Only bins in this band (Hz).
+    effect : str, optional
+        A catalogue entry (:data:`twind.model.effects.CATALOGUE`) fitted together with
+        `params`, from zero (the nominal model); its parameters are fitted linearly.
 
     Returns
     -------
     FitResult
     """
     names = check_names(params)
+    if effect is not None:
+        if effect not in CATALOGUE:
+            msg = f"unknown effect {effect!r}; the catalogue has {', '.join(CATALOGUE)}"
+            raise FitError(msg)
+        names += list(CATALOGUE[effect].params)
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
     datas = [FitData.from_tfset(t, min_coherence, band) for t in sets]
-    models = [ClosedLoopModel(cfg, d.frequency_hz, d.resolution_hz).for_data(d) for d in datas]
-    p0 = np.array([param_value(cfg.sus, n) for n in names])
+    models = [ClosedLoopModel(cfg, d.frequency_hz, d.resolution_hz, effect).for_data(d)
+              for d in datas]
+    coords = _Coords(names, cfg.sus, effect)
 
     size = sum(2 * d.bins for d in datas)
 
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        values = dict(zip(names, p0 * np.exp(x), strict=True))
+        values = dict(zip(names, coords.values(x), strict=True))
         try:
             r = np.concatenate([d.whiten(m(values)) for d, m in zip(datas, models, strict=True)])
         except np.linalg.LinAlgError:
@@ -336,7 +363,7 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         if _union(null, _split(J)[0]).shape[1] == null.shape[1]:
             break
     r = residuals(x)
-    return _result(cfg.name, names, p0, x, r, J, null, datas)
+    return _result(cfg.name, coords, x, r, J, null, datas, effect)
 
 
 def _jacobian(fun, x: NDArray[np.float64]) -> NDArray[np.float64]:  # noqa: ANN001
@@ -420,8 +447,30 @@ def _sandwich(J: NDArray[np.float64], rho: list[float], datas: Sequence[FitData]
     return B
 
 
-def _result(optic: str, names: list[str], p0: NDArray, x: NDArray, r: NDArray,
-            J: NDArray, null: NDArray, datas: Sequence[FitData]) -> FitResult:
+class _Coords:
+    """Fit coordinates: ``log(p / p_start)`` for physical parameters, ``p / scale`` for an
+    effect's (which start at zero, where a logarithm cannot)."""
+
+    def __init__(self, names: list[str], sus: SOSParams, effect: str | None) -> None:
+        self.names = names
+        self.log = np.array([n in FIT_PARAMS for n in names])
+        scale = CATALOGUE[effect].scale if effect else {}
+        self.start = np.array([param_value(sus, n) if n in FIT_PARAMS else 0.0 for n in names])
+        self.scale = np.array([1.0 if n in FIT_PARAMS else scale[n] for n in names])
+
+    def values(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Parameter values at coordinates `x`."""
+        return np.where(self.log, self.start * np.exp(x), self.scale * x)
+
+    def sigma(self, x: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
+        """One-sigma of each parameter from the variances `var` of the coordinates."""
+        width = np.where(self.log, self.values(x), self.scale)
+        return np.abs(width) * np.sqrt(np.clip(var, 0, None))
+
+
+def _result(optic: str, coords: _Coords, x: NDArray, r: NDArray, J: NDArray, null: NDArray,
+            datas: Sequence[FitData], effect: str | None) -> FitResult:
+    names = coords.names
     chi2 = float(r @ r)
     ident = len(names) - null.shape[1]
     nu = r.size - ident
@@ -436,23 +485,26 @@ def _result(optic: str, names: list[str], p0: NDArray, x: NDArray, r: NDArray,
         A_pinv = proj @ A_pinv @ proj
     cov = scale2 * A_pinv @ _sandwich(J, rho, datas) @ A_pinv
     lost = np.any(np.abs(null) > _NULL_COMPONENT, axis=1) if null.size else np.zeros(len(names), bool)
-    values = p0 * np.exp(x)
-    sigma = values * np.sqrt(np.clip(np.diag(cov), 0, None))
-    unident, determined = _name_null(names, null, values, cov)
+    values = coords.values(x)
+    sigma = coords.sigma(x, np.diag(cov))
+    unident, determined = _name_null(names, null, values, cov, coords.log)
     sigma[lost] = np.nan
     cov[lost, :] = np.nan
     cov[:, lost] = np.nan
     return FitResult(optic, names, values, sigma, cov, unident, determined, chi2, nu,
-                     math.sqrt(scale2), rho, sum(d.bins for d in datas), p0)
+                     math.sqrt(scale2), rho, sum(d.bins for d in datas), coords.start, effect)
 
 
-def _name_null(names: list[str], null: NDArray, values: NDArray, cov: NDArray
-               ) -> tuple[list[str], dict[str, dict[str, float]]]:
+def _name_null(names: list[str], null: NDArray, values: NDArray, cov: NDArray,
+               log: NDArray[np.bool_]) -> tuple[list[str], dict[str, dict[str, float]]]:
     """Name each unidentifiable direction; for a pair, also the product that is determined."""
     unident, determined = [], {}
     for v in null.T:
         involved = list(np.flatnonzero(np.abs(v) > _NULL_COMPONENT * np.abs(v).max()))
         v = v / v[involved[0]]  # the first parameter, to the power one, leads the name
+        if not log[involved].all():  # an effect's parameters enter linearly: a sum
+            unident.append(_linear([names[i] for i in involved], v[involved]))
+            continue
         unident.append(_monomial([names[i] for i in involved], v[involved]))
         if len(involved) == 2:
             # the direction orthogonal to v within the pair is what the data fix
@@ -465,6 +517,15 @@ def _name_null(names: list[str], null: NDArray, values: NDArray, cov: NDArray
             determined[_monomial([names[i], names[j]], u[[i, j]])] = {
                 "value": value, "sigma": value * math.sqrt(max(var, 0.0))}
     return unident, determined
+
+
+def _linear(names: list[str], coefs: NDArray) -> str:
+    """``a - b + 0.5*c``-style name of ``sum coef_i name_i``."""
+    text = ""
+    for n, c in zip(names, coefs, strict=True):
+        size = "" if abs(abs(c) - 1) < 0.05 else f"{abs(c):.2g}*"
+        text += f" {'-' if c < 0 else '+'} {size}{n}"
+    return text[3:] if text.startswith(" + ") else text.strip()
 
 
 def _monomial(names: list[str], powers: NDArray) -> str:

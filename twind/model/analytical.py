@@ -9,7 +9,6 @@ from twind.model.mechanics import Mechanics
 from twind.model.params import SOSParams
 
 
-
 def analytical_mechanics(p: SOSParams) -> Mechanics:
     """M, C, K of T000134 eqs. 69-71 plus SIDE, with viscous damping ``M_ii w_i / Q_i``.
 

@@ -80,8 +80,8 @@ convention, with ``delta`` measured along SIDE. Two consequences of a consistent
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray

@@ -26,9 +26,15 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import ROOT, control_key, data_key
 from twind.channels import block_channels, dof_channel
 from twind.config import OpticConfig, TwinConfig
-from twind.model.params import SOSParams
 from twind.errors import TwindError
-from twind.excitation import ExcitationError, ExcitationRequest, Limits, check, make_waveform
+from twind.excitation import (
+    ExcitationError,
+    ExcitationRequest,
+    Limits,
+    check,
+    make_waveform,
+)
+from twind.model.params import SOSParams
 from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
 

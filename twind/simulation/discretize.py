@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
-from scipy import signal
 from numpy.typing import NDArray
+from scipy import signal
 
 from twind import DOFS
 from twind.loop.damping import DampingLoop

@@ -18,6 +18,7 @@ from scipy import signal
 from twind import DOFS
 from twind.analysis.tf import POINTS, TFSet, assemble, highpassed, welch_tfs
 from twind.config import OpticConfig
+from twind.loop.plant import Plant
 from twind.simulation.engine import Engine
 
 SETTLE_S = 30.0
@@ -39,7 +40,7 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
                 bw: float = 0.05, averages: int = 10, overlap: float = 0.5,
                 excitation: Mapping[str, NDArray[np.float64]] | None = None,
                 rms: float = 1.0, f_max: float = 30.0, seed: int = 0, window: str = "hann",
-                highpass_hz: float | None = None,
+                highpass_hz: float | None = None, plant: Plant | None = None,
                 progress: Callable[[float], None] | None = None) -> TFSet:
     """Closed-loop transfer functions of `cfg`'s optic, measured on the twin.
 
@@ -59,6 +60,8 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     window : str
         Of the spectral estimate; ``"boxcar"`` (with overlap 0) for periodic excitations
         whose period is ``1 / bw``.
+    plant : Plant, optional
+        The plant the twin runs instead of `cfg`'s (physics the model leaves out).
     highpass_hz : float, optional
         High-pass EXC and responses alike, from the start (:func:`~twind.analysis.tf.highpassed`).
     progress : callable, optional
@@ -86,8 +89,10 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
         # on from the start, so the loop has forgotten the excitation's switch-on as well
         exc[i, DOFS.index(d)] = np.asarray(x)[: settle + n]
     copies = [replace(cfg, name=f"{cfg.name}_{d}") for d in dofs]
-    engine = Engine([c.loop() for c in copies], {c.name: c.noise for c in copies}, seed=seed,
-                    rate_hz=rate)
+    loops = [c.loop() for c in copies]
+    for lp in loops:
+        lp.plant = plant or lp.plant
+    engine = Engine(loops, {c.name: c.noise for c in copies}, seed=seed, rate_hz=rate)
     keep = settle if highpass_hz else 0  # samples kept before the averages, for the filter
     record = {p: np.zeros((len(dofs), len(DOFS), n + keep)) for p in POINTS}
     chunk, done = int(rate), 0

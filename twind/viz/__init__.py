@@ -5,7 +5,12 @@ The command-line wiring (``twind view``, ``twind rrd``) is re-exported here; not
 rerun until a command runs.
 """
 
-from twind.viz.commands import add_rrd_arguments, add_view_arguments, rrd_main, view_main
+from twind.viz.commands import (
+    add_rrd_arguments,
+    add_view_arguments,
+    rrd_main,
+    view_main,
+)
 
 __all__ = ["add_rrd_arguments", "add_view_arguments", "mcap_to_rrd", "rrd_main", "view_main"]
 
