@@ -129,6 +129,33 @@ def test_channels_joined_late_are_cut_by_their_own_start(tmp_path: Path) -> None
     np.testing.assert_allclose(b.tf["OUT"], a.tf["OUT"], rtol=1e-9, atol=1e-12)
 
 
+def test_diaggui_files_written_by_twind_read_back_as_the_originals(tmp_path: Path) -> None:
+    """example_null's POS measurement, rewritten from its own ASD, TFs and coherences, gives
+    dttxml the same numbers (to float32, the file's precision)."""
+    import dttxml
+
+    from twind.analysis.diaggui import write_fft_measurement
+
+    src = [p for p in NULL if p.endswith("POS_exc.xml")][0]
+    acc = dttxml.DiagAccess(src)
+    exc = "C1:SUS-ETMX_SUSPOS_EXC"
+    chans = [f"C1:SUS-ETMX_SUS{d}_{p}" for d in DOFS for p in ("IN1", "IN2", "OUT")]
+    got = [xml_transfer(acc, c, exc) for c in chans]
+    out = write_fft_measurement(tmp_path / "ETMX_POS_exc.xml", exc, chans, got[0][0],
+                                np.asarray(acc.asd(exc).asd, dtype=float) ** 2,
+                                np.array([g[1] for g in got]), np.array([g[2] for g in got]),
+                                got[0][3], rate_hz=256.0)
+    a, b = from_diaggui([src]), from_diaggui([out])
+    assert b.averages == a.averages == 10
+    for p in ("IN1", "IN2", "OUT"):
+        np.testing.assert_allclose(b.tf[p], a.tf[p], rtol=1e-6, atol=1e-30)
+        np.testing.assert_allclose(b.coherence[p], a.coherence[p], rtol=1e-6)
+    with pytest.raises(TFError, match="exists"):
+        write_fft_measurement(out, exc, chans, got[0][0], np.ones(len(got[0][0])),
+                              np.zeros((len(chans), len(got[0][0]))),
+                              np.zeros((len(chans), len(got[0][0]))), 10)
+
+
 def test_results_written_as_hdf5_and_csv(tmp_path: Path) -> None:
     import h5py
 

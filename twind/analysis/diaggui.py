@@ -1,0 +1,188 @@
+"""Write diaggui "Fourier tools" measurements (LIGO_LW "Diagnostics Test" XML, FFT type).
+
+The layout is that of ``../shared/reference/example_null`` and of what diaggui saves: one
+file per excited DOF, channel A the ``_EXC``, channels B the test points; a PowerSpectrum
+(ASD, float) per channel, one CrossCorrelation (complex, B against A) and one Coherence
+block over the B channels, indexed in the "Index" section.  dttxml reads them back
+(``xfer(B, A) = CSD / ASD_A^2``); twind writes them so that measurements made on the twin can
+be handed around, and diagnosed, exactly like measurements made on an optic.
+"""
+
+from __future__ import annotations
+
+import base64
+from collections.abc import Sequence
+from pathlib import Path
+from xml.sax.saxutils import escape
+
+import numpy as np
+from numpy.typing import NDArray
+
+from twind.analysis.tf import TFError
+
+_DTD = """<?xml version="1.0"?>
+<!DOCTYPE LIGO_LW [
+<!ELEMENT LIGO_LW ((LIGO_LW|Comment|Param|Time|Table|Array|Stream)*)>
+<!ATTLIST LIGO_LW Name CDATA #IMPLIED Type CDATA #IMPLIED>
+<!ELEMENT Comment (#PCDATA)>
+<!ELEMENT Param (#PCDATA)>
+<!ATTLIST Param Name CDATA #IMPLIED Type CDATA #IMPLIED Dim CDATA #IMPLIED
+                Unit CDATA #IMPLIED>
+<!ELEMENT Table (Comment?,Column*,Stream?)>
+<!ATTLIST Table Name CDATA #IMPLIED Type CDATA #IMPLIED>
+<!ELEMENT Column EMPTY>
+<!ATTLIST Column Name CDATA #IMPLIED Type CDATA #IMPLIED Unit CDATA #IMPLIED>
+<!ELEMENT Array (Dim*,Stream?)>
+<!ATTLIST Array Name CDATA #IMPLIED Type CDATA #IMPLIED>
+<!ELEMENT Dim (#PCDATA)>
+<!ATTLIST Dim Name CDATA #IMPLIED>
+<!ELEMENT Stream (#PCDATA)>
+<!ATTLIST Stream Name CDATA #IMPLIED Type (Remote|Local) "Local"
+          Delimiter CDATA "," Encoding CDATA #IMPLIED Content CDATA #IMPLIED>
+<!ELEMENT Time (#PCDATA)>
+<!ATTLIST Time Name CDATA #IMPLIED Type (GPS|Unix|ISO-8601) "ISO-8601">
+]>
+"""
+HANN = 1  # diaggui's window code for Hann
+_ENBW_BINS = 1.5  # Hann's equivalent noise bandwidth, in bins (diaggui's "BW")
+
+
+def _param(name: str, kind: str, value: object, unit: str | None = None) -> str:
+    unit_attr = f' Unit="{unit}"' if unit else ""
+    return f'    <Param Name="{name}" Type="{kind}"{unit_attr}>{escape(str(value))}</Param>\n'
+
+
+def _stream(values: NDArray) -> str:
+    text = base64.encodebytes(np.ascontiguousarray(values).astype(values.dtype.newbyteorder("<"))
+                              .tobytes()).decode()
+    return f'      <Stream Encoding="LittleEndian,base64">\n{text}      </Stream>\n'
+
+
+def _result(k: int, subtype: int, f: NDArray, gps: float, rate: float, averages: int,
+            a: str, bs: Sequence[str], kind: str, values: NDArray) -> str:
+    out = [f'  <LIGO_LW Name="Result[{k}]" Type="Spectrum">\n', _param("Flag", "string", "Result"),
+           _param("Subtype", "int", subtype), _param("f0", "double", f[0], "Hz"),
+           _param("df", "double", f[1] - f[0], "Hz"),
+           f'    <Time Name="t0" Type="GPS">{gps}</Time>\n',
+           _param("dt", "double", 1.0 / rate, "s"),
+           _param("BW", "double", _ENBW_BINS * (f[1] - f[0]), "Hz"),
+           _param("Window", "int", HANN), _param("AverageType", "int", 0),
+           _param("Averages", "int", averages), _param("N", "int", f.size),
+           _param("M", "int", max(len(bs), 1)), _param("ChannelA", "string", a, "channel")]
+    out += [_param(f"ChannelB[{i}]", "string", b, "channel") for i, b in enumerate(bs)]
+    out += [f'    <Array Type="{kind}">\n      <Dim>{values.size}</Dim>\n', _stream(values),
+            "    </Array>\n  </LIGO_LW>\n"]
+    return "".join(out)
+
+
+def write_fft_measurement(path: str | Path, exc: str, channels: Sequence[str],
+                          frequency_hz: NDArray[np.float64], exc_psd: NDArray[np.float64],
+                          tf: NDArray[np.complex128], coherence: NDArray[np.float64],
+                          averages: int, rate_hz: float = 16384.0, gps: float = 1.4e9,
+                          overlap: float = 0.5) -> Path:
+    """Write one excitation's FFT measurement as diaggui saves it.
+
+    Parameters
+    ----------
+    path : str or Path
+        File to create; an existing file is refused.
+    exc : str
+        Channel A, e.g. ``C1:SUS-ETMX_SUSPOS_EXC``.
+    channels : sequence of str
+        Channels B (IN1, IN2, OUT of each DOF).
+    frequency_hz : ndarray, shape (nf,)
+        Evenly spaced from ``f0``.
+    exc_psd : ndarray, shape (nf,)
+        One-sided PSD of the excitation.
+    tf, coherence : ndarray, shape (len(channels), nf)
+        ``B/A`` and its magnitude-squared coherence.
+    averages : int
+    rate_hz, gps, overlap : float
+        Recorded in the file's parameters.
+
+    Returns
+    -------
+    Path
+    """
+    path = Path(path)
+    if path.exists():
+        msg = f"{path} exists; twind does not overwrite measurements"
+        raise TFError(msg)
+    f = np.asarray(frequency_hz, dtype=float)
+    tf = np.atleast_2d(tf)
+    coherence = np.atleast_2d(coherence)
+    if tf.shape != (len(channels), f.size) or coherence.shape != tf.shape:
+        msg = (f"need tf and coherence of shape {(len(channels), f.size)}, got {tf.shape} "
+               f"and {coherence.shape}")
+        raise TFError(msg)
+    # the file holds the conjugate of scipy's CSD(A, B), which dttxml's xfer(B, A) conjugates
+    # back; a round trip of example_null checks it (tests/test_tf.py)
+    csd = np.conj(tf) * exc_psd
+    with np.errstate(divide="ignore", invalid="ignore"):
+        psd_b = np.where(coherence > 0, np.abs(csd) ** 2 / (coherence * exc_psd), 0.0)
+    asds = np.sqrt(np.vstack([exc_psd, np.nan_to_num(psd_b)]))
+    names = [exc, *channels]
+    parts = [_DTD, '<LIGO_LW Name="Diagnostics Test">\n', _header(gps),
+             _test(exc, names, f, averages, overlap, rate_hz),
+             _index(exc, names, len(f))]
+    for k, (name, asd) in enumerate(zip(names, asds, strict=True)):
+        parts.append(_result(k, 1, f, gps, rate_hz, averages, name, [], "float",
+                             asd.astype(np.float32)))
+    n = len(names)
+    parts.append(_result(n, 2, f, gps, rate_hz, averages, exc, channels, "floatComplex",
+                         csd.astype(np.complex64).reshape(-1)))
+    parts.append(_result(n + 1, 3, f, gps, rate_hz, averages, exc, channels, "float",
+                         coherence.astype(np.float32).reshape(-1)))
+    parts.append("</LIGO_LW>\n")
+    path.write_text("".join(parts))
+    return path
+
+
+def _header(gps: float) -> str:
+    return ('  <LIGO_LW Name="Header" Type="Global">\n'
+            + _param("Flag", "string", "TestParameters")
+            + _param("Creator", "string", "twind")
+            + _param("TestType", "string", "FFT")
+            + f'    <Time Name="TestTime" Type="GPS">{gps}</Time>\n'
+            + "  </LIGO_LW>\n")
+
+
+def _test(exc: str, names: list[str], f: NDArray, averages: int, overlap: float,
+          rate: float) -> str:
+    out = ['  <LIGO_LW Name="Test" Type="TestParameter">\n',
+           _param("Flag", "string", "TestParameters"), _param("Subtype", "string", "FFT"),
+           _param("StartFrequency", "double", f[0], "Hz"),
+           _param("StopFrequency", "double", f[-1], "Hz"),
+           _param("BW", "double", f[1] - f[0], "Hz"), _param("Overlap", "double", overlap),
+           _param("Window", "int", HANN), _param("RemoveDC", "boolean", "true"),
+           _param("AverageType", "int", 0), _param("Averages", "int", averages),
+           _param("StimulusType[0]", "int", 3),
+           _param("StimulusChannel[0]", "string", exc, "channel"),
+           _param("StimulusActive[0]", "boolean", "true")]
+    for i, name in enumerate(names):
+        out += [_param(f"MeasurementChannelRate[{i}]", "int", int(rate)),
+                _param(f"MeasurementChannel[{i}]", "string", name, "channel"),
+                _param(f"MeasurementActive[{i}]", "boolean", "true")]
+    return "".join(out) + "  </LIGO_LW>\n"
+
+
+def _index(exc: str, names: list[str], nf: int) -> str:
+    n = len(names)
+    power = "".join(f"      Channel[{i}] = {c};\n      Name[{i}] = Result[{i}];\n"
+                    f"      Offset[{i}] = 0;\n      Length[{i}] = {nf};\n"
+                    for i, c in enumerate(names))
+
+    def pairs(result: int) -> str:
+        return "".join(f"      ChannelA[0] = {exc};\n      ChannelB[0][{j}] = {c};\n"
+                       f"      Name[0][{j}] = Result[{result}];\n"
+                       f"      Offset[0][{j}] = {j * nf};\n      Length[0][{j}] = {nf};\n"
+                       for j, c in enumerate(names[1:]))
+
+    entries = ["MasterIndex:\n      Entry[0] = MasterIndex;\n      Entry[1] = PowerSpectrum[0];\n"
+               "      Entry[2] = CrossCorrelation[0];\n      Entry[3] = Coherence[0];",
+               "PowerSpectrum[0]:\n" + power.rstrip("\n"),
+               "CrossCorrelation[0]:\n" + pairs(n).rstrip("\n"),
+               "Coherence[0]:\n" + pairs(n + 1).rstrip("\n")]
+    return ('  <LIGO_LW Name="Index" Type="Index">\n' + _param("Flag", "string", "Result")
+            + "".join(_param(f"Entry[{i}]", "string", e) for i, e in enumerate(entries))
+            + "  </LIGO_LW>\n")
