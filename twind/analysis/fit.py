@@ -460,7 +460,8 @@ class _Coords:
 
     def values(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Parameter values at coordinates `x`."""
-        return np.where(self.log, self.start * np.exp(x), self.scale * x)
+        with np.errstate(over="ignore"):  # a trial step to infinity: rejected as a misfit
+            return np.where(self.log, self.start * np.exp(x), self.scale * x)
 
     def sigma(self, x: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
         """One-sigma of each parameter from the variances `var` of the coordinates."""
