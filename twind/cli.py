@@ -324,6 +324,26 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_diagnose(args: argparse.Namespace) -> int:
+    """Locate the mismatch, name the physics left out, fit it, show the improvement."""
+    from twind.analysis.diagnose import diagnose, write_report
+    from twind.config import load_config
+
+    tfs = _measured_tfs(args)
+    if args.band:
+        tfs = tfs.band(*args.band)
+    cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
+    result = diagnose(tfs, cfg)
+    if args.json:
+        json.dump(result.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(result.lines()))
+    if args.output:
+        print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
+    return 0
+
+
 def _bench_engine(args: argparse.Namespace) -> int:
     """Engine speed, side by side with python-control on the same closed loop."""
     from twind.simulation.benchmark import run_benchmarks
@@ -489,6 +509,14 @@ def build_parser() -> argparse.ArgumentParser:
                       help="IN1/EXC bins less coherent (averaged over neighbours) are unused")
     fitp.add_argument("-o", "--output", help=".png: measured, nominal and fitted Bode matrix")
     fitp.set_defaults(func=cmd_fit)
+
+    diag = sub.add_parser("diagnose", help="where the model misses, which physics it left "
+                                           "out, and the fit with it")
+    _input_arguments(diag)
+    diag.add_argument("--config", help="twin config (TOML) holding the optic's nominal model")
+    diag.add_argument("-o", "--output", metavar="REPORT_DIR",
+                      help="write PNGs, the JSON and an HTML summary here")
+    diag.set_defaults(func=cmd_diagnose)
 
     soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")
     soak_p.add_argument("--duration", type=float, default=3600.0, help="seconds of serving")

@@ -550,10 +550,12 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     import matplotlib.pyplot as plt
 
     data = FitData.from_tfset(tfs, min_coherence=0.0)
-    model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz).for_data(data)
+    model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz,
+                            result.effect).for_data(data)
     used = FitData.from_tfset(tfs).mask
     fitted = {n: v for n, v in result.as_dict().items() if not math.isnan(v)}
-    curves = {"nominal": model({}), "fitted": model(fitted)}
+    curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
+              model(fitted)}
     n_r, n_e = len(data.responses), len(data.excited)
     fig, axes = plt.subplots(2 * n_r, n_e, figsize=(3.4 * n_e, 3.0 * n_r), sharex=True,
                              squeeze=False)
@@ -578,7 +580,9 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     axes[0, 0].legend(fontsize=7)
     for ax in axes[-1]:
         ax.set_xlabel("frequency [Hz]")
-    fig.suptitle(f"{result.optic} IN1/EXC: chi2/nu {result.chi2_nu:.3g} after the fit")
+    fig.suptitle(f"{result.optic} IN1/EXC"
+                 + (f", nominal + {result.effect}" if result.effect else ", nominal model")
+                 + f": chi2/nu {result.chi2_nu:.3g} after the fit")
     fig.tight_layout(rect=(0, 0, 1, 0.98))
     fig.savefig(path, dpi=80)
     plt.close(fig)

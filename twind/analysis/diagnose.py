@@ -1,0 +1,214 @@
+"""``twind diagnose``: is the nominal model enough, where does it miss, which physics left out
+explains the miss, and how much better the augmented model fits.
+
+1. The nominal parameters are refitted (:func:`~twind.analysis.fit.fit`); the residuals are
+   searched band by band with the false alarms of the whole search controlled
+   (:func:`~twind.analysis.locate.locate`).  Nothing located: consistent, and done.
+2. Otherwise every catalogue effect (:data:`~twind.model.effects.CATALOGUE`) is fitted
+   together with the nominal parameters.  Its evidence is the drop in residual power,
+   normalised by the residuals' own noise level (robust scale, F-distributed tails, bin
+   correlation, as ``locate`` uses): a likelihood ratio with ``k`` parameters, its p-value
+   (Bonferroni over the catalogue) and ``delta_bic = LR - k ln(N)``.
+3. The best effect is reported with its parameters; effects whose evidence is within
+   :data:`EQUIVALENT_BIC` of it are named as not told apart by these data.  What the best
+   augmented model still misses is reported as unexplained, where it lies.
+
+This is the first version: the catalogue has no ``bounce_roll`` yet, and the calibration of
+its claims on a corpus of concealed effects (issue 5's proof) is still to be run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from scipy import stats
+
+from twind.analysis.fit import FIT_PARAMS, FitError, FitResult, fit
+from twind.analysis.locate import Located, _null_moments, locate
+from twind.analysis.tf import TFSet
+from twind.config import OpticConfig
+from twind.errors import TwindError
+from twind.model.effects import CATALOGUE
+
+ALPHA = 0.01
+"""False-alarm probability of claiming an effect (over the whole catalogue)."""
+MIN_DELTA_BIC = 10.0
+"""Kass & Raftery's "very strong" evidence."""
+EQUIVALENT_BIC = 6.0
+"""Effects closer than this to the best one are not told apart ("strong" evidence)."""
+
+
+class DiagnoseError(TwindError):
+    """A diagnosis cannot be made or written."""
+
+
+@dataclass
+class EffectFit:
+    """The nominal parameters refitted with one catalogue effect."""
+
+    effect: str
+    result: FitResult
+    lr: float
+    k: int
+    p_value: float
+    delta_bic: float
+    equivalent: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        """One entry of ``effects`` in ``twind diagnose --json``."""
+        names = CATALOGUE[self.effect].params
+        got = dict(zip(self.result.names, zip(self.result.values, self.result.sigma,
+                                              strict=True), strict=True))
+        return {"effect": self.effect,
+                "params": {n: float(got[n][0]) for n in names},
+                "sigma": {n: None if math.isnan(got[n][1]) else float(got[n][1])
+                          for n in names},
+                "delta_bic": self.delta_bic, "p_value": self.p_value,
+                "equivalent": self.equivalent}
+
+
+@dataclass
+class Diagnosis:
+    """What ``twind diagnose`` found."""
+
+    nominal: FitResult
+    located: list[Located]
+    effects: list[EffectFit]
+    final: FitResult
+    unexplained: list[Located]
+
+    @property
+    def consistent(self) -> bool:
+        """True when the refitted nominal model explains the data."""
+        return not self.located
+
+    def to_json(self) -> dict:
+        """The object of the issue, exactly."""
+        nominal = {n: {"value": float(v), "sigma": None if math.isnan(s) else float(s)}
+                   for n, v, s in zip(self.nominal.names, self.nominal.values,
+                                      self.nominal.sigma, strict=True)}
+        return {"consistent": self.consistent,
+                "chi2_nu_nominal": self.nominal.chi2_nu,
+                "chi2_nu_final": self.final.chi2_nu,
+                "located": [x.to_json() for x in self.located],
+                "effects": [e.to_json() for e in self.effects],
+                "unexplained": [{"element": x.element, "band_hz": list(x.band_hz)}
+                                for x in self.unexplained],
+                "nominal_params": nominal}
+
+    def lines(self) -> list[str]:
+        """A summary for a person."""
+        out = [f"{self.nominal.optic}: nominal model refitted, chi2/nu "
+               f"{self.nominal.chi2_nu:.3f}: "
+               + ("consistent with the data" if self.consistent else
+                  f"misses in {len(self.located)} band(s)")]
+        for x in self.located[:8]:
+            out.append(f"  {x.element:9s} {x.band_hz[0]:7.3g}-{x.band_hz[1]:<7.3g} Hz  "
+                       f"{x.significance:5.1f} sigma, residual power x{x.excess:.2f}")
+        for e in self.effects:
+            params = ", ".join(f"{n} {v:.4g}" for n, v in e.to_json()["params"].items())
+            out.append(f"  effect {e.effect}: delta BIC {e.delta_bic:.1f}, p {e.p_value:.2g}"
+                       f" ({params})" + (f"; not told apart from {', '.join(e.equivalent)}"
+                                         if e.equivalent else ""))
+        if not self.consistent and not self.effects:
+            out.append("  no catalogue effect explains it")
+        for x in self.unexplained[:8]:
+            out.append(f"  unexplained: {x.element} {x.band_hz[0]:.3g}-{x.band_hz[1]:.3g} Hz")
+        if not self.consistent:
+            out.append(f"  chi2/nu {self.nominal.chi2_nu:.3f} -> {self.final.chi2_nu:.3f}")
+        return out
+
+
+def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
+             params: Sequence[str] = FIT_PARAMS) -> Diagnosis:
+    """Diagnose measured TFs of `cfg`'s optic against its nominal model.
+
+    Parameters
+    ----------
+    tfs : TFSet or sequence of TFSet
+    cfg : OpticConfig
+    params : sequence of str
+        The nominal parameters refitted alongside every hypothesis.
+
+    Returns
+    -------
+    Diagnosis
+    """
+    nominal = fit(tfs, cfg, params)
+    located = locate(tfs, cfg, nominal)
+    if not located:
+        return Diagnosis(nominal, [], [], nominal, [])
+    candidates = [c for c in (_try(tfs, cfg, params, e, nominal) for e in CATALOGUE) if c]
+    claimed = sorted((c for c in candidates
+                      if c.p_value < ALPHA and c.delta_bic > MIN_DELTA_BIC),
+                     key=lambda c: -c.delta_bic)
+    if not claimed:
+        return Diagnosis(nominal, located, [], nominal, located)
+    best = claimed[0]
+    best.equivalent = [c.effect for c in claimed[1:]
+                       if best.delta_bic - c.delta_bic < EQUIVALENT_BIC]
+    shown = [best] + [c for c in claimed[1:] if c.effect in best.equivalent]
+    return Diagnosis(nominal, located, shown, best.result, locate(tfs, cfg, best.result))
+
+
+def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], effect: str,
+         nominal: FitResult) -> EffectFit | None:
+    try:
+        result = fit(tfs, cfg, params, effect=effect)
+    except FitError:
+        return None
+    # directions the effect adds that the data determine (a coil imbalance's common mode
+    # is the coil strength's, its butterfly mode moves nothing: two of four gains count)
+    k = _rank(result) - _rank(nominal)
+    if k <= 0:
+        return None
+    # the drop in residual power in units of the null's per-bin power (robust scale, F tails
+    # of coherence-based errors) and of independent bins (Hann neighbours are correlated)
+    mu, _ = _null_moments(_averages(tfs))
+    inflation = 1.0 + 2.0 * sum(r * r for r in nominal.bin_correlation)
+    lr = max(nominal.chi2 - result.chi2, 0.0) / (2 * nominal.noise_scale**2 * mu * inflation)
+    n = 2 * nominal.bins
+    p = min(1.0, float(stats.chi2.sf(lr, k)) * len(CATALOGUE))
+    return EffectFit(effect, result, lr, k, p, lr - k * math.log(max(n, 1)))
+
+
+def _rank(result: FitResult) -> int:
+    """Number of parameter directions the data determined."""
+    return 2 * result.bins - result.nu
+
+
+def _averages(tfs: TFSet | Sequence[TFSet]) -> int:
+    sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
+    return min(t.averages for t in sets)
+
+
+def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path) -> Path:
+    """Bode matrices before and after (measured, model, residual/sigma per bin), the JSON,
+    and an HTML page with both, in directory `out` (created; existing files are refused)."""
+    import html
+    import json
+
+    from twind.analysis.fit import plot_fit
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = ["nominal.png", "augmented.png", "diagnosis.json", "index.html"]
+    taken = [n for n in names if (out / n).exists()]
+    if taken:
+        msg = f"{out} already holds {', '.join(taken)}; twind does not overwrite reports"
+        raise DiagnoseError(msg)
+    plot_fit(tfs, cfg, diagnosis.nominal, str(out / "nominal.png"))
+    if diagnosis.effects:
+        plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))
+    (out / "diagnosis.json").write_text(json.dumps(diagnosis.to_json(), indent=1))
+    images = "".join(f'<h2>{n[:-4]}</h2><img src="{n}" style="max-width:100%">'
+                     for n in names[:2] if (out / n).exists())
+    page = (f"<html><head><title>twind diagnose: {html.escape(diagnosis.nominal.optic)}"
+            f"</title></head><body><h1>twind diagnose: {html.escape(diagnosis.nominal.optic)}"
+            f"</h1><pre>{html.escape(chr(10).join(diagnosis.lines()))}</pre>{images}"
+            '<p><a href="diagnosis.json">diagnosis.json</a></p></body></html>')
+    (out / "index.html").write_text(page)
+    return out / "index.html"
