@@ -3,12 +3,13 @@ explains the miss, and how much better the augmented model fits.
 
 1. The nominal parameters are refitted (:func:`~twind.analysis.fit.fit`); the residuals are
    searched band by band with the false alarms of the whole search controlled
-   (:func:`~twind.analysis.locate.locate`).  Nothing located: consistent, and done.
-2. Otherwise every catalogue effect (:data:`~twind.model.effects.CATALOGUE`) is fitted
+   (:func:`~twind.analysis.locate.locate`).
+2. Every catalogue effect (:data:`~twind.model.effects.CATALOGUE`) is fitted
    together with the nominal parameters.  Its evidence is the drop in residual power,
    normalised by the residuals' own noise level (robust scale, F-distributed tails, bin
    correlation, as ``locate`` uses): a likelihood ratio with ``k`` parameters, its p-value
    (Bonferroni over the catalogue) and ``delta_bic = LR - k ln(N)``.
+   Consistent: nothing located and no effect claimed.
 3. The best effect is reported with its parameters; effects whose evidence is within
    :data:`EQUIVALENT_BIC` of it are named as not told apart by these data.  What the best
    augmented model still misses is reported as unexplained, where it lies.
@@ -82,8 +83,9 @@ class Diagnosis:
 
     @property
     def consistent(self) -> bool:
-        """True when the refitted nominal model explains the data."""
-        return not self.located
+        """True when the refitted nominal model explains the data: no band stands out and
+        no catalogue effect earns its parameters."""
+        return not self.located and not self.effects
 
     def to_json(self) -> dict:
         """The object of the issue, exactly."""
@@ -139,8 +141,8 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     """
     nominal = fit(tfs, cfg, params)
     located = locate(tfs, cfg, nominal)
-    if not located:
-        return Diagnosis(nominal, [], [], nominal, [])
+    # every hypothesis is tried even when no band stands out: an effect spread thinly over
+    # many bands can be plain in its own fit and invisible band by band
     candidates = [c for c in (_try(tfs, cfg, params, e, nominal) for e in CATALOGUE) if c]
     claimed = sorted((c for c in candidates
                       if c.p_value < ALPHA and c.delta_bic > MIN_DELTA_BIC),
