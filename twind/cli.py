@@ -383,8 +383,18 @@ def _bench_information(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_diagnose(args: argparse.Namespace) -> int:
+    """twind diagnose on a drifted twin running small effects the model leaves out."""
+    from twind.analysis.calibration import diagnose_benchmark
+    from twind.config import load_config
+
+    cfg = load_config(args.config, ["ETMX"]).optics["ETMX"]
+    print("\n".join(diagnose_benchmark(cfg)))
+    return 0
+
+
 BENCH_SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
-                "information": _bench_information}
+                "information": _bench_information, "diagnose": _bench_diagnose}
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
