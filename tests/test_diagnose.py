@@ -45,8 +45,13 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
     assert obj["consistent"] and obj["effects"] == [] and obj["located"] == []
     assert obj["nominal_params"]["Q_SIDE"]["sigma"] is None
     assert {p.name for p in (tmp_path / "report").iterdir()} == {
-        "nominal.png", "diagnosis.json", "index.html"}
+        "nominal.png", "diagnosis.json", "index.html", "diagnosis.rrd"}
     assert main(["diagnose", *NULL, "-o", str(tmp_path / "report")]) == 2  # never overwrites
+    from rerun.chunk import RrdReader
+
+    entities = {c.entity_path for c in RrdReader(tmp_path / "report" / "diagnosis.rrd").stream()}
+    assert "/diagnose/POS_POS/measured_db" in entities
+    assert "/diagnose/YAW_YAW/nominal_residual_sigma" in entities
 
 
 def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:  # noqa: ANN001

@@ -197,7 +197,7 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    names = ["nominal.png", "augmented.png", "diagnosis.json", "index.html"]
+    names = ["nominal.png", "augmented.png", "diagnosis.json", "index.html", "diagnosis.rrd"]
     taken = [n for n in names if (out / n).exists()]
     if taken:
         msg = f"{out} already holds {', '.join(taken)}; twind does not overwrite reports"
@@ -206,11 +206,44 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
     if diagnosis.effects:
         plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))
     (out / "diagnosis.json").write_text(json.dumps(diagnosis.to_json(), indent=1))
+    _write_rrd(diagnosis, tfs, cfg, out / "diagnosis.rrd")
     images = "".join(f'<h2>{n[:-4]}</h2><img src="{n}" style="max-width:100%">'
                      for n in names[:2] if (out / n).exists())
     page = (f"<html><head><title>twind diagnose: {html.escape(diagnosis.nominal.optic)}"
             f"</title></head><body><h1>twind diagnose: {html.escape(diagnosis.nominal.optic)}"
             f"</h1><pre>{html.escape(chr(10).join(diagnosis.lines()))}</pre>{images}"
-            '<p><a href="diagnosis.json">diagnosis.json</a></p></body></html>')
+            '<p><a href="diagnosis.json">diagnosis.json</a>; <code>rerun diagnosis.rrd</code>'
+            " (timeline frequency_hz)</p></body></html>")
     (out / "index.html").write_text(page)
     return out / "index.html"
+
+
+def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -> None:
+    """Per element: measured, nominal and augmented |IN1/EXC| (dB) and residuals / sigma."""
+    import numpy as np
+
+    from twind.analysis.fit import ClosedLoopModel, FitData
+    from twind.viz.spectra import write_spectra_rrd
+
+    data = FitData.from_tfset(tfs)
+    f = data.frequency_hz
+    fits = {"nominal": diagnosis.nominal}
+    if diagnosis.effects:
+        fits["augmented"] = diagnosis.final
+    series = {}
+    for label, result in fits.items():
+        model = ClosedLoopModel(cfg, f, data.resolution_hz, result.effect).for_data(data)
+        values = {n: v for n, v, s in zip(result.names, result.values, result.sigma,
+                                          strict=True) if math.isfinite(v)}
+        pred = model(values)
+        for i, r in enumerate(data.responses):
+            for j, e in enumerate(data.excited):
+                used = data.mask[:, i, j]
+                if not used.any():
+                    continue
+                base = f"diagnose/{r}_{e}"
+                resid = np.abs(data.H[:, i, j] - pred[:, i, j]) / data.sigma[:, i, j]
+                series[f"{base}/{label}_db"] = (f[used], 20 * np.log10(np.abs(pred[used, i, j])))
+                series[f"{base}/{label}_residual_sigma"] = (f[used], resid[used])
+                series[f"{base}/measured_db"] = (f[used], 20 * np.log10(np.abs(data.H[used, i, j])))
+    write_spectra_rrd(path, f"twind diagnose {diagnosis.nominal.optic}", series)
