@@ -74,3 +74,30 @@ def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa:
     assert d.effects[0].effect == "coil_imbalance" and d.effects[0].delta_bic > 100
     assert d.final.chi2_nu < 1.4 and d.nominal.chi2_nu > 10
     assert d.unexplained == []
+
+
+def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noqa: ANN001
+    from servicekit import serving
+
+    from twind.analysis.diagnose import push
+    from twind.analysis.tf import from_diaggui
+    from twind.client import TwinClient
+    from twind.errors import TwindError
+
+    d = diagnose(from_diaggui(NULL), etmx)
+    with serving("--optics", "ETMX") as endpoint:
+        assert push(d, [endpoint]).startswith("6 nominal parameter(s)")
+        client = TwinClient([endpoint])
+        reply = client.params("ETMX")
+        assert reply["params"]["wire_length_m"] == pytest.approx(d.final.as_dict()["wire_length_m"])
+        gains = {"gain_UL": 0.01, "gain_LR": -0.01}
+        reply = client.params("ETMX", effect={"id": "coil_imbalance", "values": gains})
+        assert reply["effect"] == {"id": "coil_imbalance", "values": gains}
+        reply = client.params("ETMX", b_m=0.00071)  # the effect stays through later changes
+        assert reply["effect"]["id"] == "coil_imbalance"
+        with pytest.raises(TwindError, match="catalogue has"):
+            client.params("ETMX", effect={"id": "gremlins"})
+        with pytest.raises(TwindError, match="states"):
+            client.params("ETMX", effect={"id": "actuator_pole", "values": {"inv_f_hz": 0.01}})
+        assert client.params("ETMX", effect={"id": None})["effect"] is None
+        client.close()

@@ -341,6 +341,10 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         print("\n".join(result.lines()))
     if args.output:
         print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
+    if args.push:
+        from twind.analysis.diagnose import push
+
+        print(f"pushed into {', '.join(args.push)}: {push(result, args.push)}", file=sys.stderr)
     return 0
 
 
@@ -526,6 +530,8 @@ def build_parser() -> argparse.ArgumentParser:
     diag.add_argument("--config", help="twin config (TOML) holding the optic's nominal model")
     diag.add_argument("-o", "--output", metavar="REPORT_DIR",
                       help="write PNGs, the JSON and an HTML summary here")
+    diag.add_argument("--push", action="append", metavar="ENDPOINT",
+                      help="give the fitted (augmented) model to the running twin there")
     diag.set_defaults(func=cmd_diagnose)
 
     soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")

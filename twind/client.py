@@ -118,9 +118,13 @@ class TwinClient:
             raise TwindError(reply.get("reason", "stop failed"))
         return reply["stopped"]
 
-    def params(self, optic: str, **changes: float) -> dict:
-        """An optic's parameters and filter modules; with `changes`, set them live first."""
-        reply = self.query("params", {"optic": optic, **({"set": changes} if changes else {})})
+    def params(self, optic: str, effect: dict | None = None, **changes: float) -> dict:
+        """An optic's parameters and filter modules; with `changes` (nominal parameters)
+        or `effect` (``{"id": "coil_imbalance", "values": {...}}``, MODEL.md's catalogue;
+        ``{"id": None}`` removes it), set them live first."""
+        body = {"optic": optic, **({"set": changes} if changes else {}),
+                **({"effect": effect} if effect is not None else {})}
+        reply = self.query("params", body)
         if not reply.get("ok"):
             raise TwindError(reply.get("reason", "params failed"))
         return reply

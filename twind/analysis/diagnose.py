@@ -247,3 +247,28 @@ def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -
                 series[f"{base}/{label}_residual_sigma"] = (f[used], resid[used])
                 series[f"{base}/measured_db"] = (f[used], 20 * np.log10(np.abs(data.H[used, i, j])))
     write_spectra_rrd(path, f"twind diagnose {diagnosis.nominal.optic}", series)
+
+
+def push(diagnosis: Diagnosis, connect: Sequence[str], ifo: str = "C1") -> str:
+    """Give a running twin the diagnosis' final model: the refitted nominal parameters and,
+    when one was claimed, the best effect; returns what was sent, for a person."""
+    from twind.client import TwinClient
+
+    final = diagnosis.final
+    values = {n: float(v) for n, v, s in zip(final.names, final.values, final.sigma,
+                                             strict=True) if math.isfinite(s)}
+    nominal = {n: v for n, v in values.items() if n in FIT_PARAMS}
+    q = {n[2:]: v for n, v in nominal.items() if n.startswith("Q_")}
+    changes = {n: v for n, v in nominal.items() if not n.startswith("Q_")}
+    effect = None
+    if diagnosis.effects:
+        best = diagnosis.effects[0]
+        effect = {"id": best.effect, "values": {n: float(v) for n, v in zip(
+            final.names, final.values, strict=True) if n in CATALOGUE[best.effect].params}}
+    client = TwinClient(list(connect), ifo=ifo)
+    try:
+        client.params(final.optic, effect=effect, **changes, **({"Q": q} if q else {}))
+    finally:
+        client.close()
+    return f"{len(changes) + len(q)} nominal parameter(s)" + (
+        f" and {effect['id']}" if effect else "")

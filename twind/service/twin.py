@@ -34,6 +34,7 @@ from twind.excitation import (
     check,
     make_waveform,
 )
+from twind.model.effects import with_effect
 from twind.model.params import SOSParams
 from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
@@ -116,6 +117,7 @@ class TwinService:
         self._buf = self.engine.new_block(self.n)
         self._lock = threading.Lock()
         self._params_lock = threading.Lock()  # one parameter change at a time
+        self._effects: dict[str, tuple[str, dict]] = {}  # physics pushed in beyond nominal
         self._active: dict[str, Active] = {}
         tag = uuid.uuid4().hex[:6]  # ids stay unique when several twins share a router
         self._ids = (f"exc-{tag}-{i}" for i in itertools.count(1))
@@ -277,36 +279,62 @@ class TwinService:
         return {"ok": True, "stopped": [a.id for a in stopping], "already_ended": ended}
 
     def params(self, request: dict) -> dict:
-        """Get (``{"optic": "ETMX"}``) or set (``{"optic": ..., "set": {...}}``) parameters."""
+        """Get (``{"optic": "ETMX"}``) or set parameters: ``"set": {name: value}`` the
+        nominal ones, ``"effect": {"id": ..., "values": {...}}`` physics the nominal model
+        leaves out (MODEL.md's catalogue; ``{"id": null}`` removes it), kept across later
+        changes of the nominal parameters."""
         name = request.get("optic", self.optics[0].name)
         index = self._optic_index(name)
-        changes = request.get("set")
-        if changes:
-            if not isinstance(changes, dict):
-                msg = "'set' must be an object of parameter names and values"
-                raise TwindError(msg)
-            unknown = [k for k in changes if k not in LIVE_PARAMS]
-            if unknown:
-                msg = (f"cannot change {', '.join(unknown)} live; parameters: "
-                       f"{', '.join(sorted(LIVE_PARAMS))}")
-                raise TwindError(msg)
-            with self._params_lock:
-                cfg = self.optics[index]
-                sus = cfg.sus.updated(**changes)
-                problems = sus.check()
-                if problems:
-                    raise TwindError("; ".join(f"{k}: {p}" for k, p in problems))
-                new = OpticConfig(cfg.name, sus, cfg.damping, cfg.noise, cfg.model, cfg.source)
-                loop = new.loop()
-                loop.modules = self.engine.loops[index].modules  # the filters as they run now
-                _check_stable(loop, self.rate)
-                with self._lock:
-                    self.engine.update_plant(name, loop)
-                    self.optics[index] = new
+        changes = request.get("set") or {}
+        effect = request.get("effect")
+        if not isinstance(changes, dict):
+            msg = "'set' must be an object of parameter names and values"
+            raise TwindError(msg)
+        unknown = [k for k in changes if k not in LIVE_PARAMS]
+        if unknown:
+            msg = (f"cannot change {', '.join(unknown)} live; parameters: "
+                   f"{', '.join(sorted(LIVE_PARAMS))}")
+            raise TwindError(msg)
+        if effect is not None and not (isinstance(effect, dict) and "id" in effect):
+            msg = "'effect' must be an object {\"id\": <catalogue id or null>, \"values\": {...}}"
+            raise TwindError(msg)
+        if changes or effect is not None:
+            self._rebuild(index, changes, effect)
         sus = asdict(self.optics[index].sus)
         modules = {d: {"gain": m.gain, "on": sorted(m.on), "limit": m.limit, "ramp_s": m.ramp_s}
                    for d, m in self.engine.loops[index].modules.items()}
-        return {"ok": True, "optic": name, "params": sus, "filters": modules}
+        applied = self._effects.get(name)
+        return {"ok": True, "optic": name, "params": sus, "filters": modules,
+                "effect": {"id": applied[0], "values": applied[1]} if applied else None}
+
+    def _rebuild(self, index: int, changes: dict, effect: dict | None) -> None:
+        """A new plant from the changed parameters and effect, checked, then swapped in."""
+        with self._params_lock:
+            cfg = self.optics[index]
+            sus = cfg.sus.updated(**changes)
+            problems = sus.check()
+            if problems:
+                raise TwindError("; ".join(f"{k}: {p}" for k, p in problems))
+            applied = self._effects.get(cfg.name)
+            if effect is not None:
+                applied = (effect["id"], dict(effect.get("values") or {})) if effect["id"] else None
+            new = OpticConfig(cfg.name, sus, cfg.damping, cfg.noise, cfg.model, cfg.source)
+            loop = new.loop()
+            if applied:
+                loop.plant = with_effect(loop.plant, sus, *applied)
+            loop.modules = self.engine.loops[index].modules  # the filters as they run now
+            _check_stable(loop, self.rate)
+            with self._lock:
+                try:
+                    self.engine.update_plant(cfg.name, loop)
+                except ValueError as err:  # e.g. a coil-driver pole adds states
+                    msg = f"{err}: start the twin with this plant instead of changing it live"
+                    raise TwindError(msg) from None
+                self.optics[index] = new
+                if applied:
+                    self._effects[cfg.name] = applied
+                else:
+                    self._effects.pop(cfg.name, None)
 
     def filter(self, request: dict) -> dict:
         """Switch a stage (``fm``, ``on``) or ramp a gain (``gain``, ``ramp``) of a module."""
