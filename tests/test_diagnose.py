@@ -61,6 +61,7 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     assert not d.consistent
     best = d.effects[0]
     assert {best.effect, *best.equivalent} >= {"loop_delay", "actuator_pole"}
+    assert len(d.separations) == len(d.effects) - 1  # and what would tell them apart
     delay = next(e for e in d.effects if e.effect == "loop_delay")
     assert delay.to_json()["params"]["extra_s"] == pytest.approx(extra, rel=0.35)
     assert d.final.chi2_nu < 1.4 < d.nominal.chi2_nu

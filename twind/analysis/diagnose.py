@@ -80,6 +80,7 @@ class Diagnosis:
     effects: list[EffectFit]
     final: FitResult
     unexplained: list[Located]
+    separations: dict[tuple[str, str], tuple[str, str, float]] = field(default_factory=dict)
 
     @property
     def consistent(self) -> bool:
@@ -115,6 +116,10 @@ class Diagnosis:
             out.append(f"  effect {e.effect}: delta BIC {e.delta_bic:.1f}, p {e.p_value:.2g}"
                        f" ({params})" + (f"; not told apart from {', '.join(e.equivalent)}"
                                          if e.equivalent else ""))
+        for (a, b), (dof, response, f) in self.separations.items():
+            out.append(f"  to tell {a} from {b}: excite {dof} around {f:.3g} Hz and measure "
+                       f"{response}/{dof} (where their predictions differ most against "
+                       "the noise)")
         if not self.consistent and not self.effects:
             out.append("  no catalogue effect explains it")
         for x in self.unexplained[:8]:
@@ -153,7 +158,33 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     best.equivalent = [c.effect for c in claimed[1:]
                        if best.delta_bic - c.delta_bic < EQUIVALENT_BIC]
     shown = [best] + [c for c in claimed[1:] if c.effect in best.equivalent]
-    return Diagnosis(nominal, located, shown, best.result, locate(tfs, cfg, best.result))
+    separations = {(best.effect, c.effect): separating_measurement(cfg, best.result, c.result)
+                   for c in shown[1:]}
+    return Diagnosis(nominal, located, shown, best.result, locate(tfs, cfg, best.result),
+                     separations)
+
+
+def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
+                           ) -> tuple[str, str, float]:
+    """The excitation (DOF, response, frequency) where two fitted hypotheses differ most
+    relative to the IN1 noise: what to measure next to tell them apart."""
+    import numpy as np
+
+    from twind import DOFS
+    from twind.analysis.fit import ClosedLoopModel
+    from twind.excitation.coherence import in1_noise_asd
+
+    f = np.logspace(-1, 2, 400)
+    noise = in1_noise_asd(cfg, f)  # [f, response]
+    ta, tb = (ClosedLoopModel(cfg, f, 0.0, r.effect)(_values(r)) for r in (a, b))
+    contrast = np.abs(ta - tb) / np.maximum(noise[:, :, None], 1e-300)
+    k, i, j = np.unravel_index(np.argmax(contrast), contrast.shape)
+    return DOFS[j], DOFS[i], float(f[k])
+
+
+def _values(result: FitResult) -> dict[str, float]:
+    return {n: float(v) for n, v in zip(result.names, result.values, strict=True)
+            if math.isfinite(v)}
 
 
 def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], effect: str,
