@@ -102,3 +102,27 @@ def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noq
             client.params("ETMX", effect={"id": "actuator_pole", "values": {"inv_f_hz": 0.01}})
         assert client.params("ETMX", effect={"id": None})["effect"] is None
         client.close()
+
+
+def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path,
+                                                                    etmx) -> None:  # noqa: ANN001
+    """A drifted optic with a concealed coil imbalance, measured on the twin and saved as
+    diaggui files like example_null: from the files alone, the imbalance is named."""
+    from twind.analysis.calibration import DRIFT
+    from twind.analysis.diaggui import write_measurement_set
+    from twind.analysis.fit import param_value, with_params
+    from twind.analysis.tf import from_diaggui
+
+    real = replace(etmx, sus=with_params(etmx.sus, {k: param_value(etmx.sus, k) * v
+                                                    for k, v in DRIFT.items()}))
+    plant = Plant.from_params(real.sus, real.mechanics())
+    act = plant.actuation.copy()
+    act[:, :4] *= 1 + 0.002 * np.array([1.0, -0.7, 0.4, -0.8])
+    tfs = measure_tfs(real, bw=0.05, averages=10, rms=3.0, seed=5,
+                      plant=replace(plant, actuation=act))
+    files = write_measurement_set(tfs, tmp_path)
+    assert sorted(p.name for p in files) == ["ETMX_PIT_exc.xml", "ETMX_POS_exc.xml",
+                                             "ETMX_YAW_exc.xml"]
+    d = diagnose(from_diaggui(files), etmx)
+    assert d.effects and d.effects[0].effect == "coil_imbalance"
+    assert d.final.chi2_nu < d.nominal.chi2_nu

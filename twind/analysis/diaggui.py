@@ -18,7 +18,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 from numpy.typing import NDArray
 
-from twind.analysis.tf import TFError
+from twind.analysis.tf import TFError, TFSet
 
 _DTD = """<?xml version="1.0"?>
 <!DOCTYPE LIGO_LW [
@@ -186,3 +186,26 @@ def _index(exc: str, names: list[str], nf: int) -> str:
     return ('  <LIGO_LW Name="Index" Type="Index">\n' + _param("Flag", "string", "Result")
             + "".join(_param(f"Entry[{i}]", "string", e) for i, e in enumerate(entries))
             + "  </LIGO_LW>\n")
+
+
+def write_measurement_set(tfs: TFSet, directory: str | Path, ifo: str = "C1",
+                          rate_hz: float = 16384.0, gps: float = 1.4e9) -> list[Path]:
+    """One diaggui file per excited DOF of `tfs` (``<OPTIC>_<DOF>_exc.xml``, as
+    example_null), for TFs whose excitation PSD is known (``tfs.exc_psd``)."""
+    from twind.analysis.tf import POINTS
+
+    if not tfs.exc_psd:
+        msg = "these TFs carry no excitation PSD (measure them with twind's own tools)"
+        raise TFError(msg)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    out = []
+    for j, dof in enumerate(tfs.excited):
+        keys = [(r, p) for r in tfs.responses for p in POINTS]
+        chans = [f"{ifo}:SUS-{tfs.optic}_SUS{r}_{p}" for r, p in keys]
+        tf = np.array([tfs.tf[p][:, tfs.responses.index(r), j] for r, p in keys])
+        coh = np.array([tfs.coherence[p][:, tfs.responses.index(r), j] for r, p in keys])
+        out.append(write_fft_measurement(
+            directory / f"{tfs.optic}_{dof}_exc.xml", f"{ifo}:SUS-{tfs.optic}_SUS{dof}_EXC",
+            chans, tfs.frequency_hz, tfs.exc_psd[dof], tf, coh, tfs.averages, rate_hz, gps))
+    return out

@@ -48,6 +48,7 @@ class TFSet:
     coherence: dict[str, NDArray[np.float64]]
     averages: int
     window: str = "hann"  # of the spectral estimates: "hann" smooths H over ~1 bin
+    exc_psd: dict[str, NDArray[np.float64]] | None = None  # per excited DOF, when known
 
     def sigma(self, point: str) -> NDArray[np.float64]:
         """Standard error of each element of ``point``/EXC (Bendat & Piersol)."""
@@ -80,7 +81,8 @@ class TFSet:
         return TFSet(self.optic, self.frequency_hz[keep], self.excited, self.responses,
                      {k: v[keep] for k, v in self.tf.items()},
                      {k: v[keep] for k, v in self.coherence.items()}, self.averages,
-                     self.window)
+                     self.window,
+                     {k: v[keep] for k, v in self.exc_psd.items()} if self.exc_psd else None)
 
     def write(self, path: str | Path) -> Path:
         """HDF5 (``.h5``/``.hdf5``: one complex dataset per test point, coherence, errors,

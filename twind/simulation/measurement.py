@@ -106,7 +106,7 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
         done += k
         if progress:
             progress(done / (settle + n))
-    columns, freq, navg = {}, None, averages
+    columns, freq, navg, exc_psd = {}, None, averages, {}
     for i, d in enumerate(dofs):
         x = exc[i, DOFS.index(d), settle - keep:]
         ys = [record[p][i, j] for j in range(len(DOFS)) for p in POINTS]
@@ -115,6 +115,8 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
         freq, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
         columns[d] = {(r, p): (h[k], g2[k]) for k, (r, p) in
                       enumerate((r, p) for r in DOFS for p in POINTS)}
+        exc_psd[d] = signal.welch(x, fs=rate, window=window, nperseg=nperseg,
+                                  noverlap=nperseg - step)[1]
     tfs = assemble(cfg.name, freq, columns, navg)
-    tfs.window = window
+    tfs.window, tfs.exc_psd = window, exc_psd
     return tfs
