@@ -305,6 +305,15 @@ def cmd_tf(args: argparse.Namespace) -> int:
     return 0
 
 
+def _show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_json and lines
+    """Print a result as its JSON object or as lines for a person."""
+    if as_json:
+        json.dump(result.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(result.lines()))
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit the nominal parameters to measured TFs; print them with calibrated sigmas."""
     from twind.analysis.fit import FIT_PARAMS, fit, plot_fit
@@ -314,11 +323,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
     band = tuple(args.band) if args.band else None
     result = fit(tfs, cfg, args.params or FIT_PARAMS, args.min_coherence, band)
-    if args.json:
-        json.dump(result.to_json(), sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print("\n".join(result.lines()))
+    _show(result, args.json)
     if args.output:
         print(f"wrote {plot_fit(tfs, cfg, result, args.output)}", file=sys.stderr)
     return 0
@@ -334,11 +339,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         tfs = tfs.band(*args.band)
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
     result = diagnose(tfs, cfg)
-    if args.json:
-        json.dump(result.to_json(), sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print("\n".join(result.lines()))
+    _show(result, args.json)
     if args.output:
         print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
     if args.push:

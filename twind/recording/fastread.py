@@ -41,6 +41,7 @@ from twind.recording.reader import (
     _warn_gaps,
     report_truncation,
     session_files,
+    truncation_reason,
 )
 from twind.recording.writer import (
     BLOCK_SCHEMA,
@@ -562,9 +563,7 @@ def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolE
             reason = str(err)
         except truncation as err:
             footer = False
-            reason = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-            if size < 8:
-                reason = "shorter than the MCAP magic"
+            reason = truncation_reason(err, size)
         else:
             reason = ""
     if not footer:

@@ -194,9 +194,7 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
             # ValueError covers mcap's CRCValidationError and a short chunk's decompression;
             # an error after the footer means the closing magic is cut: not complete either
             footer = False
-            reason = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-            if size < 8:
-                reason = "shorter than the MCAP magic"
+            reason = truncation_reason(err, size)
         else:
             reason = ""
     if not footer:
@@ -720,6 +718,13 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
             for s in subs:
                 s.undeclare()
     return assembler.channels()
+
+
+def truncation_reason(err: Exception, size: int) -> str:
+    """Why reading stopped early, for the truncation report."""
+    if size < 8:
+        return "shorter than the MCAP magic"
+    return f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
 
 
 def report_truncation(path: Path, data_end: bool, chunks: int, size: int, reason: str,
