@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from twind.analysis.fit import FIT_PARAMS, fit, param_value, with_params
 from twind.config import OpticConfig
-from twind.simulation.measurement import measure_tfs
+from twind.simulation.measurement import SETTLE_S, measure_tfs
 
 # a few-percent drift of every nominal parameter, as MODEL.md describes a real optic
 DRIFT = {"wire_length_m": 0.983, "b_m": 1.027, "R1_m": 0.975, "coil_N_per_ct": 0.968,
@@ -131,7 +131,7 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
     duration = averages * period_s
     rng = np.random.default_rng(seed)
     sos = signal.butter(4, band, btype="bandpass", fs=rate, output="sos")
-    n = int(round((duration + 10.0) * rate))
+    n = int(round((duration + SETTLE_S) * rate))
     white = {}
     for d in dofs:
         x = signal.sosfilt(sos, rng.standard_normal(n))
