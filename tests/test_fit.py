@@ -15,7 +15,14 @@ import pytest
 from conftest import REFERENCE
 from measurekit import record_excited_session
 
-from twind.analysis.fit import FIT_PARAMS, FitError, fit, param_value, with_params
+from twind.analysis.fit import (
+    FIT_PARAMS,
+    FitError,
+    fit,
+    param_value,
+    read_truth,
+    with_params,
+)
 from twind.analysis.tf import from_diaggui, from_session
 from twind.cli import main
 from twind.config import load_config
@@ -35,14 +42,9 @@ def null_fit(etmx):  # noqa: ANN001, ANN201
     return fit(from_diaggui(NULL), etmx)
 
 
-def _truth() -> dict[str, float]:
-    t = json.loads((REFERENCE / "example_null" / "truth.json").read_text())["drifted_params"]
-    return {**{k: v for k, v in t.items() if k != "Q"},
-            **{f"Q_{d}": t["Q"][d] for d in ("POS", "PIT", "YAW", "SIDE")}}
-
-
 def test_example_null_recovers_its_drift_within_3_sigma(null_fit) -> None:  # noqa: ANN001
-    truth, got = _truth(), null_fit.as_dict()
+    truth = read_truth(REFERENCE / "example_null" / "truth.json")
+    got = null_fit.as_dict()
     sigma = dict(zip(null_fit.names, null_fit.sigma, strict=True))
     for name in ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct"):
         assert abs(got[name] - truth[name]) < 3 * sigma[name], (name, got[name], sigma[name])

@@ -316,14 +316,18 @@ def _show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_jso
 
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit the nominal parameters to measured TFs; print them with calibrated sigmas."""
-    from twind.analysis.fit import FIT_PARAMS, fit, plot_fit
+    from twind.analysis.fit import FIT_PARAMS, fit, plot_fit, read_truth
     from twind.config import load_config
 
+    truth = read_truth(args.truth) if args.truth else None  # a bad file fails before the fit
     tfs = _measured_tfs(args)
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
     band = tuple(args.band) if args.band else None
     result = fit(tfs, cfg, args.params or FIT_PARAMS, args.min_coherence, band)
     _show(result, args.json)
+    if truth:
+        print(f"(fitted - truth) / sigma: {result.pulls(truth)}",
+              file=sys.stderr if args.json else sys.stdout)
     if args.output:
         print(f"wrote {plot_fit(tfs, cfg, result, args.output)}", file=sys.stderr)
     return 0
@@ -367,12 +371,17 @@ def _bench_tf(args: argparse.Namespace) -> int:
     return 0
 
 
+def _etmx(args: argparse.Namespace):  # noqa: ANN202 - OpticConfig
+    """The ETMX of ``--config``: the optic the identification benchmarks run on."""
+    from twind.config import load_config
+
+    return load_config(args.config, ["ETMX"]).optics["ETMX"]
+
+
 def _bench_pull(args: argparse.Namespace) -> int:
     """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
     from twind.analysis.calibration import pull_test
-    from twind.config import load_config
-
-    cfg = load_config(args.config, ["ETMX"]).optics["ETMX"]
+    cfg = _etmx(args)
     report = pull_test(cfg, n=args.realisations, bw=args.bw)
     print("\n".join(report.lines()))
     return 0
@@ -381,9 +390,7 @@ def _bench_pull(args: argparse.Namespace) -> int:
 def _bench_information(args: argparse.Namespace) -> int:
     """D-optimal multisines against white noise of equal RMS, measured and fitted on the twin."""
     from twind.analysis.calibration import information_benchmark
-    from twind.config import load_config
-
-    cfg = load_config(args.config, ["ETMX"]).optics["ETMX"]
+    cfg = _etmx(args)
     print("\n".join(information_benchmark(cfg)))
     return 0
 
@@ -391,9 +398,7 @@ def _bench_information(args: argparse.Namespace) -> int:
 def _bench_diagnose(args: argparse.Namespace) -> int:
     """twind diagnose on a drifted twin running small effects the model leaves out."""
     from twind.analysis.calibration import diagnose_benchmark
-    from twind.config import load_config
-
-    cfg = load_config(args.config, ["ETMX"]).optics["ETMX"]
+    cfg = _etmx(args)
     print("\n".join(diagnose_benchmark(cfg)))
     return 0
 
@@ -523,6 +528,8 @@ def build_parser() -> argparse.ArgumentParser:
     fitp.add_argument("--min-coherence", type=float, default=0.5,
                       help="IN1/EXC bins less coherent (averaged over neighbours) are unused")
     fitp.add_argument("-o", "--output", help=".png: measured, nominal and fitted Bode matrix")
+    fitp.add_argument("--truth", metavar="JSON",
+                      help="a simulated optic's truth.json: also print (fitted - truth)/sigma")
     fitp.set_defaults(func=cmd_fit)
 
     diag = sub.add_parser("diagnose", help="where the model misses, which physics it left "

@@ -169,6 +169,16 @@ def time_from_session(path: str | Path, bw: float = 0.01) -> float:
     return elapsed
 
 
+def time_read(path: str | Path) -> float:
+    """Wall seconds of reading the test points ``twind tf`` reads, without the Welch part."""
+    from twind.analysis.tf import _test_point
+    from twind.recording.fastread import read_channels
+
+    t0 = time.perf_counter()
+    read_channels([path], _test_point(None))
+    return time.perf_counter() - t0
+
+
 def time_cli(path: str | Path, bw: float = 0.01) -> float:
     """Wall seconds of ``twind tf PATH --bw BW`` in a new Python process."""
     cmd = [sys.executable, "-m", "twind", "tf", str(path), "--bw", f"{bw:g}"]
@@ -228,6 +238,9 @@ def run_tf_benchmark(duration: float = 3600.0, rate: float = 16384.0, bw: float 
         in_process = time_from_session(path, bw)
         say(f"twind tf, in process (from_session):  {in_process:6.2f} s  "
             f"= {in_process / target:.2f} x the {target:.3g} s target", flush=True)
+        read_s = time_read(path)
+        say(f"  of which reading the test points:   {read_s:6.2f} s (measured alone)",
+            flush=True)
         cli_s = None
         if cli:
             cli_s = time_cli(path, bw)

@@ -89,10 +89,10 @@ def pull_test(cfg: OpticConfig, n: int = 100, drift: Mapping[str, float] = DRIFT
     pulls = np.full((n, len(names)), np.nan)
     rel = np.full((n, len(names)), np.nan)
     t0 = time.perf_counter()
+    truth = np.array([param_value(real.sus, k) for k in names])
     for i in range(n):
         tfs = measure_tfs(real, bw=bw, averages=averages, rms=rms, seed=seed + i)
         r = fit(tfs, cfg, names)
-        truth = np.array([param_value(real.sus, k) for k in names])
         pulls[i] = (r.values - truth) / r.sigma
         rel[i] = r.sigma / r.values
         if verbose:
@@ -153,9 +153,7 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
         lines.append(f"round {k}: D-optimal multisine (predicted {design.gain:.1f}x), chi2/nu "
                      f"{result.chi2_nu:.3f}: det(Cov)^(1/p) {ratio:.1f}x smaller than white "
                      f"noise over {len(names)} parameters ({', '.join(names)})")
-        current = replace(current, sus=with_params(current.sus, {
-            nm: v for nm, v, s in zip(result.names, result.values, result.sigma, strict=True)
-            if np.isfinite(s)}))
+        current = replace(current, sus=with_params(current.sus, result.identified()))
     return lines
 
 

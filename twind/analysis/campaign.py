@@ -188,8 +188,7 @@ def run_campaign(nominal: OpticConfig, twin: Twin, dofs: Sequence[str] = ("POS",
         twin_s += len(dofs) * (SETTLE_S + averages * period_s)
         _progress(verbose, k, "fitting", twin_s, rounds, t0)
         result = fit(measured, current, params)
-        values = {n: v for n, v in result.as_dict().items()
-                  if not math.isnan(result.sigma[result.names.index(n)])}
+        values = result.identified()
         current = replace(current, sus=with_params(current.sus, values))
         twin.push(values)
         rounds.append(Round(k, twin_s, design, result))
@@ -314,10 +313,7 @@ def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
                   f"{r.fit.chi2_nu:.3f}, worst {name} {100 * worst:.3g} %")
         print("\n".join(last.fit.lines()))
         if truth:
-            pulls = ", ".join(f"{n} {(v - truth[n]) / s:+.2f}" for n, v, s in
-                              zip(last.fit.names, last.fit.values, last.fit.sigma, strict=True)
-                              if n in truth and not math.isnan(s))
-            print(f"  (fitted - truth) / sigma: {pulls}")
+            print(f"  (fitted - truth) / sigma: {last.fit.pulls(truth)}")
         print(("reached" if last.worst[1] <= args.target else "did not reach")
               + f" {100 * args.target:g} % in {last.twin_s / 60:.1f} min of twin time")
     if args.output:

@@ -90,9 +90,8 @@ class Diagnosis:
 
     def to_json(self) -> dict:
         """The object of the issue, exactly."""
-        nominal = {n: {"value": float(v), "sigma": None if math.isnan(s) else float(s)}
-                   for n, v, s in zip(self.nominal.names, self.nominal.values,
-                                      self.nominal.sigma, strict=True)}
+        nominal = {n: {"value": p["value"], "sigma": p["sigma"]}
+                   for n, p in self.nominal.to_json()["params"].items()}
         return {"consistent": self.consistent,
                 "chi2_nu_nominal": self.nominal.chi2_nu,
                 "chi2_nu_final": self.final.chi2_nu,
@@ -176,15 +175,10 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
 
     f = np.logspace(-1, 2, 400)
     noise = in1_noise_asd(cfg, f)  # [f, response]
-    ta, tb = (ClosedLoopModel(cfg, f, 0.0, r.effect)(_values(r)) for r in (a, b))
+    ta, tb = (ClosedLoopModel(cfg, f, 0.0, r.effect)(r.as_dict()) for r in (a, b))
     contrast = np.abs(ta - tb) / np.maximum(noise[:, :, None], 1e-300)
     k, i, j = np.unravel_index(np.argmax(contrast), contrast.shape)
     return DOFS[j], DOFS[i], float(f[k])
-
-
-def _values(result: FitResult) -> dict[str, float]:
-    return {n: float(v) for n, v in zip(result.names, result.values, strict=True)
-            if math.isfinite(v)}
 
 
 def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], effect: str,
@@ -195,7 +189,7 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], 
         return None
     # directions the effect adds that the data determine (a coil imbalance's common mode
     # is the coil strength's, its butterfly mode moves nothing: two of four gains count)
-    k = _rank(result) - _rank(nominal)
+    k = result.rank - nominal.rank
     if k <= 0:
         return None
     # the drop in residual power in units of the null's per-bin power (robust scale, F tails
@@ -206,11 +200,6 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], 
     n = 2 * nominal.bins
     p = min(1.0, float(stats.chi2.sf(lr, k)) * len(CATALOGUE))
     return EffectFit(effect, result, lr, k, p, lr - k * math.log(max(n, 1)))
-
-
-def _rank(result: FitResult) -> int:
-    """Number of parameter directions the data determined."""
-    return 2 * result.bins - result.nu
 
 
 def _averages(tfs: TFSet | Sequence[TFSet]) -> int:
@@ -264,9 +253,7 @@ def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -
     series = {}
     for label, result in fits.items():
         model = ClosedLoopModel(cfg, f, data.resolution_hz, result.effect).for_data(data)
-        values = {n: v for n, v, s in zip(result.names, result.values, result.sigma,
-                                          strict=True) if math.isfinite(v)}
-        pred = model(values)
+        pred = model(result.as_dict())
         for i, r in enumerate(data.responses):
             for j, e in enumerate(data.excited):
                 used = data.mask[:, i, j]
@@ -286,16 +273,14 @@ def push(diagnosis: Diagnosis, connect: Sequence[str], ifo: str = "C1") -> str:
     from twind.client import TwinClient
 
     final = diagnosis.final
-    values = {n: float(v) for n, v, s in zip(final.names, final.values, final.sigma,
-                                             strict=True) if math.isfinite(s)}
-    nominal = {n: v for n, v in values.items() if n in FIT_PARAMS}
+    nominal = {n: v for n, v in final.identified().items() if n in FIT_PARAMS}
     q = {n[2:]: v for n, v in nominal.items() if n.startswith("Q_")}
     changes = {n: v for n, v in nominal.items() if not n.startswith("Q_")}
     effect = None
     if diagnosis.effects:
         best = diagnosis.effects[0]
-        effect = {"id": best.effect, "values": {n: float(v) for n, v in zip(
-            final.names, final.values, strict=True) if n in CATALOGUE[best.effect].params}}
+        effect = {"id": best.effect, "values": {n: v for n, v in final.as_dict().items()
+                                                if n in CATALOGUE[best.effect].params}}
     client = TwinClient(list(connect), ifo=ifo)
     try:
         client.params(final.optic, effect=effect, **changes, **({"Q": q} if q else {}))

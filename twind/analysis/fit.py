@@ -23,9 +23,11 @@ correlation.  ``twind bench --suite pull`` checks the result on the twin.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,6 +68,20 @@ def param_value(sus: SOSParams, name: str) -> float:
     if name.startswith("Q_"):
         return float(sus.Q[name[2:]])
     return float(getattr(sus, name))
+
+
+def read_truth(path: str | Path) -> dict[str, float]:
+    """Fit-parameter values of a ``truth.json`` (``drifted_params``, Q per DOF), as
+    ``../shared/reference/example_null`` holds them for its simulated optic."""
+    try:
+        given = json.loads(Path(path).read_text())
+        given = given.get("drifted_params", given)
+        q = given.get("Q", {})
+        return {**{n: float(given[n]) for n in FIT_PARAMS if n in given},
+                **{f"Q_{d}": float(v) for d, v in q.items() if f"Q_{d}" in FIT_PARAMS}}
+    except (OSError, ValueError, AttributeError, TypeError) as err:
+        msg = f"{path}: not a truth file of parameter values ({err})"
+        raise FitError(msg) from None
 
 
 def with_params(sus: SOSParams, values: Mapping[str, float]) -> SOSParams:
@@ -252,14 +268,14 @@ class FitResult:
 
     @property
     def bic(self) -> float:
-        """``chi2 + k ln(n)`` with ``k`` identified parameters over ``n`` real residuals."""
-        n = self.nu + self.k
-        return self.chi2 + self.k * math.log(max(n, 1))
+        """``chi2 + k ln(n)`` with ``k`` = :attr:`rank` over ``n`` real residuals."""
+        return self.chi2 + self.rank * math.log(max(2 * self.bins, 1))
 
     @property
-    def k(self) -> int:
-        """Number of parameters the data identified."""
-        return int(np.sum(np.isfinite(self.sigma)))
+    def rank(self) -> int:
+        """Parameter directions the data determined (a coil imbalance's four gains count
+        two: their common mode is the coil strength's, their butterfly moves nothing)."""
+        return 2 * self.bins - self.nu
 
     @property
     def chi2_nu(self) -> float:
@@ -269,6 +285,11 @@ class FitResult:
     def as_dict(self) -> dict[str, float]:
         """``{name: value}``."""
         return dict(zip(self.names, self.values.tolist(), strict=True))
+
+    def identified(self) -> dict[str, float]:
+        """``{name: value}`` of the parameters with a finite sigma (what to pass on)."""
+        return {n: float(v) for n, v, s in zip(self.names, self.values, self.sigma,
+                                               strict=True) if math.isfinite(s)}
 
     def to_json(self) -> dict:
         """The ``twind fit --json`` object (unidentifiable sigmas are null)."""
@@ -281,6 +302,12 @@ class FitResult:
                 "determined": self.determined, "chi2_nu": self.chi2_nu, "nu": self.nu,
                 "noise_scale": self.noise_scale, "bin_correlation": self.bin_correlation,
                 "bins": self.bins}
+
+    def pulls(self, truth: Mapping[str, float]) -> str:
+        """``name (fitted - truth) / sigma`` of the identified parameters `truth` gives."""
+        return ", ".join(f"{n} {(v - truth[n]) / s:+.2f}" for n, v, s in
+                         zip(self.names, self.values, self.sigma, strict=True)
+                         if n in truth and math.isfinite(s))
 
     def lines(self) -> list[str]:
         """A human-readable table."""
@@ -553,9 +580,8 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz,
                             result.effect).for_data(data)
     used = FitData.from_tfset(tfs).mask
-    fitted = {n: v for n, v in result.as_dict().items() if not math.isnan(v)}
     curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
-              model(fitted)}
+              model(result.as_dict())}
     n_r, n_e = len(data.responses), len(data.excited)
     fig, axes = plt.subplots(2 * n_r, n_e, figsize=(3.4 * n_e, 3.0 * n_r), sharex=True,
                              squeeze=False)

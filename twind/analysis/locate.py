@@ -63,18 +63,14 @@ def locate(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult,
     list of Located
     """
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
-    values = {n: v for n, v, s in zip(result.names, result.values, result.sigma, strict=True)
-              if math.isfinite(v)}
     inflation = 1.0 + 2.0 * sum(r * r for r in result.bin_correlation)
     scale2 = result.noise_scale**2
     tests = []
     for t in sets:
         data = FitData.from_tfset(t)
         model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz, result.effect)
+        pred = model.for_data(data)(result.as_dict())
         z = np.zeros(data.H.shape, dtype=complex)
-        keep = data.mask.any(axis=(1, 2))
-        pred = np.zeros(data.H.shape, dtype=complex)
-        pred[keep] = _columns(model, values, data)[keep]
         z[data.mask] = (data.H - pred)[data.mask] / data.sigma[data.mask]
         tests += _band_tests(data, z, scale2, inflation, _null_moments(data.averages))
     if not tests:
@@ -84,15 +80,6 @@ def locate(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult,
     out = [Located(el, band, _sigma_of(pc), float(pc), excess)
            for (el, band, _, excess), pc in zip(tests, corrected, strict=True) if pc < alpha]
     return sorted(out, key=lambda x: -x.significance)
-
-
-def _columns(model: ClosedLoopModel, values: dict, data: FitData) -> np.ndarray:
-    from twind import DOFS
-
-    T = model(values)
-    rows = [DOFS.index(d) for d in data.responses]
-    cols = [DOFS.index(d) for d in data.excited]
-    return T[:, rows][:, :, cols]
 
 
 def _null_moments(averages: int) -> tuple[float, float]:

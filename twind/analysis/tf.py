@@ -282,7 +282,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         # channels of a recording joined mid-stream may begin a block apart: each is cut
         # by its own start time, over what all of them hold
         first = max([start] + [c.t0 for c in chans])
-        last = min([end] + [c.t0 + c.samples.size / c.rate for c in chans])
+        last = min([end] + [c.t_end for c in chans])
         skip = max(int(round((start + settle_s - first) * rate)), 0)
         n = int(round((last - first) * rate))
         whole = [c.samples[int(round((first - c.t0) * c.rate)):][:n] for c in chans]

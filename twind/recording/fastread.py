@@ -40,6 +40,7 @@ from twind.recording.reader import (
     _some,
     _warn_gaps,
     report_truncation,
+    scan_sample_block,
     session_files,
     truncation_reason,
 )
@@ -379,12 +380,7 @@ class _FileReader:
             return
         if self.kind[channel_id] < 0:
             return
-        try:
-            header = scan_block(data)
-        except ValueError as err:
-            msg = f"{topic}: not a twind.v1.SampleBlock ({err})"
-            raise RecordingError(msg) from None
-        name = header.channel or topic.removeprefix(f"{TOPIC_ROOT}/")
+        header, name = scan_sample_block(data, topic)
         if not self.state.wanted(name):
             return
         s = self.state.slot(name)

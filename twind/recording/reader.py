@@ -412,6 +412,16 @@ def _join(name: str, blocks: list[_Block]) -> Channel:
                    np.array([b.gps_start for b in kept]), gaps)
 
 
+def scan_sample_block(data: bytes, topic: str) -> tuple[BlockHeader, str]:
+    """A block's header and channel name (its topic's, when the block names none)."""
+    try:
+        header = scan_block(data)
+    except ValueError as err:
+        msg = f"{topic}: not a twind.v1.SampleBlock ({err})"
+        raise RecordingError(msg) from None
+    return header, header.channel or topic.removeprefix(f"{TOPIC_ROOT}/")
+
+
 class _Assembler:
     """Blocks of many channels, by name, in arrival order; joined on demand."""
 
@@ -420,12 +430,7 @@ class _Assembler:
         self.wanted = wanted
 
     def add(self, data: bytes, topic: str = "") -> BlockHeader | None:
-        try:
-            header = scan_block(data)
-        except ValueError as err:
-            msg = f"{topic}: not a twind.v1.SampleBlock ({err})"
-            raise RecordingError(msg) from None
-        name = header.channel or topic.removeprefix(f"{TOPIC_ROOT}/")
+        header, name = scan_sample_block(data, topic)
         if self.wanted is not None and name not in self.wanted:
             return None
         self.blocks.setdefault(name, []).append(
