@@ -222,6 +222,39 @@ def test_truncated_file_reads_up_to_the_last_complete_chunk(tmp_path: Path) -> N
     assert 0 < counts[1] < counts[2] < 40
 
 
+def test_fast_reader_reads_cut_gappy_and_foreign_files_as_read_session(tmp_path: Path) -> None:
+    """read_channels (a memory map, chunks decoded on a worker) keeps read_session's rules:
+    a file cut anywhere gives the same prefix of blocks and one truncation warning, gaps
+    the same NaN-filled samples, a file that is not MCAP a RecordingError."""
+    from twind.recording.fastread import read_channels
+
+    path = tmp_path / "full.mcap"
+    _synthetic_file(path, {SYNTH[0]: list(range(40)), SYNTH[1]: [*range(10), *range(12, 40)]},
+                    events=3)
+    data = path.read_bytes()
+    for cut in (5, 400, len(data) // 3, len(data) - 200, len(data) - 1, len(data)):
+        part = tmp_path / f"cut{cut}.mcap"
+        part.write_bytes(data[:cut])
+        with warnings.catch_warnings(record=True) as slow_warned:
+            warnings.simplefilter("always")
+            slow = read_session(part)
+        with warnings.catch_warnings(record=True) as fast_warned:
+            warnings.simplefilter("always")
+            fast = read_channels(part, lambda name: True)
+        assert [type(w.message) for w in fast_warned] == [type(w.message) for w in slow_warned]
+        assert (fast.complete, len(fast.problems)) == (slow.complete, len(slow.problems))
+        assert fast.events == slow.events and list(fast.channels) == list(slow.channels)
+        for c in slow:
+            np.testing.assert_array_equal(fast[c].samples, slow[c].samples)
+            np.testing.assert_array_equal(fast[c].sequences, slow[c].sequences)
+            assert fast[c].gaps == slow[c].gaps
+    assert slow[SYNTH[1]].gaps  # the last, whole file had its gap
+    foreign = tmp_path / "notes.mcap"
+    foreign.write_bytes(b"not a recording at all")
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        read_channels(foreign, lambda name: True)
+
+
 # --- the recorder -----------------------------------------------------------------------------
 
 

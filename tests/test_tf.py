@@ -240,3 +240,127 @@ def test_tf_benchmark_runs_end_to_end(tmp_path: Path) -> None:
         assert main(["bench", "--suite", "tf", "--duration", "60", "--workdir",
                      str(tmp_path), "--keep"]) == 0
     assert "x the" in out.getvalue() and len(list(tmp_path.glob("*.mcap"))) == 1
+
+
+# --- Welch sums taken while reading ---------------------------------------------------------
+
+RATE, BLOCK = 1024.0, 64
+GPS_START = 1_400_000_000.0
+
+
+def _small_session(path: Path, seconds: float, stop: tuple[float, float] | None = None,
+                   gap: int | None = None) -> Path:
+    """POS excited with noise at 1024 Hz; `stop` = (GPS offset of a stop event, offset of the
+    data it is recorded among); `gap` drops one IN1 block."""
+    from twind.bus.codec import SampleBlock
+    from twind.recording.writer import McapSession
+
+    rng = np.random.default_rng(1)
+    n = int(seconds * RATE) // BLOCK
+    exc = rng.standard_normal(n * BLOCK)
+    b, a = signal_butter()
+    resp = {"IN1": lfilter(b, a, exc), "IN2": -0.5 * lfilter(b, a, exc), "OUT": exc.copy()}
+    start = {"event": "start", "id": "e1", "gps": GPS_START, "start_gps": GPS_START,
+             "channel": "C1:SUS-ETMX_SUSPOS_EXC",
+             "request": {"waveform": "noise", "duration": n * BLOCK / RATE}}
+    with McapSession(path, "C1", {"optics": ["ETMX"]}, chunk_bytes=16 * 1024) as f:
+        f.write_event(start)
+        for seq in range(n):
+            gps = GPS_START + seq * BLOCK / RATE
+            if stop and abs(gps - GPS_START - stop[1]) < 0.5 * BLOCK / RATE:
+                f.write_event({"event": "stop", "id": "e1", "gps": GPS_START + stop[0]})
+            cut = slice(seq * BLOCK, (seq + 1) * BLOCK)
+            for point, x in [("EXC", exc), *resp.items()]:
+                if point == "IN1" and seq == gap:
+                    continue
+                noise = 0.0 if point == "EXC" else 0.1 * rng.standard_normal(BLOCK)
+                name = f"C1:SUS-ETMX_SUSPOS_{point}"
+                f.write_block(SampleBlock(name, gps, RATE, seq, x[cut] + noise, "um").encode())
+        f.write_event({**start, "event": "end", "gps": GPS_START + n * BLOCK / RATE})
+    return path
+
+
+def signal_butter():  # noqa: ANN201
+    from scipy import signal
+
+    return signal.butter(2, 0.1)
+
+
+def lfilter(b, a, x):  # noqa: ANN001, ANN201
+    from scipy import signal
+
+    return signal.lfilter(b, a, x)
+
+
+def _read_whole(monkeypatch: pytest.MonkeyPatch, path: Path, **kw):  # noqa: ANN202
+    import twind.analysis.tf as tf
+
+    with monkeypatch.context() as m:
+        m.setattr(tf, "_streamed", lambda *a, **k: None)
+        return tf.from_session([path], **kw)
+
+
+def _assert_same(a, b) -> None:  # noqa: ANN001
+    assert (a.excited, a.responses, a.averages) == (b.excited, b.responses, b.averages)
+    np.testing.assert_array_equal(a.frequency_hz, b.frequency_hz)
+    for p in ("IN1", "IN2", "OUT"):
+        np.testing.assert_allclose(a.tf[p], b.tf[p], rtol=1e-12)
+        np.testing.assert_allclose(a.coherence[p], b.coherence[p], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("window", ["hann", "boxcar"])
+def test_sums_taken_while_reading_equal_reading_whole(tmp_path: Path, window: str,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The Welch sums taken while the file is read are those of the samples read whole,
+    with settling skipped and a stop recorded on time."""
+    from twind.analysis.tf import _streamed
+
+    path = _small_session(tmp_path / "s.mcap", 120.0, stop=(100.0, 100.0))
+    streamed = _streamed([path], 0.5, 0.5, None, window, 3.0)
+    assert streamed is not None  # the stream was used, not the fallback
+    whole = _read_whole(monkeypatch, path, bw=0.5, window=window, settle_s=3.0)
+    assert whole.averages == 1 + (97 * 1024 - 2048) // 1024
+    _assert_same(streamed, whole)
+    _assert_same(from_session([path], bw=0.5, window=window, settle_s=3.0), whole)
+
+
+def test_a_late_stop_or_a_gap_reads_the_recording_whole(tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stop event recorded 30 s after its time (past the stream's lag) or a lost block: the
+    sums taken while reading are not the right ones, and from_session says so by reading the
+    file whole, with the same answer as that path."""
+    from twind.analysis.tf import _streamed
+    from twind.analysis.welch import LAG_S
+    from twind.recording.reader import GapWarning
+
+    late = _small_session(tmp_path / "late.mcap", 120.0, stop=(60.0, 60.0 + 3 * LAG_S))
+    assert _streamed([late], 0.5, 0.5, None, "hann", 0.0) is None
+    whole = _read_whole(monkeypatch, late, bw=0.5)
+    assert whole.averages == 1 + (60 * 1024 - 2048) // 1024
+    _assert_same(from_session([late], bw=0.5), whole)
+    gappy = _small_session(tmp_path / "gap.mcap", 60.0, gap=100)
+    with pytest.warns(GapWarning):
+        assert _streamed([gappy], 0.5, 0.5, None, "hann", 0.0) is None
+        assert from_session([gappy], bw=0.5).averages == 1 + (60 * 1024 - 2048) // 1024
+
+
+def test_the_stream_keeps_a_few_segments_of_samples(tmp_path: Path) -> None:
+    """Memory: the samples held while reading stay at a few segments (plus the lag and the
+    history kept for late start events), however long the recording."""
+    from twind.analysis.tf import _exc, _Plan, _segments
+    from twind.analysis.welch import HISTORY_S, LAG_S, WelchStream
+    from twind.recording.fastread import stream_channels
+
+    path = _small_session(tmp_path / "long.mcap", 600.0)
+
+    def planner(events, extents):  # noqa: ANN001, ANN202
+        return {k: _Plan.of(k, s, e, extents, 0.0).segment
+                for k, (s, e) in _segments(events, RATE).items() if _exc(k) in extents}
+
+    stream = WelchStream(planner, bw=0.5)
+    stream_channels([path], lambda n: "SUSPOS" in n, stream)
+    assert stream.result() is not None and len(stream.tails) == 4
+    # a buffer holds at most the history, or a segment, the lag and the look interval
+    seconds = max(HISTORY_S, 2.0 + LAG_S) + 8.0
+    capacity = max(t.buf.size for t in stream.tails.values())  # buffers only grow
+    assert capacity <= 2 * seconds * RATE < 600 * RATE / 4

@@ -225,15 +225,20 @@ def test_view_streams_the_live_channels_into_a_recording(tmp_path: Path) -> None
     stop = threading.Event()
     channels = ("C1:SUS-ETMX_SUSPOS_IN1", "C1:SUS-ETMX_SUSPIT_IN1", "C1:SUS-ETMX_SUSPOS_EXC")
 
+    events = twin.declare_publisher(control_key("C1", "events"))
+
     def publish() -> None:
         seq = 0
+        sent = False
         while not stop.wait(0.01):
             gps = GPS0 + seq * 1024 / 16384
             for ch in channels:
                 x = np.full(1024, float(seq))
                 twin.put(data_key(ch), SampleBlock(ch, gps, 16384.0, seq, x, "um").encode())
-            if seq == 20:
-                twin.put(control_key("C1", "events"), json.dumps(
+            # once the viewer has subscribed: on a loaded machine it starts after block 20
+            if seq >= 20 and not sent and events.matching_status.matching:
+                sent = True
+                events.put(json.dumps(
                     {"event": "start", "id": "exc-7", "gps": gps, "start_gps": gps + 0.0625,
                      "channel": channels[2], "request": {"waveform": "sine", "freq": 2.0}}))
             seq += 1

@@ -13,17 +13,20 @@ with scipy.signal). The standard error of a Welch estimate is Bendat & Piersol's
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
+from twind.analysis.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import TwindError
+
+__all__ = ["POINTS", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
+           "highpassed", "welch_tf", "welch_tfs", "xml_transfer"]
 
 POINTS = ("IN1", "IN2", "OUT")
 _CHANNEL = re.compile(r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
@@ -226,9 +229,11 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     """Welch transfer functions of the excitations recorded in MCAP sessions.
 
     Each excited DOF's segment runs from its injection's start to its end (the recorded
-    ``start``/``end``/``stop`` events); Hann windows of ``1/bw`` seconds. Only the test
-    points (EXC, IN1, IN2, OUT) are read, of `optic` if given; the response DOFs are those
-    whose IN1, IN2 and OUT were recorded.
+    ``start``/``end``/``stop`` events); windows of ``1/bw`` seconds. Only the test points
+    (EXC, IN1, IN2, OUT) are read, of `optic` if given; the response DOFs are those whose
+    IN1, IN2 and OUT were recorded. The Welch sums are taken while the files are read
+    (:class:`~twind.analysis.welch.WelchStream`); a recording with gaps, late events or a
+    high-pass is read whole instead, with the same result.
 
     Parameters
     ----------
@@ -258,11 +263,87 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         If no excitation is found, several optics were excited and `optic` is not given, or
         an excitation is shorter than ``1/bw``.
     """
+    if not highpass_hz:
+        tfs = _streamed(paths, bw, overlap, optic, window, settle_s)
+        if tfs is not None:
+            return tfs
     from twind.recording.fastread import read_channels
 
     session = read_channels(list(paths), _test_point(optic))
-    rates = {ch.rate for ch in session.channels.values()}
-    segments = _segments(session.events, max(rates) if rates else 16384.0)
+    extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in session.channels.items()}
+    columns, freq, averages = {}, None, None
+    for key, (start, end) in _excitations(session.events, extents, optic, paths).items():
+        plan = _Plan.of(key, start, end, extents, settle_s)
+        whole = [session[c].samples[o:][:plan.n] for c, o in zip(plan.names, plan.offsets,
+                                                                  strict=True)]
+        if highpass_hz:
+            x, *ys = highpassed(whole, session[plan.names[0]].rate, highpass_hz, plan.skip)
+        else:
+            x, *ys = (w[plan.skip:] for w in whole)
+        rate = session[plan.names[0]].rate
+        nperseg = _nperseg(rate, bw, plan, settle_s)
+        f, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
+        freq, averages = f, navg
+        columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(plan.keys)}
+    tfs = assemble(key[1], freq, columns, averages)
+    tfs.window = window
+    return tfs
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """The samples of one excitation: its channels (EXC first), the index in each of the
+    excitation's first sample, the samples skipped while the loop settles, the samples."""
+
+    keys: tuple[tuple[str, str], ...]  # (response DOF, point) of names[1:]
+    names: tuple[str, ...]
+    offsets: tuple[int, ...]
+    skip: int
+    n: int
+
+    @classmethod
+    def of(cls, key: tuple[str, str, str], start: float, end: float,
+           extents: Mapping[str, Extent], settle_s: float) -> _Plan:
+        """The plan for excitation `key` (ifo, optic, DOF) from `start` to `end` (GPS)."""
+        ifo, name, dof = key
+        keys = tuple((r, p) for r in DOFS for p in POINTS
+                     if all(f"{ifo}:SUS-{name}_SUS{r}_{q}" in extents for q in POINTS))
+        names = (_exc(key), *(f"{ifo}:SUS-{name}_SUS{r}_{p}" for r, p in keys))
+        if names[0] not in extents:
+            msg = f"{names[0]} was excited but is not in the recording"
+            raise TFError(msg)
+        rate = extents[names[0]].rate
+        # channels of a recording joined mid-stream may begin a block apart: each is cut
+        # by its own start time, over what all of them hold
+        first = max([start] + [extents[c].t0 for c in names])
+        last = min([end] + [extents[c].t_end for c in names])
+        offsets = tuple(int(round((first - extents[c].t0) * extents[c].rate)) for c in names)
+        return cls(keys, names, offsets, max(int(round((start + settle_s - first) * rate)), 0),
+                   max(int(round((last - first) * rate)), 0))
+
+    @property
+    def segment(self) -> Segment:
+        """What is averaged, after the settling."""
+        return Segment(self.names, tuple(o + self.skip for o in self.offsets),
+                       max(self.n - self.skip, 0))
+
+
+def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
+    """Samples per segment; refused if the excitation holds fewer."""
+    nperseg = int(round(rate / bw))
+    if plan.n - plan.skip < nperseg:
+        dof = plan.names[0].rsplit("_", 1)[0][-3:]
+        msg = (f"the {dof} excitation holds {max(plan.n - plan.skip, 0) / rate:.1f} s of "
+               f"recorded data after {settle_s:g} s of settling, less than 1/bw = {1 / bw:g} s")
+        raise TFError(msg)
+    return nperseg
+
+
+def _excitations(events: list[dict], extents: Mapping[str, Extent], optic: str | None,
+                 paths: Sequence[str | Path]) -> dict[tuple[str, str, str], tuple[float, float]]:
+    """The excitation of each excited DOF of one optic (refused: none, several optics)."""
+    rates = [e.rate for e in extents.values()]
+    segments = _segments(events, max(rates) if rates else 16384.0)
     if optic is not None:
         segments = {k: v for k, v in segments.items() if k[1] == optic}
     if not segments:
@@ -272,35 +353,45 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     if len(optics) > 1:
         msg = f"excitations on several optics {sorted(optics)}: choose one with --optic"
         raise TFError(msg)
-    columns, freq, averages = {}, None, None
-    for (ifo, name, dof), (start, end) in segments.items():
-        keys = [(r, p) for r in DOFS for p in POINTS
-                if all(f"{ifo}:SUS-{name}_SUS{r}_{q}" in session for q in POINTS)]
-        chans = [session[f"{ifo}:SUS-{name}_SUS{dof}_EXC"]] + [
-            session[f"{ifo}:SUS-{name}_SUS{r}_{p}"] for r, p in keys]
-        rate = chans[0].rate
-        # channels of a recording joined mid-stream may begin a block apart: each is cut
-        # by its own start time, over what all of them hold
-        first = max([start] + [c.t0 for c in chans])
-        last = min([end] + [c.t_end for c in chans])
-        skip = max(int(round((start + settle_s - first) * rate)), 0)
-        n = int(round((last - first) * rate))
-        whole = [c.samples[int(round((first - c.t0) * c.rate)):][:n] for c in chans]
-        if highpass_hz:
-            x, *ys = highpassed(whole, rate, highpass_hz, skip)
-        else:
-            x, *ys = (w[skip:] for w in whole)
-        nperseg = int(round(rate / bw))
-        if x.size < nperseg:
-            msg = (f"the {dof} excitation holds {x.size / rate:.1f} s of recorded data after "
-                   f"{settle_s:g} s of settling, less than 1/bw = {1 / bw:g} s")
-            raise TFError(msg)
-        f, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
-        freq, averages = f, navg
-        columns[dof] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
-    tfs = assemble(next(iter(optics)), freq, columns, averages)
+    return segments
+
+
+def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str | None,
+              window: str, settle_s: float) -> TFSet | None:
+    """:func:`from_session` summed while reading; None where the recording must be read whole
+    (gaps, events recorded late, an excitation shorter than a segment)."""
+    from twind.recording.fastread import stream_channels
+
+    def planner(events: list[dict], extents: Mapping[str, Extent]) -> dict:
+        rates = [e.rate for e in extents.values()]
+        return {key: _Plan.of(key, start, end, extents, settle_s).segment
+                for key, (start, end) in _segments(events, max(rates, default=16384.0)).items()
+                if optic in (None, key[1]) and _exc(key) in extents}
+
+    stream = WelchStream(planner, bw, overlap, window)
+    try:
+        session = stream_channels(list(paths), _test_point(optic), stream)
+    except BaseException:
+        stream.close()
+        raise
+    results = stream.result()
+    extents = stream.extents()
+    excitations = _excitations(session.events, extents, optic, paths)
+    if results is None or set(results) != set(excitations):
+        return None
+    columns, averages = {}, 0
+    for key, (start, end) in excitations.items():
+        _, freq, h, g2, averages = results[key]
+        keys = _Plan.of(key, start, end, extents, settle_s).keys
+        columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
+    tfs = assemble(key[1], freq, columns, averages)
     tfs.window = window
     return tfs
+
+
+def _exc(key: tuple[str, str, str]) -> str:
+    """The EXC channel of (ifo, optic, DOF)."""
+    return f"{key[0]}:SUS-{key[1]}_SUS{key[2]}_EXC"
 
 
 def highpassed(signals: Sequence[NDArray], rate: float, f_hz: float, skip: int
@@ -317,135 +408,6 @@ def highpassed(signals: Sequence[NDArray], rate: float, f_hz: float, skip: int
     return [signal.sosfilt(sos, np.asarray(x, dtype=float))[skip:] for x in signals]
 
 
-def welch_tf(x: NDArray, y: NDArray, rate: float, nperseg: int, overlap: float = 0.5,
-             window: str = "hann") -> tuple[NDArray, NDArray, NDArray, int]:
-    """``H = CSD(x, y) / PSD(x)``, coherence, and the number of averages.
-
-    The values of ``scipy.signal.csd``, ``welch`` and ``coherence`` (Hann window, constant
-    detrend, one-sided density), from one FFT per segment of each signal: see
-    :func:`welch_tfs`.
-    """
-    f, h, g2, n = welch_tfs(x, [y], rate, nperseg, overlap, window=window)
-    return f, h[0], g2[0], n
-
-
-def welch_tfs(x: NDArray, ys: Sequence[NDArray], rate: float, nperseg: int,
-              overlap: float = 0.5, workers: int | None = None, window: str = "hann"
-              ) -> tuple[NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64], int]:
-    """Transfer functions ``CSD(x, y) / PSD(x)`` and coherences of several responses to one
-    excitation, as ``scipy.signal`` estimates them.
-
-    scipy computes every segment's FFT again for each of ``csd``, ``welch`` and
-    ``coherence`` (seven FFTs per pair); here each signal's segments are transformed once,
-    with scipy's steps (mean removed, periodic Hann window, ``rfft``), and the cross and
-    auto spectra summed from them. The results equal scipy's to rounding.
-
-    Parameters
-    ----------
-    x : ndarray
-        Excitation.
-    ys : sequence of ndarray
-        Responses, each as long as `x`.
-    rate : float
-        Sample rate (Hz).
-    nperseg : int
-        Samples per segment.
-    overlap : float
-        Fraction of a segment shared with the next (``noverlap = int(nperseg * overlap)``).
-    window : str
-        scipy window name: ``"hann"`` (diaggui's default) or ``"boxcar"`` for a periodic
-        excitation whose period is the segment (no leakage, no smoothing of H).
-    workers : int, optional
-        Threads, each summing its share of the segments; default the CPU count, at most 2
-        (the FFTs of a few-megasample segment are memory bound).
-
-    Returns
-    -------
-    frequency_hz : ndarray, shape (nperseg // 2 + 1,)
-    tf : ndarray of complex, shape (len(ys), nfreq)
-    coherence : ndarray, shape (len(ys), nfreq)
-    averages : int
-        Segments averaged.
-
-    Raises
-    ------
-    TFError
-        If a response is not as long as `x`, or `x` is shorter than a segment.
-    """
-    import os
-    from concurrent.futures import ThreadPoolExecutor
-
-    from scipy import fft
-
-    x = np.asarray(x, dtype=np.float64)
-    ys = [np.asarray(y, dtype=np.float64) for y in ys]
-    if any(y.shape != x.shape for y in ys) or x.ndim != 1:
-        msg = f"responses of {[y.shape for y in ys]} samples for an excitation of {x.shape}"
-        raise TFError(msg)
-    noverlap = int(nperseg * overlap)
-    step = nperseg - noverlap
-    if x.size < nperseg or step < 1:
-        msg = f"{x.size} samples, segments of {nperseg} overlapping by {noverlap}: no average"
-        raise TFError(msg)
-    n = 1 + (x.size - nperseg) // step
-    win = signal.get_window(window, nperseg)
-    nf = nperseg // 2 + 1
-    workers = max(1, min(workers or min(os.cpu_count() or 1, 2), n))
-
-    def part(segs: range) -> tuple[NDArray, NDArray, NDArray]:
-        sxx = np.zeros(nf)
-        sxy = np.zeros((len(ys), nf), dtype=np.complex128)
-        syy = np.zeros((len(ys), nf))
-        buf = np.empty(nperseg)
-        for k in segs:
-            cut = slice(k * step, k * step + nperseg)
-            X = _segment_fft(x[cut], win, buf, fft)
-            _accumulate_auto(X, sxx)
-            for i, y in enumerate(ys):
-                _accumulate_cross(X, _segment_fft(y[cut], win, buf, fft), sxy[i], syy[i])
-        return sxx, sxy, syy
-
-    bounds = np.linspace(0, n, workers + 1).astype(int)
-    ranges = [range(bounds[i], bounds[i + 1]) for i in range(workers)]
-    if workers == 1:
-        parts = [part(ranges[0])]
-    else:
-        with ThreadPoolExecutor(workers, thread_name_prefix="twind-welch") as pool:
-            parts = list(pool.map(part, ranges))
-    sxx, sxy, syy = (sum(p[j] for p in parts) for j in range(3))
-    # scipy's density scaling and one-sided doubling; they cancel in H and the coherence
-    # except through rounding, so they are applied as scipy applies them
-    scale = np.full(nf, 1.0 / (rate * (win * win).sum()) / n)
-    scale[1:-1 if nperseg % 2 == 0 else None] *= 2
-    pxx = sxx * scale
-    pxy = sxy * scale
-    pyy = syy * scale
-    freq = fft.rfftfreq(nperseg, 1.0 / rate)
-    with np.errstate(invalid="ignore", divide="ignore"):  # bins a periodic EXC leaves empty
-        return freq, pxy / pxx, np.abs(pxy) ** 2 / pxx / pyy, n
-
-
-def _segment_fft(seg: NDArray, win: NDArray, buf: NDArray, fft) -> NDArray:
-    """scipy.signal's segment: constant detrend, window, one-sided FFT."""
-    np.subtract(seg, seg.mean(), out=buf)
-    buf *= win
-    return fft.rfft(buf, overwrite_x=True)
-
-
-@nb.njit(cache=True, nogil=True)
-def _accumulate_auto(X: NDArray, sxx: NDArray) -> None:  # pragma: no cover - numba
-    for i in range(X.size):
-        sxx[i] += X[i].real * X[i].real + X[i].imag * X[i].imag
-
-
-@nb.njit(cache=True, nogil=True)
-def _accumulate_cross(X: NDArray, Y: NDArray, sxy: NDArray, syy: NDArray
-                      ) -> None:  # pragma: no cover - numba
-    # one pass for conj(X) Y and |Y|^2, instead of numpy's three temporaries
-    for i in range(X.size):
-        xr, xi, yr, yi = X[i].real, X[i].imag, Y[i].real, Y[i].imag
-        sxy[i] += complex(xr * yr + xi * yi, xr * yi - xi * yr)
-        syy[i] += yr * yr + yi * yi
 
 
 def _segments(events: list[dict], rate_hz: float = 16384.0

@@ -16,7 +16,8 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
-from twind.analysis.tf import POINTS, TFSet, assemble, highpassed, welch_tfs
+from twind.analysis.tf import POINTS, TFSet, assemble, highpassed
+from twind.analysis.welch import welch_tfs
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
 from twind.simulation.engine import Engine
