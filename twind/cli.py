@@ -396,15 +396,26 @@ def _bench_information(args: argparse.Namespace) -> int:
 
 
 def _bench_diagnose(args: argparse.Namespace) -> int:
-    """twind diagnose on a drifted twin running small effects the model leaves out."""
-    from twind.analysis.calibration import diagnose_benchmark
-    cfg = _etmx(args)
-    print("\n".join(diagnose_benchmark(cfg)))
+    """twind diagnose on the proof corpus: drifted optics with concealed effects."""
+    from twind.analysis.corpus import run_corpus
+
+    for route in ("xml", "mcap") if args.route == "both" else (args.route,):
+        print(f"--- route: {route}", flush=True)
+        run_corpus(_etmx(args), route, args.per_effect, args.nulls,
+                   say=lambda line: print(line, flush=True))
     return 0
 
 
 BENCH_SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
                 "information": _bench_information, "diagnose": _bench_diagnose}
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """A "real" twin with a concealed effect beside a nominal one, recorded and diagnosed."""
+    from twind.analysis.corpus import run_demo
+
+    run_demo(_etmx(args), args.output, args.effect, say=lambda line: print(line, flush=True))
+    return 0
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -550,11 +561,22 @@ def build_parser() -> argparse.ArgumentParser:
     soak_p.add_argument("--config")
     soak_p.set_defaults(func=cmd_soak)
 
+    demo = sub.add_parser("demo", help="a 'real' twin with a concealed effect beside a "
+                                       "nominal one: excited, recorded, diagnosed")
+    demo.add_argument("--config")
+    demo.add_argument("--effect", default="actuator_pole",
+                      choices=["coil_imbalance", "osem_imbalance", "loop_delay",
+                               "actuator_pole"])
+    demo.add_argument("-o", "--output", default="twind-demo",
+                      help="directory for the recordings and reports (default twind-demo)")
+    demo.set_defaults(func=cmd_demo)
+
     bench = sub.add_parser("bench", help="engine speed against python-control, or twind tf")
     bench.add_argument("--suite", choices=list(BENCH_SUITES), default="engine",
                        help="engine: simulation speed; tf: twind tf on a written session; "
                             "pull: calibration of twind fit's sigmas; information: D-optimal "
-                            "excitation against white noise on the twin")
+                            "excitation against white noise on the twin; diagnose: twind "
+                            "diagnose on the proof corpus (--route, --per-effect, --nulls)")
     bench.add_argument("--config")
     bench.add_argument("--duration", type=float, default=None,
                        help="engine: simulated seconds per run (default 20); tf: seconds of "
@@ -563,6 +585,10 @@ def build_parser() -> argparse.ArgumentParser:
                                          "temporary one)")
     bench.add_argument("--keep", action="store_true", help="tf: keep the session file")
     bench.add_argument("--realisations", type=int, default=100, help="pull: noise realisations")
+    bench.add_argument("--route", choices=["xml", "mcap", "both"], default="xml",
+                       help="diagnose: the corpus as diaggui XML sets or MCAP sessions")
+    bench.add_argument("--per-effect", type=int, default=3, help="diagnose: cases per effect")
+    bench.add_argument("--nulls", type=int, default=3, help="diagnose: drift-only cases")
     bench.add_argument("--bw", type=float, default=0.02, help="pull: Welch resolution (Hz)")
     bench.add_argument("--no-marginal", action="store_true",
                        help="skip the 200 s - 20 s marginal speed of 'twind simulate'")

@@ -32,7 +32,7 @@ from twind.analysis.locate import Located, _null_moments, locate
 from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
-from twind.model.effects import CATALOGUE
+from twind.model.effects import CATALOGUE, model_names
 
 ALPHA = 0.01
 """False-alarm probability of claiming an effect (over the whole catalogue)."""
@@ -63,10 +63,10 @@ class EffectFit:
         names = CATALOGUE[self.effect].params
         got = dict(zip(self.result.names, zip(self.result.values, self.result.sigma,
                                               strict=True), strict=True))
-        return {"effect": self.effect,
-                "params": {n: float(got[n][0]) for n in names},
-                "sigma": {n: None if math.isnan(got[n][1]) else float(got[n][1])
-                          for n in names},
+        params, sigma = model_names(
+            self.effect, {n: float(got[n][0]) for n in names},
+            {n: None if math.isnan(got[n][1]) else float(got[n][1]) for n in names})
+        return {"effect": self.effect, "params": params, "sigma": sigma,
                 "delta_bic": self.delta_bic, "p_value": self.p_value,
                 "equivalent": self.equivalent}
 
@@ -111,7 +111,10 @@ class Diagnosis:
             out.append(f"  {x.element:9s} {x.band_hz[0]:7.3g}-{x.band_hz[1]:<7.3g} Hz  "
                        f"{x.significance:5.1f} sigma, residual power x{x.excess:.2f}")
         for e in self.effects:
-            params = ", ".join(f"{n} {v:.4g}" for n, v in e.to_json()["params"].items())
+            params = ", ".join(
+                f"{n} {{{', '.join(f'{k} {x:.3g}' for k, x in v.items())}}}"
+                if isinstance(v, dict) else f"{n} {v:.4g}"
+                for n, v in e.to_json()["params"].items())
             out.append(f"  effect {e.effect}: delta BIC {e.delta_bic:.1f}, p {e.p_value:.2g}"
                        f" ({params})" + (f"; not told apart from {', '.join(e.equivalent)}"
                                          if e.equivalent else ""))
@@ -128,8 +131,13 @@ class Diagnosis:
         return out
 
 
+MIN_COHERENCE = 0.0
+"""Of the bins ``diagnose`` fits (:func:`diagnose`)."""
+
+
 def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
-             params: Sequence[str] = FIT_PARAMS) -> Diagnosis:
+             params: Sequence[str] = FIT_PARAMS,
+             min_coherence: float = MIN_COHERENCE) -> Diagnosis:
     """Diagnose measured TFs of `cfg`'s optic against its nominal model.
 
     Parameters
@@ -138,12 +146,18 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     cfg : OpticConfig
     params : sequence of str
         The nominal parameters refitted alongside every hypothesis.
+    min_coherence : float
+        Bins fitted (see :meth:`~twind.analysis.fit.FitData.from_tfset`): by default every
+        response wherever the excitation reached the optic, coherent or not. An effect
+        that couples one DOF into another lifts that element out of the noise only where
+        it is large; spread thinly, it is plain only in the many incoherent bins together,
+        whose errors are the noise's.
 
     Returns
     -------
     Diagnosis
     """
-    nominal = fit(tfs, cfg, params)
+    nominal = fit(tfs, cfg, params, min_coherence)
     located = locate(tfs, cfg, nominal)
     # every hypothesis is tried even when no band stands out: an effect spread thinly over
     # many bands can be plain in its own fit and invisible band by band
@@ -184,7 +198,7 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
 def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], effect: str,
          nominal: FitResult) -> EffectFit | None:
     try:
-        result = fit(tfs, cfg, params, effect=effect)
+        result = fit(tfs, cfg, params, nominal.min_coherence, effect=effect)
     except FitError:
         return None
     # directions the effect adds that the data determine (a coil imbalance's common mode

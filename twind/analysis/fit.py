@@ -132,19 +132,32 @@ class FitData:
     @classmethod
     def from_tfset(cls, tfs: TFSet, min_coherence: float = MIN_COHERENCE,
                    band: tuple[float, float] | None = None) -> FitData:
-        """The bins of `tfs` worth fitting; a FitError when none is."""
+        """The bins of `tfs` worth fitting; a FitError when none is.
+
+        Those whose neighbour-averaged coherence reaches `min_coherence` (or whose own
+        reaches :data:`SURE_COHERENCE`); with `min_coherence` <= 0, every response at the
+        frequencies where the excited DOF's own response is coherent (``twind diagnose``).
+        """
         f = tfs.frequency_hz
         H, sigma = tfs.tf["IN1"], tfs.sigma("IN1")
         g2 = tfs.coherence["IN1"]
         # a bin this coherent on its own is no fluke (P < 1e-5 from zero coherence with 5
         # averages): it keeps the tones of a sparse multisine, which smoothing would dilute
         coherent = (_smoothed(g2) >= min_coherence) | (g2 >= max(SURE_COHERENCE, min_coherence))
+        if min_coherence <= 0:
+            # every response where the excitation reached the optic (its own DOF coherent):
+            # the incoherent elements there carry the noise's errors, and together they
+            # show a coupling too small to lift one bin out of the noise
+            own = [tfs.responses.index(d) for d in tfs.excited]
+            driven = _smoothed(g2[:, own, range(len(own))]) >= MIN_COHERENCE
+            coherent = np.broadcast_to(driven[:, None, :], g2.shape)
         mask = coherent & np.isfinite(H) & (sigma > 0)
         mask &= (f > 0)[:, None, None]
         if band is not None:
             mask &= ((f >= band[0]) & (f <= band[1]))[:, None, None]
         if not mask.any():
-            msg = (f"no bin of {tfs.optic}'s IN1/EXC reaches coherence {min_coherence:g}"
+            msg = (f"no bin of {tfs.optic}'s IN1/EXC reaches coherence "
+                   f"{min_coherence if min_coherence > 0 else MIN_COHERENCE:g}"
                    + (f" in {band[0]:g}-{band[1]:g} Hz" if band else ""))
             raise FitError(msg)
         resolution = float(np.median(np.diff(f))) if tfs.window == "hann" and f.size > 1 else 0.0
@@ -204,6 +217,10 @@ class ClosedLoopModel:
         if self.effect:
             plant = with_effect(plant, sus, self.effect,
                                 {k: v for k, v in values.items() if k not in FIT_PARAMS})
+        return self.response(plant)
+
+    def response(self, plant: Plant) -> NDArray[np.complex128]:
+        """``IN1/EXC`` of the configured loop around any `plant`, shape (len(f), 4, 4)."""
         P = plant.response(self._at)
         eye = np.eye(len(DOFS))
         T = np.linalg.inv(eye - P @ self._K) - eye
@@ -265,6 +282,7 @@ class FitResult:
     bins: int
     nominal: NDArray[np.float64] = field(repr=False)
     effect: str | None = None
+    min_coherence: float = MIN_COHERENCE  # of the bins fitted (FitData.from_tfset)
 
     @property
     def bic(self) -> float:
@@ -390,7 +408,8 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         if _union(null, _split(J)[0]).shape[1] == null.shape[1]:
             break
     r = residuals(x)
-    return _result(cfg.name, coords, x, r, J, null, datas, effect)
+    return replace(_result(cfg.name, coords, x, r, J, null, datas, effect),
+                   min_coherence=min_coherence)
 
 
 def _jacobian(fun, x: NDArray[np.float64]) -> NDArray[np.float64]:  # noqa: ANN001
@@ -579,7 +598,7 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     data = FitData.from_tfset(tfs, min_coherence=0.0)
     model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz,
                             result.effect).for_data(data)
-    used = FitData.from_tfset(tfs).mask
+    used = FitData.from_tfset(tfs, result.min_coherence).mask
     curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
               model(result.as_dict())}
     n_r, n_e = len(data.responses), len(data.excited)

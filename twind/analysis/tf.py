@@ -305,7 +305,7 @@ class _Plan:
     def of(cls, key: tuple[str, str, str], start: float, end: float,
            extents: Mapping[str, Extent], settle_s: float) -> _Plan:
         """The plan for excitation `key` (ifo, optic, DOF) from `start` to `end` (GPS)."""
-        ifo, name, dof = key
+        ifo, name, _ = key
         keys = tuple((r, p) for r in DOFS for p in POINTS
                      if all(f"{ifo}:SUS-{name}_SUS{r}_{q}" in extents for q in POINTS))
         names = (_exc(key), *(f"{ifo}:SUS-{name}_SUS{r}_{p}" for r, p in keys))
@@ -332,7 +332,7 @@ def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
     """Samples per segment; refused if the excitation holds fewer."""
     nperseg = int(round(rate / bw))
     if plan.n - plan.skip < nperseg:
-        dof = plan.names[0].rsplit("_", 1)[0][-3:]
+        dof = _CHANNEL.match(plan.names[0])["dof"]
         msg = (f"the {dof} excitation holds {max(plan.n - plan.skip, 0) / rate:.1f} s of "
                f"recorded data after {settle_s:g} s of settling, less than 1/bw = {1 / bw:g} s")
         raise TFError(msg)

@@ -149,3 +149,18 @@ def with_effect(plant: Plant, sus: SOSParams, effect: str, values: Mapping[str, 
         msg = f"{effect} takes {', '.join(entry.params)}, not {', '.join(unknown)}"
         raise EffectError(msg)
     return entry.apply(plant, sus, values)
+
+
+def model_names(effect: str, values: Mapping[str, float], sigma: Mapping[str, float | None]
+                ) -> tuple[dict, dict]:
+    """An effect's fitted parameters and their sigmas in MODEL.md's names: the face gains
+    as ``{"gains": {"UL": ...}}``, a driver pole as ``f_hz`` (fitted as 1/f, which is
+    linear near the nominal model; its sigma propagated to first order)."""
+    if effect in ("coil_imbalance", "osem_imbalance"):
+        return ({"gains": {f: values[f"gain_{f}"] for f in FACES}},
+                {"gains": {f: sigma[f"gain_{f}"] for f in FACES}})
+    if effect == "actuator_pole":
+        inv, s = values["inv_f_hz"], sigma["inv_f_hz"]
+        f = 1 / inv if inv > 0 else math.inf
+        return {"f_hz": f}, {"f_hz": None if s is None or inv <= 0 else s / inv**2}
+    return dict(values), dict(sigma)

@@ -34,7 +34,7 @@ import datetime
 import json
 import struct
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib.metadata import version as _dist_version
 from pathlib import Path
@@ -403,15 +403,19 @@ class SessionWriter:
     config : mapping, optional
         Extra configuration (e.g. the optics and their parameters) for the ``twin/@config``
         snapshot.
+    channels : callable, optional
+        ``channels(name)`` is true for the channels to write; default all of a block's.
     """
 
     def __init__(self, path: str | Path, ifo: str, gps_start: float,
-                 config: Mapping[str, Any] | None = None) -> None:
+                 config: Mapping[str, Any] | None = None,
+                 channels: Callable[[str], bool] | None = None) -> None:
         # no twin/@config message: see the module docstring
         self._file = McapSession(path, ifo, {"gps": gps_start, **(config or {})},
                                  writer="twind simulate", config_message=False)
         self.path = self._file.path
         self.ifo, self.gps_start, self.sequence = ifo, gps_start, 0
+        self.channels = channels
 
     def write_block(self, block) -> None:  # noqa: ANN001 - twind.simulation.engine.Block
         """Append every channel of `block` as one message each."""
@@ -419,6 +423,8 @@ class SessionWriter:
 
         gps = self.gps_start + block.start_sample / block.rate_hz
         for name, unit, samples in block_channels(self.ifo, block):
+            if self.channels is not None and not self.channels(name):
+                continue
             data = SampleBlock(name, gps, block.rate_hz, self.sequence, samples, unit).encode()
             self._file.write_block(data, BlockHeader(name, gps, block.rate_hz, self.sequence,
                                                      unit, ()))

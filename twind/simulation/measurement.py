@@ -1,5 +1,6 @@
 """A diaggui-style FFT measurement on the twin, without the bus: excite each DOF of an optic
-in turn, record its test points, and estimate the transfer functions.
+in turn, record its test points, and estimate the transfer functions (:func:`measure_tfs`),
+or write them to an MCAP session as the twin records one (:func:`record_measurement`).
 
 The DOFs are measured simultaneously on independent copies of the optic (separate noise
 streams), which is what measuring them one after the other on a stationary optic gives, in
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +24,8 @@ from twind.config import OpticConfig
 from twind.loop.plant import Plant
 from twind.simulation.engine import Engine
 
+BLOCK = 1024
+"""Samples per engine step of :func:`record_measurement`: the service's 1/16 s block."""
 SETTLE_S = 30.0
 """Seconds run before recording.  The slowest closed-loop pole of the 40m damping loops
 (Q ~ 5 at 0.69 Hz) decays with tau = Q / (pi f) ~ 2.3 s; 30 s leaves 2e-6 of the switch-on
@@ -121,3 +125,58 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     tfs = assemble(cfg.name, freq, columns, navg)
     tfs.window, tfs.exc_psd = window, exc_psd
     return tfs
+
+
+def record_measurement(cfg: OpticConfig, path: str | Path, dofs: Sequence[str] = ("POS", "PIT", "YAW"),
+                       *, bw: float = 0.05, averages: int = 10, overlap: float = 0.5,
+                       rms: float = 1.0, f_max: float = 30.0, seed: int = 0,
+                       plant: Plant | None = None, ifo: str = "C1",
+                       gps_start: float = 1.4e9) -> Path:
+    """The measurement :func:`measure_tfs` makes, recorded as a twin session: `cfg`'s optic
+    excited on each DOF in turn (white noise, :data:`SETTLE_S` of settling then enough for
+    `averages`), its test points written to an MCAP file with the injection events
+    ``twind tf`` reads (``from_session(path, bw, settle_s=SETTLE_S)``).
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The optic as it "really" is.
+    path : str or Path
+        MCAP file to create.
+    dofs, bw, averages, overlap, rms, f_max, seed, plant
+        As :func:`measure_tfs`.
+    ifo : str
+        Channel-name prefix.
+    gps_start : float
+        GPS time of the first sample.
+
+    Returns
+    -------
+    Path
+    """
+    from twind.channels import dof_channel
+    from twind.recording.writer import SessionWriter
+
+    rate = cfg.sus.sample_rate_hz
+    nperseg = int(round(rate / bw))
+    seconds = SETTLE_S + (nperseg + (averages - 1) * (nperseg - int(nperseg * overlap))) / rate
+    n = int(np.ceil(seconds * rate / BLOCK)) * BLOCK
+    loop = cfg.loop()
+    loop.plant = plant or loop.plant
+    engine = Engine([loop], {cfg.name: cfg.noise}, seed=seed, rate_hz=rate)
+    rng = np.random.default_rng(seed)
+    points = {dof_channel(ifo, cfg.name, d, p) for d in DOFS for p in ("EXC", *POINTS)}
+    with SessionWriter(path, ifo, gps_start, {"optics": [cfg.name]},
+                       channels=points.__contains__) as w:
+        for k, dof in enumerate(dofs):
+            start = gps_start + k * n / rate
+            event = {"id": f"exc-{k}", "channel": dof_channel(ifo, cfg.name, dof, "EXC"),
+                     "start_gps": start, "request": {"waveform": "noise", "amp": rms,
+                                                     "duration": n / rate}}
+            w.write_event({"event": "start", "gps": start, **event})
+            exc = np.zeros((1, len(DOFS), n))
+            exc[0, DOFS.index(dof)] = white_excitation(n, rate, rms, f_max, rng)
+            for a in range(0, n, BLOCK):
+                w.write_block(engine.step(BLOCK, exc=exc[:, :, a:a + BLOCK]))
+            w.write_event({"event": "end", "gps": start + n / rate, **event})
+    return Path(path)

@@ -1,0 +1,367 @@
+"""The proof corpus of ``twind diagnose`` and the benchmark that scores it
+(``twind bench --suite corpus``).
+
+Each case is an optic whose nominal parameters drifted at random (:data:`SPREAD`) and,
+except for the nulls, that carries one effect of MODEL.md's catalogue, put into the plant
+the twin runs *by hand here*: the coil or OSEM columns of the actuation and sensing
+matrices, the loop delay, the coil-driver pole, the SIDE column of the face OSEMs. None of
+it goes through :mod:`twind.model.effects`, whose models the diagnosis fits to explain it.
+The twin's time-domain engine measures the optic, noise through the loop, and the
+measurement reaches ``diagnose`` as users have it: a diaggui XML set (like example_null) or
+an MCAP session with its injection events.
+
+Each effect is concealed: scaled so that its largest change of any bin of ``IN1/EXC`` the
+fit uses is :data:`CONCEAL_SIGMA` times that bin's standard error, while its change summed
+over all bins (``present``, in chi^2 units) shows it is there.
+
+Scored as the issue asks: the right effect named (or declared equivalent) with its key
+parameter within 35 %; nothing claimed on the nulls; chi^2/nu after augmentation against
+the nulls'; seconds per case.
+
+Not in the corpus yet: ``side_coupling`` (see :data:`EFFECTS`), ``wire_asymmetry`` (the geometric model's centre-of-mass offset and
+MODEL.md's K_x_phi disagree by ~300x; to be reconciled before a case can be scored) and
+bounce/roll (not in the catalogue's models).
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from twind.analysis.fit import (
+    ClosedLoopModel,
+    FitData,
+    FitError,
+    param_value,
+    with_params,
+)
+from twind.config import OpticConfig
+from twind.loop.plant import Plant
+
+CONCEAL_SIGMA = 3.0
+"""Largest change of one bin of IN1/EXC an effect makes, in that bin's standard errors."""
+SPREAD = {"wire_length_m": 0.015, "b_m": 0.02, "R1_m": 0.02, "coil_N_per_ct": 0.03,
+          "osem_lever_m": 0.015, "Q_POS": 0.15, "Q_PIT": 0.15, "Q_YAW": 0.15, "Q_SIDE": 0.15}
+"""Relative standard deviation of each nominal parameter's drift from case to case."""
+EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole")
+"""The catalogue effects the corpus hides by default (``side_coupling`` too on request: a
+POS/PIT/YAW measurement barely moves SIDE, so no physical coupling reaches 3 sigma in it)."""
+KEY_TOLERANCE = 0.35
+FACES = ("UL", "UR", "LL", "LR")
+# directions of four face gains a damping-loop measurement determines: pitch-like and
+# yaw-like; their mean is a change of coil (or lever) strength, their butterfly is unseen
+_SEEN = np.array([[1.0, 1.0, -1.0, -1.0], [1.0, -1.0, 1.0, -1.0]]) / 2
+
+
+@dataclass
+class Case:
+    """One optic of the corpus.
+
+    Attributes
+    ----------
+    name : str
+    effect : str or None
+        The catalogue effect hidden in `plant`; None for a null.
+    real : OpticConfig
+        The drifted optic.
+    plant : Plant
+        The plant the twin runs.
+    truth : dict
+        The effect's parameters in MODEL.md's names.
+    largest_sigma : float
+        Largest change of one bin of IN1/EXC the effect makes, in standard errors.
+    present : float
+        The effect's change summed over the bins, in chi^2 units.
+    """
+
+    name: str
+    effect: str | None
+    real: OpticConfig
+    plant: Plant
+    truth: dict = field(default_factory=dict)
+    largest_sigma: float = 0.0
+    present: float = 0.0
+
+
+def drifted(cfg: OpticConfig, rng: np.random.Generator) -> OpticConfig:
+    """`cfg` with each nominal parameter drifted by :data:`SPREAD` (Gaussian)."""
+    values = {k: param_value(cfg.sus, k) * (1 + s * rng.standard_normal())
+              for k, s in SPREAD.items()}
+    return replace(cfg, sus=with_params(cfg.sus, values))
+
+
+def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64]
+           ) -> tuple[Plant, dict]:
+    """`plant` with `effect` of `size` put in by hand, and its parameters in MODEL.md's names.
+
+    `direction` (4 values) spreads an imbalance over the face coils or OSEMs."""
+    if effect == "coil_imbalance":
+        gains = size * direction  # MODEL.md's g_i: F_i (1 + g_i)
+        act = plant.actuation.copy()
+        act[:, :4] *= 1 + gains
+        return replace(plant, actuation=act), {"gains": dict(zip(FACES, gains.tolist(),
+                                                                  strict=True))}
+    if effect == "osem_imbalance":
+        gains = size * direction
+        sens = plant.sensing.copy()
+        sens[:4] *= (1 + gains)[:, None]
+        return replace(plant, sensing=sens), {"gains": dict(zip(FACES, gains.tolist(),
+                                                                strict=True))}
+    size = float(size)
+    if effect == "loop_delay":
+        return replace(plant, delay_s=plant.delay_s + size), {"extra_s": size}
+    if effect == "actuator_pole":
+        return replace(plant, drive_pole_hz=1 / size), {"f_hz": 1 / size}
+    if effect == "side_coupling":
+        sens = plant.sensing.copy()
+        sens[:4, 3] += size
+        return replace(plant, sensing=sens), {"sensing": size}
+    msg = f"the corpus has no hand-made {effect!r}; it makes {', '.join(EFFECTS)}"
+    raise ValueError(msg)
+
+
+_FIRST_SIZE = {"coil_imbalance": 1e-3, "osem_imbalance": 1e-3, "loop_delay": 1e-4,
+               "actuator_pole": 1 / 300, "side_coupling": 1e-2}
+
+
+def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArray,
+            target: float = CONCEAL_SIGMA) -> tuple[Plant, dict, float, float]:
+    """The effect scaled so that its largest change of a bin ``diagnose`` fits is `target`
+    standard errors of `reference` (a measurement of the same kind, its bins as
+    ``diagnose`` chooses them).
+
+    Returns the plant, its effect parameters, the largest change and the summed one."""
+    base = Plant.from_params(real.sus, real.mechanics())
+    model = ClosedLoopModel(real, reference.frequency_hz, reference.resolution_hz)
+    rows, cols = _indices(reference)
+
+    def in1(plant: Plant) -> NDArray[np.complex128]:
+        return model.response(plant)[:, rows][:, :, cols]
+
+    T0 = in1(base)
+
+    def change(size: float) -> NDArray[np.float64]:
+        z = np.abs(in1(hidden(base, effect, size, direction)[0]) - T0) / reference.sigma
+        return z[reference.mask]
+
+    size = _FIRST_SIZE[effect]
+    for _ in range(3):  # nearly linear in size: a few secant steps
+        size *= target / max(change(size).max(), 1e-12)
+    if effect == "loop_delay":  # the engine delays by whole samples
+        rate = real.sus.sample_rate_hz
+        size = max(round(size * rate), 1) / rate
+    z = change(size)
+    plant, truth = hidden(base, effect, size, direction)
+    return plant, truth, float(z.max()), float(np.sum(z**2))
+
+
+def _indices(data: FitData) -> tuple[list[int], list[int]]:
+    from twind import DOFS
+
+    return [DOFS.index(d) for d in data.responses], [DOFS.index(d) for d in data.excited]
+
+
+def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls: int = 3,
+               seed: int = 11, effects: Sequence[str] = EFFECTS) -> list[Case]:
+    """The corpus: `nulls` drifted optics and `per_effect` of each effect, concealed."""
+    rng = np.random.default_rng(seed)
+    cases = []
+    for k in range(nulls):
+        real = drifted(cfg, rng)
+        cases.append(Case(f"null #{k + 1}", None, real,
+                          Plant.from_params(real.sus, real.mechanics())))
+    for effect in effects:
+        for k in range(per_effect):
+            real = drifted(cfg, rng)
+            direction = rng.standard_normal(4)
+            direction /= np.abs(direction).max()
+            plant, truth, largest, present = conceal(real, effect, reference, direction)
+            cases.append(Case(f"{effect} #{k + 1}", effect, real, plant, truth, largest,
+                              present))
+    return cases
+
+
+# ------------------------------------------------------------------------------ scoring
+@dataclass
+class Score:
+    """How ``diagnose`` did on one case."""
+
+    case: Case
+    named: bool  # the case's effect is the winner or declared equivalent (nulls: nothing)
+    claimed: list[str]
+    key_error: float  # relative error of the key parameter (nan: not named, or a null)
+    chi2_nu_nominal: float
+    chi2_nu_final: float
+    seconds: float
+
+
+def key_error(effect: str, truth: dict, fitted: dict) -> float:
+    """Relative error of an effect's key parameter: the face gains' pitch- and yaw-like
+    part (what the measurement determines), ``extra_s``, ``f_hz`` or ``sensing``."""
+    if effect in ("coil_imbalance", "osem_imbalance"):
+        t = _SEEN @ np.array([truth["gains"][f] for f in FACES])
+        g = _SEEN @ np.array([fitted["gains"][f] for f in FACES])
+        return float(np.linalg.norm(g - t) / np.linalg.norm(t))
+    key = {"loop_delay": "extra_s", "actuator_pole": "f_hz", "side_coupling": "sensing"}[effect]
+    return abs(fitted[key] - truth[key]) / abs(truth[key])
+
+
+def score(case: Case, diagnosis, seconds: float) -> Score:  # noqa: ANN001 - Diagnosis
+    """Score one diagnosis (None: it failed) against its case."""
+    if diagnosis is None:
+        return Score(case, False, ["(failed)"], math.nan, math.nan, math.nan, seconds)
+    out = diagnosis.to_json()
+    claimed = [e["effect"] for e in out["effects"]]
+    named = not claimed if case.effect is None else case.effect in claimed
+    err = math.nan
+    if named and case.effect is not None:
+        fitted = next(e for e in out["effects"] if e["effect"] == case.effect)
+        err = key_error(case.effect, case.truth, fitted["params"])
+    return Score(case, named, claimed, err, out["chi2_nu_nominal"], out["chi2_nu_final"],
+                 seconds)
+
+
+# ------------------------------------------------------------------------------ routes
+def measure(case: Case, route: str, workdir: Path, seed: int):  # noqa: ANN201 - TFSet
+    """The case's measurement as users have it: ``"xml"`` (a diaggui set written from the
+    twin's TFs) or ``"mcap"`` (a session recorded from the twin's engine)."""
+    from twind.analysis.diaggui import write_measurement_set
+    from twind.analysis.tf import from_diaggui, from_session
+    from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
+
+    here = Path(tempfile.mkdtemp(dir=workdir))
+    if route == "xml":
+        tfs = measure_tfs(case.real, bw=BW, averages=AVERAGES, rms=RMS, seed=seed,
+                          plant=case.plant)
+        return from_diaggui(write_measurement_set(tfs, here))
+    if route == "mcap":
+        path = record_measurement(case.real, here / "session.mcap", bw=BW, averages=AVERAGES,
+                                  rms=RMS, seed=seed, plant=case.plant)
+        try:
+            return from_session([path], bw=BW, settle_s=SETTLE_S)
+        finally:
+            path.unlink()
+    msg = f"unknown route {route!r}: xml or mcap"
+    raise ValueError(msg)
+
+
+BW, AVERAGES, RMS = 0.05, 10, 3.0
+"""The corpus measurement: white EXC of RMS 3 below 30 Hz on POS, PIT, YAW, 0.05 Hz, 10
+averages (example_null's layout)."""
+
+
+def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls: int = 3,
+               seed: int = 11, effects: Sequence[str] = EFFECTS,
+               say: Callable[[str], None] = print) -> list[Score]:
+    """Build the corpus, measure and diagnose every case, print a line each and the rates.
+
+    Returns
+    -------
+    list of Score
+    """
+    from twind.analysis.diagnose import MIN_COHERENCE, diagnose
+    from twind.simulation.measurement import measure_tfs
+
+    # the bins diagnose fits, and their errors
+    reference = FitData.from_tfset(measure_tfs(cfg, bw=BW, averages=AVERAGES, rms=RMS,
+                                               seed=seed), MIN_COHERENCE)
+    cases = make_cases(cfg, reference, per_effect, nulls, seed, effects)
+    scores = []
+    with tempfile.TemporaryDirectory(prefix="twind-corpus-") as tmp:
+        for k, case in enumerate(cases):
+            t0 = time.perf_counter()
+            tfs = measure(case, route, Path(tmp), seed + 100 + k)
+            try:
+                d = diagnose(tfs, cfg)
+            except FitError as err:  # a failure of the tool, scored as a miss
+                say(f"{case.name:18s} diagnose failed: {err}")
+                d = None
+            s = score(case, d, time.perf_counter() - t0)
+            scores.append(s)
+            say(_line(s))
+    for line in summary(scores):
+        say(line)
+    return scores
+
+
+def _line(s: Score) -> str:
+    c = s.case
+    hidden_ = (f"largest bin {c.largest_sigma:.1f} sigma, present {c.present:6.0f}"
+               if c.effect else "drift only" + " " * 27)
+    key = "" if math.isnan(s.key_error) else f"  key param {100 * s.key_error:5.1f} %"
+    verdict = ", ".join(s.claimed) or "consistent"
+    return (f"{c.name:18s} {hidden_}  chi2/nu {s.chi2_nu_nominal:6.2f} -> "
+            f"{s.chi2_nu_final:5.2f}  {'ok ' if s.named else 'MISS'} {verdict}{key}"
+            f"  [{s.seconds:.0f} s]")
+
+
+def summary(scores: Sequence[Score]) -> list[str]:
+    """The issue's targets, as measured on `scores`."""
+    effects = [s for s in scores if s.case.effect]
+    nulls = [s for s in scores if not s.case.effect]
+    named = [s for s in effects if s.named]
+    keyed = [s for s in named if s.key_error <= KEY_TOLERANCE]
+    null_chi = np.array([s.chi2_nu_nominal for s in nulls]) if nulls else np.array([np.nan])
+    final = np.array([s.chi2_nu_final for s in named]) if named else np.array([np.nan])
+    secs = np.array([s.seconds for s in scores])
+    return [
+        f"effects named (or equivalent): {len(named)}/{len(effects)} "
+        f"= {100 * len(named) / max(len(effects), 1):.0f} % (target >= 90 %)",
+        f"  with the key parameter within {100 * KEY_TOLERANCE:.0f} %: {len(keyed)}/"
+        f"{len(effects)} = {100 * len(keyed) / max(len(effects), 1):.0f} %",
+        f"nulls with an effect claimed: {sum(not s.named for s in nulls)}/{len(nulls)} "
+        "(target 0)",
+        f"chi2/nu after augmentation: mean {np.mean(final):.2f}, max {np.max(final):.2f}; "
+        f"nulls' mean {np.mean(null_chi):.2f}, max {np.max(null_chi):.2f}",
+        f"seconds per case (measurement + diagnosis): median {np.median(secs):.0f}, "
+        f"max {np.max(secs):.0f} (target < 60)",
+    ]
+
+
+# ------------------------------------------------------------------------------ the demo
+def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", seed: int = 3,
+             say: Callable[[str], None] = print) -> tuple:
+    """A "real" optic (drifted, `effect` concealed in its plant) and the nominal one, both
+    excited alike on the twin's engine and recorded as twin sessions (MCAP), then each
+    diagnosed from its recording alone; reports (Bode matrices before and after, HTML,
+    Rerun) under `out`/real and `out`/nominal.
+
+    Returns
+    -------
+    (Diagnosis, Diagnosis)
+        The real optic's and the nominal one's.
+    """
+    from twind.analysis.diagnose import MIN_COHERENCE, diagnose, write_report
+    from twind.analysis.tf import from_session
+    from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
+
+    out = Path(out)
+    rng = np.random.default_rng(seed)
+    reference = FitData.from_tfset(measure_tfs(cfg, bw=BW, averages=AVERAGES, rms=RMS,
+                                               seed=seed), MIN_COHERENCE)
+    real = drifted(cfg, rng)
+    direction = rng.standard_normal(4)
+    plant, truth, largest, present = conceal(real, effect, reference, direction / 2)
+    say(f"real {cfg.name}: drifted, with {effect} {truth} hidden in its plant "
+        f"(largest bin {largest:.1f} sigma, {present:.0f} in chi^2 units over all bins)")
+    results = []
+    for name, optic, run in (("real", real, plant), ("nominal", cfg, None)):
+        out.mkdir(parents=True, exist_ok=True)
+        path = out / f"{name}.mcap"
+        say(f"{name}: exciting POS, PIT, YAW in turn and recording {path} ...")
+        record_measurement(optic, path, bw=BW, averages=AVERAGES, rms=RMS, seed=seed + 1,
+                           plant=run)
+        tfs = from_session([path], bw=BW, settle_s=SETTLE_S)
+        d = diagnose(tfs, cfg)
+        write_report(d, tfs, cfg, out / name)
+        say(f"{name}: " + "\n  ".join(d.lines()))
+        say(f"{name}: report in {out / name}/index.html")
+        results.append(d)
+    return tuple(results)
