@@ -659,38 +659,37 @@ def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolE
 
     truncation = (EndOfFile, McapError, ValueError, struct.error, zstandard.ZstdError)
     records = _Records(path, size)
-    if True:
+    try:
         try:
-            try:
-                for record in records:
-                    if isinstance(record, _ChunkView):
-                        pending.append(pool.submit(_decode, record.compression,
-                                                   record.data, record.uncompressed_size,
-                                                   record.uncompressed_crc, reader.channel_map()))
-                    elif isinstance(record, DataEnd):
-                        data_end = True
-                    elif isinstance(record, Footer):
-                        footer = True
-                    elif not data_end:  # the summary repeats schemas and channels
-                        pending.append(record)
-                    drain(_PREFETCH)
-            except truncation:
-                # the chunks read before the error count; a damaged one among them is the
-                # reason given
-                drain(0)
-                raise
+            for record in records:
+                if isinstance(record, _ChunkView):
+                    pending.append(pool.submit(_decode, record.compression,
+                                               record.data, record.uncompressed_size,
+                                               record.uncompressed_crc, reader.channel_map()))
+                elif isinstance(record, DataEnd):
+                    data_end = True
+                elif isinstance(record, Footer):
+                    footer = True
+                elif not data_end:  # the summary repeats schemas and channels
+                    pending.append(record)
+                drain(_PREFETCH)
+        except truncation:
+            # the chunks read before the error count; a damaged one among them is the
+            # reason given
             drain(0)
-        except InvalidMagic as err:
-            if records.at <= 8 and size >= 8:
-                msg = f"{path}: not an MCAP file ({err})"
-                raise RecordingError(msg) from None
-            footer = False
-            reason = str(err)
-        except truncation as err:
-            footer = False
-            reason = truncation_reason(err, size)
-        else:
-            reason = ""
+            raise
+        drain(0)
+    except InvalidMagic as err:
+        if records.at <= 8 and size >= 8:
+            msg = f"{path}: not an MCAP file ({err})"
+            raise RecordingError(msg) from None
+        footer = False
+        reason = str(err)
+    except truncation as err:
+        footer = False
+        reason = truncation_reason(err, size)
+    else:
+        reason = ""
     if not footer:
         report_truncation(path, data_end, chunks, size, reason, problems, stacklevel=6)
     if not state.config_seen and CONFIG_METADATA in state.metadata:
