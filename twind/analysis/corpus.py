@@ -54,6 +54,9 @@ EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole")
 """The catalogue effects the corpus hides by default (``side_coupling`` too on request: a
 POS/PIT/YAW measurement barely moves SIDE, so no physical coupling reaches 3 sigma in it)."""
 KEY_TOLERANCE = 0.35
+BW, AVERAGES, RMS = 0.05, 10, 3.0
+"""The corpus measurement: white EXC of RMS 3 below 30 Hz on POS, PIT, YAW, 0.05 Hz, 10
+averages (example_null's layout)."""
 FACES = ("UL", "UR", "LL", "LR")
 # directions of four face gains a damping-loop measurement determines: pitch-like and
 # yaw-like; their mean is a change of coil (or lever) strength, their butterfly is unseen
@@ -168,6 +171,16 @@ def _indices(data: FitData) -> tuple[list[int], list[int]]:
     return [DOFS.index(d) for d in data.responses], [DOFS.index(d) for d in data.excited]
 
 
+def reference_data(cfg: OpticConfig, seed: int) -> FitData:
+    """A corpus measurement of the nominal optic, its bins as ``diagnose`` chooses them:
+    the errors the effects are concealed against."""
+    from twind.analysis.diagnose import MIN_COHERENCE
+    from twind.simulation.measurement import measure_tfs
+
+    return FitData.from_tfset(measure_tfs(cfg, bw=BW, averages=AVERAGES, rms=RMS, seed=seed),
+                              MIN_COHERENCE)
+
+
 def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls: int = 3,
                seed: int = 11, effects: Sequence[str] = EFFECTS) -> list[Case]:
     """The corpus: `nulls` drifted optics and `per_effect` of each effect, concealed."""
@@ -252,11 +265,6 @@ def measure(case: Case, route: str, workdir: Path, seed: int):  # noqa: ANN201 -
     raise ValueError(msg)
 
 
-BW, AVERAGES, RMS = 0.05, 10, 3.0
-"""The corpus measurement: white EXC of RMS 3 below 30 Hz on POS, PIT, YAW, 0.05 Hz, 10
-averages (example_null's layout)."""
-
-
 def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls: int = 3,
                seed: int = 11, effects: Sequence[str] = EFFECTS,
                say: Callable[[str], None] = print) -> list[Score]:
@@ -266,13 +274,9 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
     -------
     list of Score
     """
-    from twind.analysis.diagnose import MIN_COHERENCE, diagnose
-    from twind.simulation.measurement import measure_tfs
+    from twind.analysis.diagnose import diagnose
 
-    # the bins diagnose fits, and their errors
-    reference = FitData.from_tfset(measure_tfs(cfg, bw=BW, averages=AVERAGES, rms=RMS,
-                                               seed=seed), MIN_COHERENCE)
-    cases = make_cases(cfg, reference, per_effect, nulls, seed, effects)
+    cases = make_cases(cfg, reference_data(cfg, seed), per_effect, nulls, seed, effects)
     scores = []
     with tempfile.TemporaryDirectory(prefix="twind-corpus-") as tmp:
         for k, case in enumerate(cases):
@@ -338,17 +342,16 @@ def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", s
     (Diagnosis, Diagnosis)
         The real optic's and the nominal one's.
     """
-    from twind.analysis.diagnose import MIN_COHERENCE, diagnose, write_report
+    from twind.analysis.diagnose import diagnose, write_report
     from twind.analysis.tf import from_session
-    from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
+    from twind.simulation.measurement import SETTLE_S, record_measurement
 
     out = Path(out)
     rng = np.random.default_rng(seed)
-    reference = FitData.from_tfset(measure_tfs(cfg, bw=BW, averages=AVERAGES, rms=RMS,
-                                               seed=seed), MIN_COHERENCE)
     real = drifted(cfg, rng)
     direction = rng.standard_normal(4)
-    plant, truth, largest, present = conceal(real, effect, reference, direction / 2)
+    plant, truth, largest, present = conceal(real, effect, reference_data(cfg, seed),
+                                             direction / 2)
     say(f"real {cfg.name}: drifted, with {effect} {truth} hidden in its plant "
         f"(largest bin {largest:.1f} sigma, {present:.0f} in chi^2 units over all bins)")
     results = []

@@ -276,11 +276,11 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         plan = _Plan.of(key, start, end, extents, settle_s)
         whole = [session[c].samples[o:][:plan.n] for c, o in zip(plan.names, plan.offsets,
                                                                   strict=True)]
+        rate = session[plan.names[0]].rate
         if highpass_hz:
-            x, *ys = highpassed(whole, session[plan.names[0]].rate, highpass_hz, plan.skip)
+            x, *ys = highpassed(whole, rate, highpass_hz, plan.skip)
         else:
             x, *ys = (w[plan.skip:] for w in whole)
-        rate = session[plan.names[0]].rate
         nperseg = _nperseg(rate, bw, plan, settle_s)
         f, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
         freq, averages = f, navg
@@ -342,8 +342,7 @@ def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
 def _excitations(events: list[dict], extents: Mapping[str, Extent], optic: str | None,
                  paths: Sequence[str | Path]) -> dict[tuple[str, str, str], tuple[float, float]]:
     """The excitation of each excited DOF of one optic (refused: none, several optics)."""
-    rates = [e.rate for e in extents.values()]
-    segments = _segments(events, max(rates) if rates else 16384.0)
+    segments = _segments(events, _rate(extents))
     if optic is not None:
         segments = {k: v for k, v in segments.items() if k[1] == optic}
     if not segments:
@@ -363,9 +362,8 @@ def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str
     from twind.recording.fastread import stream_channels
 
     def planner(events: list[dict], extents: Mapping[str, Extent]) -> dict:
-        rates = [e.rate for e in extents.values()]
         return {key: _Plan.of(key, start, end, extents, settle_s).segment
-                for key, (start, end) in _segments(events, max(rates, default=16384.0)).items()
+                for key, (start, end) in _segments(events, _rate(extents)).items()
                 if optic in (None, key[1]) and _exc(key) in extents}
 
     stream = WelchStream(planner, bw, overlap, window)
@@ -389,6 +387,11 @@ def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str
     return tfs
 
 
+def _rate(extents: Mapping[str, Extent]) -> float:
+    """The rate the events' stream lengths are counted in (the fastest channel's)."""
+    return max((e.rate for e in extents.values()), default=16384.0)
+
+
 def _exc(key: tuple[str, str, str]) -> str:
     """The EXC channel of (ifo, optic, DOF)."""
     return f"{key[0]}:SUS-{key[1]}_SUS{key[2]}_EXC"
@@ -406,8 +409,6 @@ def highpassed(signals: Sequence[NDArray], rate: float, f_hz: float, skip: int
     """
     sos = signal.butter(8, f_hz, btype="highpass", fs=rate, output="sos")
     return [signal.sosfilt(sos, np.asarray(x, dtype=float))[skip:] for x in signals]
-
-
 
 
 def _segments(events: list[dict], rate_hz: float = 16384.0

@@ -53,7 +53,6 @@ class _RealFFT:
     one per thread (FFTW plans are not shared between threads)."""
 
     def __init__(self, n: int) -> None:
-        self.n = n
         try:
             import pyfftw
         except ImportError:
@@ -111,12 +110,6 @@ class _Sums:
         self.sxx = np.zeros(nf)
         self.sxy = np.zeros((self.responses, nf), dtype=np.complex128)
         self.syy = np.zeros((self.responses, nf))
-
-    def add(self, other: _Sums) -> None:
-        self.sxx += other.sxx
-        self.sxy += other.sxy
-        self.syy += other.syy
-        self.count += other.count
 
     def spectra(self, rate: float, win: NDArray
                 ) -> tuple[NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64]]:

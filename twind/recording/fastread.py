@@ -573,6 +573,7 @@ class _Records:
         from mcap.data_stream import ReadDataStream
         from mcap.exceptions import EndOfFile, InvalidMagic, RecordLengthLimitExceeded
         from mcap.opcode import Opcode
+        from mcap.writer import MCAP0_MAGIC as _MAGIC
 
         kinds = {Opcode.ATTACHMENT: r.Attachment, Opcode.ATTACHMENT_INDEX: r.AttachmentIndex,
                  Opcode.CHANNEL: r.Channel, Opcode.CHUNK_INDEX: r.ChunkIndex,
@@ -622,9 +623,6 @@ def _chunk_view(content: memoryview) -> _ChunkView:
         msg = "a chunk's records overrun it"
         raise ValueError(msg)
     return _ChunkView(compression, data, size, crc)
-
-
-_MAGIC = b"\x89MCAP0\r\n"
 
 
 def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolExecutor

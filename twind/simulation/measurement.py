@@ -77,9 +77,8 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     TFSet
     """
     rate = cfg.sus.sample_rate_hz
-    nperseg = int(round(rate / bw))
+    nperseg, n = _averaged(rate, bw, averages, overlap)
     step = nperseg - int(nperseg * overlap)
-    n = nperseg + (averages - 1) * step
     settle = int(SETTLE_S * rate)
     rng = np.random.default_rng(seed)
     exc = np.zeros((len(dofs), len(DOFS), settle + n))
@@ -127,6 +126,12 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     return tfs
 
 
+def _averaged(rate: float, bw: float, averages: int, overlap: float) -> tuple[int, int]:
+    """Samples per Welch segment, and the samples `averages` overlapping segments span."""
+    nperseg = int(round(rate / bw))
+    return nperseg, nperseg + (averages - 1) * (nperseg - int(nperseg * overlap))
+
+
 def record_measurement(cfg: OpticConfig, path: str | Path, dofs: Sequence[str] = ("POS", "PIT", "YAW"),
                        *, bw: float = 0.05, averages: int = 10, overlap: float = 0.5,
                        rms: float = 1.0, f_max: float = 30.0, seed: int = 0,
@@ -158,9 +163,8 @@ def record_measurement(cfg: OpticConfig, path: str | Path, dofs: Sequence[str] =
     from twind.recording.writer import SessionWriter
 
     rate = cfg.sus.sample_rate_hz
-    nperseg = int(round(rate / bw))
-    seconds = SETTLE_S + (nperseg + (averages - 1) * (nperseg - int(nperseg * overlap))) / rate
-    n = int(np.ceil(seconds * rate / BLOCK)) * BLOCK
+    needed = int(SETTLE_S * rate) + _averaged(rate, bw, averages, overlap)[1]
+    n = int(np.ceil(needed / BLOCK)) * BLOCK  # whole engine blocks
     loop = cfg.loop()
     loop.plant = plant or loop.plant
     engine = Engine([loop], {cfg.name: cfg.noise}, seed=seed, rate_hz=rate)
