@@ -222,11 +222,22 @@ def test_truncated_file_reads_up_to_the_last_complete_chunk(tmp_path: Path) -> N
     assert 0 < counts[1] < counts[2] < 40
 
 
-def test_fast_reader_reads_cut_gappy_and_foreign_files_as_read_session(tmp_path: Path) -> None:
-    """read_channels (a memory map, chunks decoded on a worker) keeps read_session's rules:
-    a file cut anywhere gives the same prefix of blocks and one truncation warning, gaps
-    the same NaN-filled samples, a file that is not MCAP a RecordingError."""
+@pytest.mark.parametrize("batch_bytes", [1, 1 << 13, None])
+def test_fast_reader_reads_cut_gappy_and_foreign_files_as_read_session(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, batch_bytes: int | None) -> None:
+    """read_channels (a memory map, chunks decoded on workers, a batch at a time) keeps
+    read_session's rules: a file cut anywhere gives the same prefix of blocks and one
+    truncation warning, gaps the same NaN-filled samples, a file that is not MCAP a
+    RecordingError; whatever the number of chunks decoded together."""
+    from twind.recording import fastread
     from twind.recording.fastread import read_channels
+
+    batches = []
+    if batch_bytes is not None:
+        monkeypatch.setattr(fastread, "_BATCH_BYTES", batch_bytes)
+    decode = fastread._decode_batch
+    monkeypatch.setattr(fastread, "_decode_batch",
+                        lambda chunks, m: (batches.append(len(chunks)), decode(chunks, m))[1])
 
     path = tmp_path / "full.mcap"
     _synthetic_file(path, {SYNTH[0]: list(range(40)), SYNTH[1]: [*range(10), *range(12, 40)]},
@@ -249,6 +260,7 @@ def test_fast_reader_reads_cut_gappy_and_foreign_files_as_read_session(tmp_path:
             np.testing.assert_array_equal(fast[c].sequences, slow[c].sequences)
             assert fast[c].gaps == slow[c].gaps
     assert slow[SYNTH[1]].gaps  # the last, whole file had its gap
+    assert max(batches) == 1 if batch_bytes == 1 else max(batches) > 1
     foreign = tmp_path / "notes.mcap"
     foreign.write_bytes(b"not a recording at all")
     with pytest.raises(RecordingError, match="not an MCAP file"):

@@ -344,23 +344,26 @@ def test_a_late_stop_or_a_gap_reads_the_recording_whole(tmp_path: Path,
         assert from_session([gappy], bw=0.5).averages == 1 + (60 * 1024 - 2048) // 1024
 
 
-def test_the_stream_keeps_a_few_segments_of_samples(tmp_path: Path) -> None:
-    """Memory: the samples held while reading stay at a few segments (plus the lag and the
-    history kept for late start events), however long the recording."""
+def test_the_stream_keeps_a_few_segments_of_samples(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Memory: the samples held while reading stay at a few segments (plus the lag, the
+    history kept for late start events and a batch of chunks), however long the recording."""
     from twind.analysis.tf import _exc, _Plan, _segments
     from twind.analysis.welch import HISTORY_S, LAG_S, WelchStream
-    from twind.recording.fastread import stream_channels
+    from twind.recording import fastread
 
     path = _small_session(tmp_path / "long.mcap", 600.0)
+    # a batch is a few MB: seconds of twelve 16 kHz channels, minutes of these four at 1 kHz
+    batch_s = 2.0
+    monkeypatch.setattr(fastread, "_BATCH_BYTES", int(batch_s * 4 * RATE * 8))
 
     def planner(events, extents):  # noqa: ANN001, ANN202
         return {k: _Plan.of(k, s, e, extents, 0.0).segment
                 for k, (s, e) in _segments(events, RATE).items() if _exc(k) in extents}
 
     stream = WelchStream(planner, bw=0.5)
-    stream_channels([path], lambda n: "SUSPOS" in n, stream)
+    fastread.stream_channels([path], lambda n: "SUSPOS" in n, stream)
     assert stream.result() is not None and len(stream.tails) == 4
-    # a buffer holds at most the history, or a segment, the lag and the look interval
-    seconds = max(HISTORY_S, 2.0 + LAG_S) + 8.0
-    capacity = max(t.buf.size for t in stream.tails.values())  # buffers only grow
-    assert capacity <= 2 * seconds * RATE < 600 * RATE / 4
+    # a channel holds at most the history, or a segment, the lag, the look interval, a batch
+    seconds = max(HISTORY_S, 2.0 + LAG_S) + 8.0 + batch_s
+    assert max(t.peak for t in stream.tails.values()) <= 2 * seconds * RATE < 600 * RATE / 4

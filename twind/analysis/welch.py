@@ -9,6 +9,7 @@ estimate it takes half the time of numpy's pocketfft, and the FFTs are most of t
 
 from __future__ import annotations
 
+import bisect
 import os
 import threading
 from collections.abc import Callable, Mapping, Sequence
@@ -70,9 +71,14 @@ class _RealFFT:
         return out
 
 
-def _load(seg: NDArray, win: NDArray, buf: NDArray) -> NDArray:
-    """scipy.signal's segment before its FFT: constant detrend, window."""
-    np.subtract(seg, seg.mean(), out=buf)
+def _load(parts: Sequence[NDArray], win: NDArray, buf: NDArray) -> NDArray:
+    """scipy.signal's segment before its FFT, from its consecutive `parts`: constant
+    detrend, window."""
+    if len(parts) == 1:
+        np.copyto(buf, parts[0])
+    else:
+        np.concatenate(parts, out=buf)
+    buf -= buf.mean()
     buf *= win
     return buf
 
@@ -113,19 +119,36 @@ class _Sums:
 
     def spectra(self, rate: float, win: NDArray
                 ) -> tuple[NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64]]:
-        """Frequencies, ``CSD/PSD`` and coherence, scaled as scipy scales them."""
+        """Frequencies, ``CSD/PSD`` and coherence, scaled as scipy scales them; computed in
+        place of the sums (an hour at 0.01 Hz: new memory is slow to fault in), which are
+        spent."""
         from scipy import fft
 
+        if self.count == 0:
+            msg = "no segments summed, or their spectra already taken"
+            raise WelchError(msg)
         # scipy's density scaling and one-sided doubling; they cancel in H and the coherence
         # except through rounding, so they are applied as scipy applies them
         scale = np.full(self.sxx.size, 1.0 / (rate * (win * win).sum()) / self.count)
         scale[1:-1 if self.nperseg % 2 == 0 else None] *= 2
-        pxx = self.sxx * scale
-        pxy = self.sxy * scale
-        pyy = self.syy * scale
-        freq = fft.rfftfreq(self.nperseg, 1.0 / rate)
-        with np.errstate(invalid="ignore", divide="ignore"):  # bins a periodic EXC leaves empty
-            return freq, pxy / pxx, np.abs(pxy) ** 2 / pxx / pyy
+        h, g2 = self.sxy, self.syy
+        _ratios(self.sxx, self.sxy, self.syy, scale, h, g2)
+        self.count = 0
+        return fft.rfftfreq(self.nperseg, 1.0 / rate), h, g2
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _ratios(sxx: NDArray, sxy: NDArray, syy: NDArray, scale: NDArray, h: NDArray, g2: NDArray
+            ) -> None:  # pragma: no cover - numba
+    # numpy's expression in one pass (h and g2 may be sxy and syy): an hour at 0.01 Hz is
+    # 0.5 GB of temporaries otherwise; 0/0 is NaN (bins a periodic EXC leaves empty)
+    for k in range(sxx.size):
+        pxx = sxx[k] * scale[k]
+        for i in range(sxy.shape[0]):
+            pxy = sxy[i, k] * scale[k]
+            pyy = syy[i, k] * scale[k]
+            h[i, k] = complex(pxy.real / pxx, pxy.imag / pxx)  # numpy's pxy / pxx, 0 too
+            g2[i, k] = abs(pxy) ** 2 / pxx / pyy
 
 
 class _Transforms(threading.local):
@@ -221,7 +244,8 @@ def welch_tfs(x: NDArray, ys: Sequence[NDArray], rate: float, nperseg: int,
         bufs = [_aligned(nperseg) for _ in range(1 + len(ys))]
         for k in segs:
             cut = slice(k * step, k * step + nperseg)
-            transforms.add([_load(s[cut], win, b) for s, b in zip([x, *ys], bufs, strict=True)],
+            transforms.add([_load([s[cut]], win, b)
+                            for s, b in zip([x, *ys], bufs, strict=True)],
                            sums)
 
     bounds = np.linspace(0, n, workers + 1).astype(int)
@@ -273,55 +297,68 @@ Planner = Callable[[list[dict[str, Any]], Mapping[str, Extent]], dict[Any, Segme
 
 
 class _Tail:
-    """The latest samples of one channel: ``samples(a, b)`` is its samples ``a`` to ``b``."""
+    """The latest samples of one channel, kept as the arrays they arrived in (never written
+    again): ``samples(a, b)`` is its samples ``a`` to ``b``, in parts."""
 
     def __init__(self, t0: float, rate: float) -> None:
         self.t0, self.rate = t0, rate
-        self.buf = np.empty(1 << 16)
-        self.lo = 0  # buf[lo:hi] holds samples base .. base + hi - lo
-        self.hi = 0
-        self.base = 0
-        self.blocks: list[tuple[NDArray, ...]] = []  # (sequence, GPS, rate, samples) arrays
+        self.parts: list[NDArray] = []
+        self.starts: list[int] = []  # sample index of each part's first sample
+        self.head = 0  # parts[head:] are held
+        self.total = 0  # samples received
+        self.peak = 0  # most samples held at once
+        self.next_sequence: int | None = None
+        self.regular = True
+        """Consecutive blocks at one rate without gaps so far: sample ``i`` at
+        ``t0 + i / rate``."""
 
     @property
-    def total(self) -> int:
-        """Samples received."""
-        return self.base + self.hi - self.lo
+    def base(self) -> int:
+        """Index of the first sample held."""
+        return self.starts[self.head] if self.head < len(self.parts) else self.total
 
     def extend(self, sequence: NDArray, gps: NDArray, rate: NDArray, n: NDArray,
                x: NDArray) -> None:
-        self.blocks.append((sequence, gps, rate, n))
-        if self.hi + x.size > self.buf.size:
-            held = self.hi - self.lo
-            if held + x.size <= self.buf.size // 2:
-                self.buf[:held] = self.buf[self.lo:self.hi]  # numpy copies overlaps safely
-            else:
-                grown = np.empty(2 * (held + x.size))
-                grown[:held] = self.buf[self.lo:self.hi]
-                self.buf = grown
-            self.lo, self.hi = 0, held
-        self.buf[self.hi:self.hi + x.size] = x
-        self.hi += x.size
+        self._check(sequence, gps, rate, n)
+        if x.size:
+            self.parts.append(x)
+            self.starts.append(self.total)
+            self.total += x.size
+            self.peak = max(self.peak, self.total - self.base)
 
-    @property
-    def regular(self) -> bool:
-        """Consecutive blocks at one rate without gaps: sample ``i`` at ``t0 + i / rate``."""
-        sequence, gps, rate, n = (np.concatenate(c) for c in zip(*self.blocks, strict=True))
-        expected = self.t0 + np.concatenate(([0], np.cumsum(n)[:-1])) / self.rate
-        return bool(np.all(rate == self.rate) and np.all(np.diff(sequence) == 1)
-                    and np.all(np.abs(gps - expected) * self.rate <= 0.05))
+    def _check(self, sequence: NDArray, gps: NDArray, rate: NDArray, n: NDArray) -> None:
+        if not self.regular:
+            return
+        first = self.next_sequence is None or sequence[0] == self.next_sequence
+        expected = self.t0 + (self.total + np.cumsum(n) - n) / self.rate
+        self.regular = bool(first and np.all(rate == self.rate) and np.all(np.diff(sequence) == 1)
+                            and np.all(np.abs(gps - expected) * self.rate <= 0.05))
+        self.next_sequence = int(sequence[-1]) + 1
 
-    def samples(self, a: int, b: int) -> NDArray[np.float64] | None:
-        """Samples ``a`` to ``b``, or None if some were dropped or have not arrived."""
+    def samples(self, a: int, b: int) -> list[NDArray[np.float64]] | None:
+        """Samples ``a`` to ``b`` as consecutive views, or None if some were dropped or have
+        not arrived."""
         if a < self.base or b > self.total:
             return None
-        return self.buf[self.lo + a - self.base:self.lo + b - self.base]
+        i = bisect.bisect_right(self.starts, a, self.head) - 1
+        out = []
+        while self.starts[i] < b:
+            lo = self.starts[i]
+            out.append(self.parts[i][max(a - lo, 0):b - lo])
+            i += 1
+            if i == len(self.parts):
+                break
+        return out
 
     def drop_before(self, a: int) -> None:
-        k = min(a - self.base, self.hi - self.lo)
-        if k > 0:
-            self.lo += k
-            self.base += k
+        """Forget the parts wholly before sample `a`."""
+        end = len(self.parts)
+        while self.head < end and self.starts[self.head] + self.parts[self.head].size <= a:
+            self.parts[self.head] = None  # type: ignore[call-overload] - freed now
+            self.head += 1
+        if self.head > 1024 and 2 * self.head > end:
+            del self.parts[:self.head], self.starts[:self.head]
+            self.head = 0
 
 
 @dataclass
@@ -451,10 +488,11 @@ class WelchStream:
         bufs = self._free.get()  # waits for a transform to finish when all are loaded
         if len(bufs) < len(seg):
             bufs += [_aligned(self.nperseg) for _ in range(len(seg) - len(bufs))]
-        loaded = [_load(x, self.win, b) for x, b in zip(seg, bufs, strict=False)]
 
         def transform() -> None:
+            # loaded here, not while reading: the reading thread is the one that cannot wait
             try:
+                loaded = [_load(x, self.win, b) for x, b in zip(seg, bufs, strict=False)]
                 self._transforms.add(loaded, sums)
             finally:
                 self._free.put(bufs)
