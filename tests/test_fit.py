@@ -6,6 +6,7 @@ import glob
 import io
 import json
 import math
+import warnings
 from contextlib import redirect_stdout
 from dataclasses import replace
 from pathlib import Path
@@ -80,6 +81,19 @@ def test_singular_fisher_names_the_determined_combination(etmx) -> None:  # noqa
     assert combo == "coil_N_per_ct*osem_lever_m"
     truth = DRIFT["coil_N_per_ct"] * 0.019
     assert abs(d["value"] - truth) < 3 * d["sigma"] and d["sigma"] < 0.01 * truth
+
+
+def test_determined_product_ignores_the_other_parameters_signs() -> None:
+    """An effect's parameter may be negative (a gain deficit): the product a pair of
+    log-scaled parameters determines is still their own, not NaN."""
+    from twind.analysis.fit import _name_null
+
+    null = np.array([[1.0], [-1.0], [0.0]])  # a/b unidentifiable
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no log of the negative gain
+        unident, determined = _name_null(["a", "b", "gain"], null, np.array([2.0, 3.0, -0.5]),
+                                          np.eye(3) * 1e-4, np.array([True, True, False]))
+    assert unident == ["a/b"] and determined["a*b"]["value"] == pytest.approx(6.0)
 
 
 def test_bad_requests_are_named(etmx) -> None:  # noqa: ANN001

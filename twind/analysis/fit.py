@@ -560,7 +560,8 @@ def _name_null(names: list[str], null: NDArray, values: NDArray, cov: NDArray,
             u[i], u[j] = v[j], -v[i]
             u /= u[i]
             var = float(u @ cov @ u)  # u is orthogonal to the null direction
-            value = float(np.exp(u @ np.log(values)))
+            # the pair's own values: another parameter may be negative (an effect's)
+            value = float(np.exp(u[[i, j]] @ np.log(values[[i, j]])))
             determined[_monomial([names[i], names[j]], u[[i, j]])] = {
                 "value": value, "sigma": value * math.sqrt(max(var, 0.0))}
     return unident, determined
