@@ -10,8 +10,9 @@ explains the miss, and how much better the augmented model fits.
    correlation, as ``locate`` uses): a likelihood ratio with ``k`` parameters, its p-value
    (Bonferroni over the catalogue) and ``delta_bic = LR - k ln(N)``.
    Consistent: nothing located and no effect claimed.
-3. The best effect is reported with its parameters; effects whose evidence is within
-   :data:`EQUIVALENT_BIC` of it are named as not told apart by these data.  What the best
+3. The best effect (highest delta BIC) is reported with its parameters; claimed effects that
+   fit the data about as well (likelihood ratio within :data:`EQUIVALENT_LR` of it, whatever
+   their number of parameters) are named as not told apart by these data.  What the best
    augmented model still misses is reported as unexplained, where it lies.
 
 This is the first version: the catalogue has no ``bounce_roll`` yet, and the calibration of
@@ -39,9 +40,13 @@ ALPHA = 0.01
 claimed on its likelihood ratio's calibrated p-value (Bonferroni over the catalogue). BIC's
 ln(n) per parameter (~9 for the ~5000 residuals of a 0.05 Hz measurement) would ask a
 concealed coil imbalance for far more evidence than its p-value needs; delta BIC still ranks
-the claimed effects and decides which cannot be told apart."""
-EQUIVALENT_BIC = 6.0
-"""Effects closer than this to the best one are not told apart ("strong" evidence)."""
+the claimed effects."""
+EQUIVALENT_LR = 6.0
+"""Claimed effects whose likelihood ratio (``2 ln L``) is within this of the best one's are
+not told apart by the data: less than "strong" evidence (a likelihood ratio of 20) against
+them. Parameters are not charged here: an OSEM imbalance (three gain directions) that fits
+as well as a one-parameter wire asymmetry is a rival the data leave standing, however BIC
+ranks the two."""
 
 
 class DiagnoseError(TwindError):
@@ -170,8 +175,7 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     if not claimed:
         return Diagnosis(nominal, located, [], nominal, located)
     best = claimed[0]
-    best.equivalent = [c.effect for c in claimed[1:]
-                       if best.delta_bic - c.delta_bic < EQUIVALENT_BIC]
+    best.equivalent = [c.effect for c in claimed[1:] if best.lr - c.lr < EQUIVALENT_LR]
     shown = [best] + [c for c in claimed[1:] if c.effect in best.equivalent]
     separations = {(best.effect, c.effect): separating_measurement(cfg, best.result, c.result)
                    for c in shown[1:]}

@@ -54,6 +54,9 @@ SMOOTH_BINS = 11
 """Bins chosen by the coherence averaged over this many neighbours."""
 CORRELATION_LAGS = 3
 """Neighbouring bins whose error correlation is estimated (Hann: lag 1 dominates)."""
+ROUND_EVALUATIONS = 30
+"""Residual evaluations per fitted direction in one round of the fit (scipy's default is
+100): a well-posed fit converges in a few, a direction the data leave free only runs away."""
 _NULL_COMPONENT = 0.05
 _STEP = 1e-4  # log-parameter step of the finite-difference Jacobian
 
@@ -386,7 +389,10 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
         values = dict(zip(names, coords.values(x), strict=True))
         try:
-            r = np.concatenate([d.whiten(m(values)) for d, m in zip(datas, models, strict=True)])
+            # a trial step far out overflows the loop's matrices: rejected below, not warned
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                r = np.concatenate([d.whiten(m(values))
+                                    for d, m in zip(datas, models, strict=True)])
         except np.linalg.LinAlgError:
             r = np.full(size, np.inf)  # a singular loop: a step the optimiser must reject
         # a huge but finite misfit, so that least_squares backs off instead of failing
@@ -400,12 +406,17 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         null = _union(null, _split(_jacobian(residuals, x))[0])
         x = x - null @ (null.T @ x)
         basis = _complement(null)
+        converged = True
         if basis.shape[1]:
+            # a bounded round: a direction the data do not fix (a Q without its resonance)
+            # runs away for ever otherwise; the next round's Jacobian finds it flat
             sol = least_squares(lambda z, b=basis, x0=x: residuals(x0 + b @ z),
-                                np.zeros(basis.shape[1]), method="lm", x_scale="jac")
+                                np.zeros(basis.shape[1]), method="lm", x_scale="jac",
+                                max_nfev=ROUND_EVALUATIONS * (basis.shape[1] + 1))
             x = x + basis @ sol.x
+            converged = sol.status != 0  # 0: out of evaluations
         J = _jacobian(residuals, x)
-        if _union(null, _split(J)[0]).shape[1] == null.shape[1]:
+        if converged and _union(null, _split(J)[0]).shape[1] == null.shape[1]:
             break
     r = residuals(x)
     return replace(_result(cfg.name, coords, x, r, J, null, datas, effect),
