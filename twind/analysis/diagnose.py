@@ -15,8 +15,9 @@ explains the miss, and how much better the augmented model fits.
    their number of parameters) are named as not told apart by these data.  What the best
    augmented model still misses is reported as unexplained, where it lies.
 
-This is the first version: the catalogue has no ``bounce_roll`` yet, and the calibration of
-its claims on a corpus of concealed effects (issue 5's proof) is still to be run.
+This is the first version: the catalogue has no ``bounce_roll`` yet. Its claims are scored
+on a corpus of concealed effects by ``twind bench --suite diagnose``
+(:mod:`twind.analysis.corpus`).
 """
 
 from __future__ import annotations
