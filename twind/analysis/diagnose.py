@@ -24,12 +24,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from scipy import stats
 
-from twind.analysis.fit import FIT_PARAMS, FitError, FitResult, fit
+from twind.analysis.fit import FIT_PARAMS, FitError, FitResult, fit, with_params
 from twind.analysis.locate import Located, _null_moments, locate
 from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
@@ -204,8 +204,12 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
 
 def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], effect: str,
          nominal: FitResult) -> EffectFit | None:
+    # from the refitted nominal parameters, holding those the data left free (a Q without
+    # its resonance): a hypothesis fit would chase them again to its evaluation limit
+    start = replace(cfg, sus=with_params(cfg.sus, nominal.identified()))
+    free = [p for p in params if p not in nominal.unidentifiable]
     try:
-        result = fit(tfs, cfg, params, nominal.min_coherence, effect=effect)
+        result = fit(tfs, start, free, nominal.min_coherence, effect=effect)
     except FitError:
         return None
     # directions the effect adds that the data determine (a coil imbalance's common mode
