@@ -131,24 +131,23 @@ class _Sums:
         # except through rounding, so they are applied as scipy applies them
         scale = np.full(self.sxx.size, 1.0 / (rate * (win * win).sum()) / self.count)
         scale[1:-1 if self.nperseg % 2 == 0 else None] *= 2
-        h, g2 = self.sxy, self.syy
-        _ratios(self.sxx, self.sxy, self.syy, scale, h, g2)
+        _ratios(self.sxx, self.sxy, self.syy, scale)
         self.count = 0
-        return fft.rfftfreq(self.nperseg, 1.0 / rate), h, g2
+        return fft.rfftfreq(self.nperseg, 1.0 / rate), self.sxy, self.syy
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _ratios(sxx: NDArray, sxy: NDArray, syy: NDArray, scale: NDArray, h: NDArray, g2: NDArray
+def _ratios(sxx: NDArray, sxy: NDArray, syy: NDArray, scale: NDArray
             ) -> None:  # pragma: no cover - numba
-    # numpy's expression in one pass (h and g2 may be sxy and syy): an hour at 0.01 Hz is
-    # 0.5 GB of temporaries otherwise; 0/0 is NaN (bins a periodic EXC leaves empty)
+    # numpy's expression in one pass, H into sxy and the coherence into syy: an hour at
+    # 0.01 Hz is 0.5 GB of temporaries otherwise; 0/0 is NaN (bins a periodic EXC leaves empty)
     for k in range(sxx.size):
         pxx = sxx[k] * scale[k]
         for i in range(sxy.shape[0]):
             pxy = sxy[i, k] * scale[k]
             pyy = syy[i, k] * scale[k]
-            h[i, k] = complex(pxy.real / pxx, pxy.imag / pxx)  # numpy's pxy / pxx, 0 too
-            g2[i, k] = abs(pxy) ** 2 / pxx / pyy
+            sxy[i, k] = complex(pxy.real / pxx, pxy.imag / pxx)  # numpy's pxy / pxx, 0 too
+            syy[i, k] = abs(pxy) ** 2 / pxx / pyy
 
 
 class _Transforms(threading.local):
