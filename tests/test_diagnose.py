@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from conftest import REFERENCE
 
+from twind.analysis.corpus import FACES, key_z
 from twind.analysis.diagnose import diagnose
 from twind.cli import main
 from twind.config import load_config
@@ -70,11 +71,18 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
 def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa: ANN001
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     act = plant.actuation.copy()
-    act[:, :4] *= 1 + np.array([0.03, -0.02, 0.01, -0.025])
+    gains = [0.03, -0.02, 0.01, -0.025]
+    act[:, :4] *= 1 + np.array(gains)
     d = diagnose(_measured(etmx, replace(plant, actuation=act)), etmx)
     assert d.effects[0].effect == "coil_imbalance" and d.effects[0].delta_bic > 100
     assert d.final.chi2_nu < 1.4 and d.nominal.chi2_nu > 10
     assert d.unexplained == []
+    # the pitch-like part of the gains has a sigma, a single gain (common mode) has none
+    cov = d.effects[0].result.combination_covariance(
+        [{"gain_UL": 0.5, "gain_UR": 0.5, "gain_LL": -0.5, "gain_LR": -0.5}, {"gain_UL": 1.0}])
+    assert 0 < cov[0, 0] < 1e-4 and np.isnan(cov[1, 1])
+    truth = {"gains": dict(zip(FACES, gains, strict=True))}
+    assert 0 < key_z("coil_imbalance", truth, d.effects[0].result) < 4
 
 
 def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noqa: ANN001

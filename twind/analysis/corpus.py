@@ -210,6 +210,7 @@ class Score:
     named: bool  # the case's effect is the winner or declared equivalent (nulls: nothing)
     claimed: list[str]
     key_error: float  # relative error of the key parameter (nan: not named, or a null)
+    key_z: float  # the same error in units of the fit's own sigma (RMS over its components)
     chi2_nu_nominal: float
     chi2_nu_final: float
     seconds: float
@@ -226,19 +227,41 @@ def key_error(effect: str, truth: dict, fitted: dict) -> float:
     return abs(fitted[key] - truth[key]) / abs(truth[key])
 
 
+def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResult
+    """The key parameter's error in units of the fit's own sigma: RMS over the determined
+    components (pitch- and yaw-like gains), 1 on average when the sigmas are honest."""
+    if effect in ("coil_imbalance", "osem_imbalance"):
+        combos = [{f"gain_{f}": w for f, w in zip(FACES, row, strict=True)} for row in _SEEN]
+        got = result.as_dict()
+        d = _SEEN @ np.array([got[f"gain_{f}"] - truth["gains"][f] for f in FACES])
+    else:
+        name, value = {"loop_delay": ("extra_s", truth.get("extra_s")),
+                       "actuator_pole": ("inv_f_hz", 1 / truth.get("f_hz", math.inf)),
+                       "side_coupling": ("sensing", truth.get("sensing"))}[effect]
+        combos = [{name: 1.0}]
+        d = np.array([result.as_dict()[name] - value])
+    cov = result.combination_covariance(combos)
+    if not np.all(np.isfinite(cov)):
+        return math.nan
+    return float(np.sqrt(d @ np.linalg.lstsq(cov, d, rcond=None)[0] / d.size))
+
+
 def score(case: Case, diagnosis, seconds: float) -> Score:  # noqa: ANN001 - Diagnosis
     """Score one diagnosis (None: it failed) against its case."""
     if diagnosis is None:
-        return Score(case, False, ["(failed)"], math.nan, math.nan, math.nan, seconds)
+        return Score(case, False, ["(failed)"], math.nan, math.nan, math.nan, math.nan,
+                     seconds)
     out = diagnosis.to_json()
     claimed = [e["effect"] for e in out["effects"]]
     named = not claimed if case.effect is None else case.effect in claimed
-    err = math.nan
+    err = z = math.nan
     if named and case.effect is not None:
         fitted = next(e for e in out["effects"] if e["effect"] == case.effect)
         err = key_error(case.effect, case.truth, fitted["params"])
-    return Score(case, named, claimed, err, out["chi2_nu_nominal"], out["chi2_nu_final"],
-                 seconds)
+        z = key_z(case.effect, case.truth,
+                  next(e for e in diagnosis.effects if e.effect == case.effect).result)
+    return Score(case, named, claimed, err, z, out["chi2_nu_nominal"],
+                 out["chi2_nu_final"], seconds)
 
 
 # ------------------------------------------------------------------------------ routes
@@ -299,7 +322,8 @@ def _line(s: Score) -> str:
     c = s.case
     hidden_ = (f"largest bin {c.largest_sigma:.1f} sigma, present {c.present:6.0f}"
                if c.effect else "drift only" + " " * 27)
-    key = "" if math.isnan(s.key_error) else f"  key param {100 * s.key_error:5.1f} %"
+    key = "" if math.isnan(s.key_error) else (f"  key param {100 * s.key_error:5.1f} % "
+                                               f"({s.key_z:.1f} sigma)")
     verdict = ", ".join(s.claimed) or "consistent"
     return (f"{c.name:18s} {hidden_}  chi2/nu {s.chi2_nu_nominal:6.2f} -> "
             f"{s.chi2_nu_final:5.2f}  {'ok ' if s.named else 'MISS'} {verdict}{key}"
@@ -315,11 +339,15 @@ def summary(scores: Sequence[Score]) -> list[str]:
     null_chi = np.array([s.chi2_nu_nominal for s in nulls]) if nulls else np.array([np.nan])
     final = np.array([s.chi2_nu_final for s in named]) if named else np.array([np.nan])
     secs = np.array([s.seconds for s in scores])
+    z = np.array([s.key_z for s in named if math.isfinite(s.key_z)] or [np.nan])
     return [
         f"effects named (or equivalent): {len(named)}/{len(effects)} "
         f"= {100 * len(named) / max(len(effects), 1):.0f} % (target >= 90 %)",
         f"  with the key parameter within {100 * KEY_TOLERANCE:.0f} %: {len(keyed)}/"
         f"{len(effects)} = {100 * len(keyed) / max(len(effects), 1):.0f} %",
+        f"  key parameter errors in the fit's own sigmas: RMS {np.sqrt(np.mean(z**2)):.2f} "
+        f"over {int(np.isfinite(z).sum())} cases (1 when the sigmas are honest), beyond 2 sigma in "
+        f"{int(np.sum(z > 2))}",
         f"nulls with an effect claimed: {sum(not s.named for s in nulls)}/{len(nulls)} "
         "(target 0)",
         f"chi2/nu after augmentation: mean {np.mean(final):.2f}, max {np.max(final):.2f}; "
