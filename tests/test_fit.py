@@ -116,7 +116,8 @@ def test_sigmas_hold_errors_correlated_over_a_resonance_width() -> None:
     rng = np.random.default_rng(1)
     pulls = []
     for _ in range(300):
-        e = rng.standard_normal(2 * f.size) + 3 * np.tile(rng.standard_normal(block.max() + 1)[block], 2)
+        shared = rng.standard_normal(block.max() + 1)[block]  # one offset per block
+        e = rng.standard_normal(2 * f.size) + 3 * np.tile(shared, 2)
         theta = A_pinv @ J.T @ e  # truth is zero
         cov = _block_covariance(A_pinv, _block_scores(J, e - J @ theta, [data]), 2)
         pulls.append(theta / np.sqrt(np.diag(cov)))

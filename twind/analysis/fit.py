@@ -21,8 +21,9 @@ the loop's leakage, over much of a resonance; how far differs from element to el
 twin, summing 10 bins of POS/POS errors adds their variances, summing 10 of PIT/PIT doubles
 it), and the responses to one excitation are correlated with each other.  A single scale and
 bin correlation (still reported, as ``noise_scale`` and ``bin_correlation``, for
-``diagnose``) made some parameters' sigmas twice too large and others too small; the blocks
-carry each correlation as it is. With too few blocks for the parameters fitted the covariance
+``diagnose``) made some parameters' sigmas up to 1.6 times too large and others 1.25 times
+too small (``twind bench --suite pull --bw 0.05``); the blocks carry each correlation as
+it is. With too few blocks for the parameters fitted the covariance
 falls back to ``s^2 A^+ (J^T R J) A^+`` (median-based scale ``s``, banded bin correlation
 ``R``).  ``twind bench --suite pull`` checks the result on the twin.
 """
