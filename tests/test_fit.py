@@ -96,48 +96,6 @@ def test_determined_product_ignores_the_other_parameters_signs() -> None:
     assert unident == ["a/b"] and determined["a*b"]["value"] == pytest.approx(6.0)
 
 
-def test_sigmas_hold_errors_correlated_over_a_resonance_width() -> None:
-    """Welch errors stay correlated over much of a resonance (leakage), differently in each
-    element: the sigmas come from the scatter of block sums, not from a per-bin scale.
-    A linear model with errors sharing a random offset over every 0.5 Hz, on top of white
-    ones, has pulls of unit width (a median scale with three lags of bin correlation, the
-    covariance used before, gave 1.6)."""
-    from twind.analysis.fit import BLOCK_HZ, FitData, _block_covariance, _block_scores
-
-    f = np.arange(1, 401) * 0.05
-    shape = (f.size, 1, 1)
-    data = FitData(f, ["POS"], ["POS"], np.zeros(shape, complex), np.ones(shape),
-                   np.ones(shape, bool), 10, 0.05)
-    J = np.zeros((2 * f.size, 2))
-    J[: f.size, 0] = 1.0  # a gain: the same in every bin
-    J[f.size :, 1] = np.sin(f)  # a smooth shape in the imaginary parts
-    A_pinv = np.linalg.inv(J.T @ J)
-    block = np.floor(f / BLOCK_HZ).astype(int)
-    rng = np.random.default_rng(1)
-    pulls = []
-    for _ in range(300):
-        shared = rng.standard_normal(block.max() + 1)[block]  # one offset per block
-        e = rng.standard_normal(2 * f.size) + 3 * np.tile(shared, 2)
-        theta = A_pinv @ J.T @ e  # truth is zero
-        cov = _block_covariance(A_pinv, _block_scores(J, e - J @ theta, [data]), 2)
-        pulls.append(theta / np.sqrt(np.diag(cov)))
-    width = np.std(pulls, axis=0)
-    assert np.all((width > 0.85) & (width < 1.15)), width
-
-
-def test_a_variance_one_block_carries_is_widened_as_students_t() -> None:
-    """Satterthwaite's degrees of freedom: one block dominating a variance leaves about
-    three, so its sigma is widened by sqrt(3); many equal blocks leave it as it is."""
-    from twind.analysis.fit import _block_covariance
-
-    one = np.vstack([[[100.0]], np.full((199, 1), 1e-3)])
-    many = np.ones((200, 1))
-    assert _block_covariance(np.eye(1), one, 1)[0, 0] == pytest.approx(
-        3 * 1e4 * 200 / 199, rel=1e-3)
-    assert _block_covariance(np.eye(1), many, 1)[0, 0] == pytest.approx(
-        200 * 200 / 199 * 600 / 598, rel=1e-6)
-
-
 def test_bad_requests_are_named(etmx) -> None:  # noqa: ANN001
     tfs = from_diaggui(NULL)
     with pytest.raises(FitError, match="unknown fit parameter"):

@@ -12,20 +12,13 @@ Jacobian whose direction would have a log-sigma above :data:`MAX_LOG_SIGMA`) is 
 unidentifiable, is held at its nominal value and gets no sigma; the fit runs in the remaining
 subspace, so no input can make it invert a singular matrix.
 
-Uncertainties are the Cramer-Rao bound of that weighted least squares, with the noise taken
-from the residuals rather than trusted from the coherence: a sandwich covariance
-``A^+ B A^+`` with ``A = J^T J`` and ``B`` the scatter of the residuals' scores summed over
-blocks of :data:`BLOCK_HZ` (one block gathers every response of one excited DOF).  The
-errors of a Hann-windowed Welch estimate are correlated across neighbouring bins and, through
-the loop's leakage, over much of a resonance; how far differs from element to element (on the
-twin, summing 10 bins of POS/POS errors adds their variances, summing 10 of PIT/PIT doubles
-it), and the responses to one excitation are correlated with each other.  A single scale and
-bin correlation (still reported, as ``noise_scale`` and ``bin_correlation``, for
-``diagnose``) made some parameters' sigmas up to 1.6 times too large and others 1.25 times
-too small (``twind bench --suite pull --bw 0.05``); the blocks carry each correlation as
-it is. With too few blocks for the parameters fitted the covariance
-falls back to ``s^2 A^+ (J^T R J) A^+`` (median-based scale ``s``, banded bin correlation
-``R``).  ``twind bench --suite pull`` checks the result on the twin.
+Uncertainties are the Cramer-Rao bound of that weighted least squares, with two corrections
+taken from the residuals rather than trusted from the coherence: the scatter (a median-based
+noise scale ``s``, robust to the heavy tails of errors divided by an estimated coherence) and
+the correlation of neighbouring frequency bins (a Hann window correlates the errors of
+adjacent bins, so ``n`` bins carry less than ``n`` bins' information). Both enter as a
+sandwich covariance ``s^2 A^+ (J^T R J) A^+`` with ``A = J^T J`` and ``R`` the banded bin
+correlation.  ``twind bench --suite pull`` checks the result on the twin.
 """
 
 from __future__ import annotations
@@ -61,11 +54,6 @@ SMOOTH_BINS = 11
 """Bins chosen by the coherence averaged over this many neighbours."""
 CORRELATION_LAGS = 3
 """Neighbouring bins whose error correlation is estimated (Hann: lag 1 dominates)."""
-BLOCK_HZ = 0.5
-"""Width of the frequency blocks whose summed scores give the covariance: several times a
-damped resonance's width, where the leakage errors of a Welch estimate stay correlated."""
-MIN_BLOCKS = 5
-"""Blocks needed per determined direction before their scatter is trusted."""
 ROUND_EVALUATIONS = 30
 """Residual evaluations per fitted direction in one round of the fit (scipy's default is
 100): a well-posed fit converges in a few, a direction the data leave free only runs away."""
@@ -527,41 +515,6 @@ def _bin_correlation(r: NDArray[np.float64], datas: Sequence[FitData]) -> list[f
     return (lagged / power).tolist() if power > 0 else [0.0] * CORRELATION_LAGS
 
 
-def _block_scores(J: NDArray[np.float64], r: NDArray[np.float64], datas: Sequence[FitData]
-                  ) -> NDArray[np.float64]:
-    """``J^T r`` summed over each block of :data:`BLOCK_HZ` of each excited DOF (all its
-    responses together), one row per block holding a used bin."""
-    blocks = []
-    for data, rows in _slices(datas):
-        n = data.bins
-        score = J[rows][:n] * r[rows][:n, None] + J[rows][n:] * r[rows][n:, None]
-        f, _, excited = np.nonzero(data.mask)
-        block = np.floor(data.frequency_hz[f] / BLOCK_HZ).astype(int)
-        _, which = np.unique(np.stack([excited, block]), axis=1, return_inverse=True)
-        summed = np.zeros((int(which.max()) + 1, J.shape[1]))
-        np.add.at(summed, which.ravel(), score)
-        blocks.append(summed)
-    return np.vstack(blocks)
-
-
-def _block_covariance(A_pinv: NDArray[np.float64], blocks: NDArray[np.float64], rank: int
-                      ) -> NDArray[np.float64]:
-    """``A^+ B A^+`` from the block scores, widened by each parameter's degrees of freedom.
-
-    A variance summed over blocks is itself uncertain when a few blocks carry most of it
-    (a pendulum length is known from the blocks round its resonance): its pull then has the
-    heavier tails of Student's t.  Each sigma is widened by ``sqrt(nu / (nu - 2))`` with
-    Satterthwaite's ``nu`` (Bell and McCaffrey's correction of cluster-robust errors), so
-    that its pull has unit variance.
-    """
-    meat = blocks.T @ blocks * len(blocks) / (len(blocks) - rank)  # small-sample factor
-    cov = A_pinv @ meat @ A_pinv
-    share = (blocks @ A_pinv) ** 2  # each block's part of each variance: ~ c_b chi2(1)
-    nu = 3 * share.sum(axis=0) ** 2 / np.maximum((share**2).sum(axis=0), 1e-300)
-    widen = np.sqrt(nu / np.maximum(nu - 2, 1))
-    return cov * np.outer(widen, widen)
-
-
 def _sandwich(J: NDArray[np.float64], rho: list[float], datas: Sequence[FitData]
               ) -> NDArray[np.float64]:
     """``J^T R J`` for errors correlated ``rho[k-1]`` between bins ``k`` apart."""
@@ -612,11 +565,7 @@ def _result(optic: str, coords: _Coords, x: NDArray, r: NDArray, J: NDArray, nul
     if null.shape[1]:
         proj = np.eye(len(names)) - null @ null.T
         A_pinv = proj @ A_pinv @ proj
-    blocks = _block_scores(J, r, datas)
-    if len(blocks) >= MIN_BLOCKS * ident:
-        cov = _block_covariance(A_pinv, blocks, ident)
-    else:
-        cov = scale2 * A_pinv @ _sandwich(J, rho, datas) @ A_pinv
+    cov = scale2 * A_pinv @ _sandwich(J, rho, datas) @ A_pinv
     lost = np.any(np.abs(null) > _NULL_COMPONENT, axis=1) if null.size else np.zeros(len(names), bool)
     values = coords.values(x)
     sigma = coords.sigma(x, np.diag(cov))
