@@ -16,7 +16,8 @@ over all bins (``present``, in chi^2 units) shows it is there.
 
 Scored as the issue asks: the right effect named (or declared equivalent) with its key
 parameter within 35 %; nothing claimed on the nulls; chi^2/nu after augmentation against
-the nulls'; seconds per case.
+the nulls'; seconds per case. To tell a miss's scatter from a bias, each key parameter's
+error is also given in its own fit's sigma (:func:`key_z`).
 
 Not in the corpus yet: ``side_coupling`` (see :data:`EFFECTS`), ``wire_asymmetry`` (the geometric model's centre-of-mass offset and
 MODEL.md's K_x_phi disagree by ~300x; to be reconciled before a case can be scored) and

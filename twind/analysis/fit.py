@@ -269,6 +269,9 @@ class FitResult:
         How much the residuals' scatter (median-based) exceeds the coherence-based errors.
     bin_correlation : list of float
         Correlation of residuals 1, 2, 3 bins apart.
+    null, determined_covariance : ndarray
+        The unidentifiable coordinate directions (columns) and :attr:`covariance` before
+        their rows are blanked, for :meth:`combination_covariance`.
     """
 
     optic: str
@@ -289,8 +292,6 @@ class FitResult:
     null: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     determined_covariance: NDArray[np.float64] = field(
         default_factory=lambda: np.zeros((0, 0)), repr=False)
-    """:attr:`covariance` before the unidentifiable rows are blanked: valid for any
-    combination orthogonal to :attr:`null` (the unidentifiable coordinate directions)."""
 
     @property
     def bic(self) -> float:
