@@ -235,10 +235,10 @@ def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResul
         combos = [{f"gain_{f}": w for f, w in zip(FACES, row, strict=True)} for row in _SEEN]
         got = result.as_dict()
         d = _SEEN @ np.array([got[f"gain_{f}"] - truth["gains"][f] for f in FACES])
-    else:
-        name, value = {"loop_delay": ("extra_s", truth.get("extra_s")),
-                       "actuator_pole": ("inv_f_hz", 1 / truth.get("f_hz", math.inf)),
-                       "side_coupling": ("sensing", truth.get("sensing"))}[effect]
+    else:  # a driver pole is fitted as 1/f
+        name = {"loop_delay": "extra_s", "actuator_pole": "inv_f_hz",
+                "side_coupling": "sensing"}[effect]
+        value = 1 / truth["f_hz"] if effect == "actuator_pole" else truth[name]
         combos = [{name: 1.0}]
         d = np.array([result.as_dict()[name] - value])
     cov = result.combination_covariance(combos)
@@ -257,10 +257,9 @@ def score(case: Case, diagnosis, seconds: float) -> Score:  # noqa: ANN001 - Dia
     named = not claimed if case.effect is None else case.effect in claimed
     err = z = math.nan
     if named and case.effect is not None:
-        fitted = next(e for e in out["effects"] if e["effect"] == case.effect)
-        err = key_error(case.effect, case.truth, fitted["params"])
-        z = key_z(case.effect, case.truth,
-                  next(e for e in diagnosis.effects if e.effect == case.effect).result)
+        fitted = next(e for e in diagnosis.effects if e.effect == case.effect)
+        err = key_error(case.effect, case.truth, fitted.to_json()["params"])
+        z = key_z(case.effect, case.truth, fitted.result)
     return Score(case, named, claimed, err, z, out["chi2_nu_nominal"],
                  out["chi2_nu_final"], seconds)
 

@@ -53,7 +53,7 @@ from twind.recording.writer import (
     scan_block,
 )
 
-try:  # the same CRC-32, several times faster than the system zlib's
+try:  # the same CRC-32 as zlib's, from zlib-ng's vectorised code
     from zlib_ng.zlib_ng import crc32 as _crc32
 except ImportError:  # pragma: no cover - a platform without its wheels
     from zlib import crc32 as _crc32
