@@ -15,6 +15,7 @@ from twind.analysis.corpus import (
     conceal,
     hidden,
     key_error,
+    raised_clamp,
     score,
 )
 from twind.analysis.diagnose import MIN_COHERENCE
@@ -55,6 +56,32 @@ def test_an_effect_is_scaled_to_the_concealed_size(etmx, reference: FitData,  # 
         assert same == (name != touched), name
     if effect == "actuator_pole":
         assert plant.drive_pole_hz == pytest.approx(truth["f_hz"])
+
+
+@pytest.mark.parametrize("rise", [1e-4, -1e-4])
+def test_a_raised_clamp_is_model_md_wire_asymmetry_from_the_geometry(etmx, rise: float
+                                                                     ) -> None:  # noqa: ANN001
+    """The geometric rigid body's change of POS<->YAW stiffness is MODEL.md's
+    ``-m g delta / l`` for the geometry's own pendulum-centre offset ``delta``, which is
+    ``R2 d / (2 l + d)`` for a clamp raised by ``d``; the other loop's clamp flips it.
+    Nothing but the stiffness changes, and POS<->PIT keeps the plant's sign convention."""
+    p = etmx.sus
+    base = Plant.from_params(p, etmx.mechanics())
+    plant, truth = raised_clamp(base, p, rise)
+    d = abs(rise)
+    assert truth["delta_m"] == pytest.approx(np.sign(rise) * p.R2_m * d
+                                             / (2 * p.wire_length_m + d), rel=0.02)
+    mech, K0 = plant.mechanics, base.mechanics.K
+    i, j, k = (mech.index(n) for n in ("POS", "YAW", "PIT"))
+    dK = mech.K - K0
+    expected = -p.mass_kg * p.g_mps2 * truth["delta_m"] / p.wire_length_m
+    assert dK[i, j] == pytest.approx(expected, rel=0.02)
+    assert dK[j, i] == dK[i, j]
+    assert np.sign(mech.K[i, k]) == np.sign(K0[i, k])
+    assert abs(dK[i, k]) < 0.01 * abs(K0[i, k])
+    assert np.array_equal(mech.M, base.mechanics.M)
+    for name in ("actuation", "sensing", "delay_s"):
+        assert np.array_equal(getattr(plant, name), getattr(base, name)), name
 
 
 def test_the_key_parameter_ignores_what_the_measurement_cannot_see() -> None:
@@ -114,3 +141,13 @@ def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
         assert (tmp_path / f"{name}.mcap").exists()
         assert (tmp_path / name / "index.html").exists()
     assert (tmp_path / "real" / "augmented.png").exists()
+
+
+@pytest.mark.parametrize(("option", "value", "named"), [
+    ("--effects", "bounce,loop_delay", "bounce"), ("--excite", "POS,ROLL", "ROLL")])
+def test_the_corpus_benchmark_names_an_effect_or_dof_it_cannot_use(
+        option: str, value: str, named: str, capsys: pytest.CaptureFixture) -> None:
+    from twind.cli import main
+
+    assert main(["bench", "--suite", "diagnose", option, value]) == 2
+    assert named in capsys.readouterr().err

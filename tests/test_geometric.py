@@ -18,6 +18,7 @@ from twind.model.geometric import (
     WireGeometry,
     geometric_mechanics,
     geometric_model,
+    pendulum_centre_offset,
     potential_energy,
     wire_stiffness,
 )
@@ -172,6 +173,10 @@ def test_wire_asymmetry_pos_yaw_coupling():
     expected = -M_KG * G * delta / L
     assert _k(mod, "POS", "YAW") == pytest.approx(expected, rel=0.02)
     assert _k(mod, "YAW", "POS") == _k(mod, "POS", "YAW")
+    assert pendulum_centre_offset(mod) == pytest.approx(delta, rel=0.02)
+    # a sideways centre of mass between equal wires is no pendulum-centre offset
+    even = geometric_model(WireGeometry.from_params(P, com_offset=(0, 10e-6, 0)))
+    assert abs(pendulum_centre_offset(even)) < 0.01 * 10e-6
     # the general small-angle result from the equilibrium itself: K_POS,YAW = sum T_i y_i / L_i
     eq = mod.equilibrium
     y = (eq.rotation @ mod.geometry.attach_m.T)[1]

@@ -397,12 +397,21 @@ def _bench_information(args: argparse.Namespace) -> int:
 
 def _bench_diagnose(args: argparse.Namespace) -> int:
     """twind diagnose on the proof corpus: drifted optics with concealed effects."""
-    from twind.analysis.corpus import run_corpus
+    from twind.analysis.corpus import EFFECTS, EXCITED, MADE, run_corpus
 
+    effects = args.effects.split(",") if args.effects else list(EFFECTS)
+    excited = args.excite.split(",") if args.excite else list(EXCITED)
+    if set(excited) - set(DOFS):
+        msg = f"--excite takes DOFs among {', '.join(DOFS)}, not {args.excite}"
+        raise TwindError(msg)
+    unknown = [e for e in effects if e not in MADE]
+    if unknown:
+        msg = f"the corpus cannot hide {', '.join(unknown)}; it makes {', '.join(MADE)}"
+        raise TwindError(msg)
     for route in ("xml", "mcap") if args.route == "both" else (args.route,):
         print(f"--- route: {route}", flush=True)
-        run_corpus(_etmx(args), route, args.per_effect, args.nulls,
-                   say=lambda line: print(line, flush=True))
+        run_corpus(_etmx(args), route, args.per_effect, args.nulls, effects=effects,
+                   say=lambda line: print(line, flush=True), excited=excited)
     return 0
 
 
@@ -589,6 +598,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="diagnose: the corpus as diaggui XML sets or MCAP sessions")
     bench.add_argument("--per-effect", type=int, default=3, help="diagnose: cases per effect")
     bench.add_argument("--nulls", type=int, default=3, help="diagnose: drift-only cases")
+    bench.add_argument("--effects", help="diagnose: comma-separated effects to hide (default "
+                                         "the corpus's: imbalances, delay, driver pole, "
+                                         "wire asymmetry)")
+    bench.add_argument("--excite", help="diagnose: comma-separated DOFs excited in turn "
+                                        "(default POS,PIT,YAW; add SIDE for side_coupling)")
     bench.add_argument("--bw", type=float, default=0.02, help="pull: Welch resolution (Hz)")
     bench.add_argument("--no-marginal", action="store_true",
                        help="skip the 200 s - 20 s marginal speed of 'twind simulate'")

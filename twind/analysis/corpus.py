@@ -1,11 +1,13 @@
 """The proof corpus of ``twind diagnose`` and the benchmark that scores it
-(``twind bench --suite corpus``).
+(``twind bench --suite diagnose``).
 
 Each case is an optic whose nominal parameters drifted at random (:data:`SPREAD`) and,
 except for the nulls, that carries one effect of MODEL.md's catalogue, put into the plant
 the twin runs *by hand here*: the coil or OSEM columns of the actuation and sensing
-matrices, the loop delay, the coil-driver pole, the SIDE column of the face OSEMs. None of
-it goes through :mod:`twind.model.effects`, whose models the diagnosis fits to explain it.
+matrices, the loop delay, the coil-driver pole, the SIDE column of the face OSEMs; a wire
+asymmetry is one loop's clamp raised in the geometric rigid-body model (:func:`raised_clamp`).
+None of it goes through :mod:`twind.model.effects`, whose models the diagnosis fits to
+explain it.
 The twin's time-domain engine measures the optic, noise through the loop, and the
 measurement reaches ``diagnose`` as users have it: a diaggui XML set (like example_null) or
 an MCAP session with its injection events.
@@ -19,9 +21,8 @@ parameter within 35 %; nothing claimed on the nulls; chi^2/nu after augmentation
 the nulls'; seconds per case. To tell a miss's scatter from a bias, each key parameter's
 error is also given in its own fit's sigma (:func:`key_z`).
 
-Not in the corpus yet: ``side_coupling`` (see :data:`EFFECTS`), ``wire_asymmetry`` (the geometric model's centre-of-mass offset and
-MODEL.md's K_x_phi disagree by ~300x; to be reconciled before a case can be scored) and
-bounce/roll (not in the catalogue's models).
+Not in the default corpus: ``side_coupling`` (see :data:`EFFECTS`) and bounce/roll (not in
+the catalogue's models).
 """
 
 from __future__ import annotations
@@ -45,19 +46,22 @@ from twind.analysis.fit import (
 )
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
+from twind.model.mechanics import Mechanics
+from twind.model.params import SOSParams
 
 CONCEAL_SIGMA = 3.0
 """Largest change of one bin of IN1/EXC an effect makes, in that bin's standard errors."""
 SPREAD = {"wire_length_m": 0.015, "b_m": 0.02, "R1_m": 0.02, "coil_N_per_ct": 0.03,
           "osem_lever_m": 0.015, "Q_POS": 0.15, "Q_PIT": 0.15, "Q_YAW": 0.15, "Q_SIDE": 0.15}
 """Relative standard deviation of each nominal parameter's drift from case to case."""
-EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole")
+EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole", "wire_asymmetry")
 """The catalogue effects the corpus hides by default (``side_coupling`` too on request: a
 POS/PIT/YAW measurement barely moves SIDE, so no physical coupling reaches 3 sigma in it)."""
 KEY_TOLERANCE = 0.35
 BW, AVERAGES, RMS = 0.05, 10, 3.0
-"""The corpus measurement: white EXC of RMS 3 below 30 Hz on POS, PIT, YAW, 0.05 Hz, 10
-averages (example_null's layout)."""
+EXCITED = ("POS", "PIT", "YAW")
+"""The corpus measurement: white EXC of RMS 3 below 30 Hz on each of POS, PIT, YAW in turn,
+0.05 Hz, 10 averages (example_null's layout)."""
 FACES = ("UL", "UR", "LL", "LR")
 # directions of four face gains a damping-loop measurement determines: pitch-like and
 # yaw-like; their mean is a change of coil (or lever) strength, their butterfly is unseen
@@ -101,11 +105,13 @@ def drifted(cfg: OpticConfig, rng: np.random.Generator) -> OpticConfig:
     return replace(cfg, sus=with_params(cfg.sus, values))
 
 
-def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64]
-           ) -> tuple[Plant, dict]:
+def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64],
+           sus: SOSParams | None = None) -> tuple[Plant, dict]:
     """`plant` with `effect` of `size` put in by hand, and its parameters in MODEL.md's names.
 
-    `direction` (4 values) spreads an imbalance over the face coils or OSEMs."""
+    `direction` (4 values) spreads an imbalance over the face coils or OSEMs.
+    ``wire_asymmetry`` is one wire loop's clamp raised by `size` (m) in the geometric
+    rigid-body model of `sus` (the suspension's parameters), not MODEL.md's formula."""
     if effect == "coil_imbalance":
         gains = size * direction  # MODEL.md's g_i: F_i (1 + g_i)
         act = plant.actuation.copy()
@@ -127,12 +133,47 @@ def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64
         sens = plant.sensing.copy()
         sens[:4, 3] += size
         return replace(plant, sensing=sens), {"sensing": size}
-    msg = f"the corpus has no hand-made {effect!r}; it makes {', '.join(EFFECTS)}"
+    if effect == "wire_asymmetry":
+        if sus is None:
+            msg = "a raised clamp needs the suspension's parameters (sus)"
+            raise ValueError(msg)
+        return raised_clamp(plant, sus, size)
+    msg = f"the corpus has no hand-made {effect!r}; it makes {', '.join(MADE)}"
     raise ValueError(msg)
 
 
+def raised_clamp(plant: Plant, sus: SOSParams, rise_m: float) -> tuple[Plant, dict]:
+    """`plant` with the +y wire loop's clamp raised by `rise_m` (the -y one's when negative).
+
+    The change it makes to the POS/PIT/YAW stiffness comes from the geometric rigid body
+    (equilibrium and Hessian of the wires), so the longer wire's softer pull, and with it
+    the POS<->YAW coupling, is not MODEL.md's formula put back; MODEL.md's ``delta_m`` is
+    the geometry's pendulum-centre offset."""
+    from twind.model.geometric import WireGeometry, geometric_model, pendulum_centre_offset
+
+    offsets = np.zeros((2, 3))
+    offsets[0 if rise_m >= 0 else 1, 2] = abs(rise_m)
+    level = geometric_model(WireGeometry.from_params(sus))
+    raised = geometric_model(WireGeometry.from_params(sus, clamp_offsets=offsets))
+    geo, mech = level.mechanics, plant.mechanics
+    dofs = ("POS", "PIT", "YAW")
+    dK = (raised.mechanics.K - geo.K)[np.ix_(*[[geo.index(d) for d in dofs]] * 2)]
+    # the analytical model's PIT is T000134's, opposite to the geometry's OSEM convention:
+    # take the plant's by the sign of its POS-PIT stiffness
+    i, j = mech.index("POS"), mech.index("PIT")
+    flip = mech.K[i, j] * geo.K[geo.index("POS"), geo.index("PIT")] < 0
+    S = np.diag([1.0, -1.0 if flip else 1.0, 1.0])
+    at = [mech.index(d) for d in dofs]
+    K = mech.K.copy()
+    K[np.ix_(at, at)] += S @ dK @ S
+    return (replace(plant, mechanics=Mechanics(mech.dofs, mech.M, mech.C, K)),
+            {"delta_m": pendulum_centre_offset(raised)})
+
+
 _FIRST_SIZE = {"coil_imbalance": 1e-3, "osem_imbalance": 1e-3, "loop_delay": 1e-4,
-               "actuator_pole": 1 / 300, "side_coupling": 1e-2}
+               "actuator_pole": 1 / 300, "side_coupling": 1e-2, "wire_asymmetry": 1e-3}
+MADE = tuple(_FIRST_SIZE)
+"""Every effect the corpus can hide."""
 
 
 def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArray,
@@ -152,17 +193,19 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
     T0 = in1(base)
 
     def change(size: float) -> NDArray[np.float64]:
-        z = np.abs(in1(hidden(base, effect, size, direction)[0]) - T0) / reference.sigma
+        z = np.abs(in1(hidden(base, effect, size, direction, real.sus)[0]) - T0) / reference.sigma
         return z[reference.mask]
 
     size = _FIRST_SIZE[effect]
+    if effect == "wire_asymmetry":  # either loop's clamp raised
+        size = math.copysign(size, direction[0])
     for _ in range(3):  # nearly linear in size: a few secant steps
         size *= target / max(change(size).max(), 1e-12)
     if effect == "loop_delay":  # the engine delays by whole samples
         rate = real.sus.sample_rate_hz
         size = max(round(size * rate), 1) / rate
     z = change(size)
-    plant, truth = hidden(base, effect, size, direction)
+    plant, truth = hidden(base, effect, size, direction, real.sus)
     return plant, truth, float(z.max()), float(np.sum(z**2))
 
 
@@ -172,14 +215,14 @@ def _indices(data: FitData) -> tuple[list[int], list[int]]:
     return [DOFS.index(d) for d in data.responses], [DOFS.index(d) for d in data.excited]
 
 
-def reference_data(cfg: OpticConfig, seed: int) -> FitData:
+def reference_data(cfg: OpticConfig, seed: int, excited: Sequence[str] = EXCITED) -> FitData:
     """A corpus measurement of the nominal optic, its bins as ``diagnose`` chooses them:
     the errors the effects are concealed against."""
     from twind.analysis.diagnose import MIN_COHERENCE
     from twind.simulation.measurement import measure_tfs
 
-    return FitData.from_tfset(measure_tfs(cfg, bw=BW, averages=AVERAGES, rms=RMS, seed=seed),
-                              MIN_COHERENCE)
+    tfs = measure_tfs(cfg, excited, bw=BW, averages=AVERAGES, rms=RMS, seed=seed)
+    return FitData.from_tfset(tfs, MIN_COHERENCE)
 
 
 def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls: int = 3,
@@ -224,7 +267,8 @@ def key_error(effect: str, truth: dict, fitted: dict) -> float:
         t = _SEEN @ np.array([truth["gains"][f] for f in FACES])
         g = _SEEN @ np.array([fitted["gains"][f] for f in FACES])
         return float(np.linalg.norm(g - t) / np.linalg.norm(t))
-    key = {"loop_delay": "extra_s", "actuator_pole": "f_hz", "side_coupling": "sensing"}[effect]
+    key = {"loop_delay": "extra_s", "actuator_pole": "f_hz", "side_coupling": "sensing",
+           "wire_asymmetry": "delta_m"}[effect]
     return abs(fitted[key] - truth[key]) / abs(truth[key])
 
 
@@ -237,7 +281,7 @@ def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResul
         d = _SEEN @ np.array([got[f"gain_{f}"] - truth["gains"][f] for f in FACES])
     else:  # a driver pole is fitted as 1/f
         name = {"loop_delay": "extra_s", "actuator_pole": "inv_f_hz",
-                "side_coupling": "sensing"}[effect]
+                "side_coupling": "sensing", "wire_asymmetry": "delta_m"}[effect]
         value = 1 / truth["f_hz"] if effect == "actuator_pole" else truth[name]
         combos = [{name: 1.0}]
         d = np.array([result.as_dict()[name] - value])
@@ -265,21 +309,23 @@ def score(case: Case, diagnosis, seconds: float) -> Score:  # noqa: ANN001 - Dia
 
 
 # ------------------------------------------------------------------------------ routes
-def measure(case: Case, route: str, workdir: Path, seed: int):  # noqa: ANN201 - TFSet
+def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - TFSet
+            excited: Sequence[str] = EXCITED):
     """The case's measurement as users have it: ``"xml"`` (a diaggui set written from the
-    twin's TFs) or ``"mcap"`` (a session recorded from the twin's engine)."""
+    twin's TFs) or ``"mcap"`` (a session recorded from the twin's engine), each DOF of
+    `excited` in turn."""
     from twind.analysis.diaggui import write_measurement_set
     from twind.analysis.tf import from_diaggui, from_session
     from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
 
     here = Path(tempfile.mkdtemp(dir=workdir))
     if route == "xml":
-        tfs = measure_tfs(case.real, bw=BW, averages=AVERAGES, rms=RMS, seed=seed,
+        tfs = measure_tfs(case.real, excited, bw=BW, averages=AVERAGES, rms=RMS, seed=seed,
                           plant=case.plant)
         return from_diaggui(write_measurement_set(tfs, here))
     if route == "mcap":
-        path = record_measurement(case.real, here / "session.mcap", bw=BW, averages=AVERAGES,
-                                  rms=RMS, seed=seed, plant=case.plant)
+        path = record_measurement(case.real, here / "session.mcap", excited, bw=BW,
+                                  averages=AVERAGES, rms=RMS, seed=seed, plant=case.plant)
         try:
             return from_session([path], bw=BW, settle_s=SETTLE_S)
         finally:
@@ -290,8 +336,10 @@ def measure(case: Case, route: str, workdir: Path, seed: int):  # noqa: ANN201 -
 
 def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls: int = 3,
                seed: int = 11, effects: Sequence[str] = EFFECTS,
-               say: Callable[[str], None] = print) -> list[Score]:
-    """Build the corpus, measure and diagnose every case, print a line each and the rates.
+               say: Callable[[str], None] = print, excited: Sequence[str] = EXCITED
+               ) -> list[Score]:
+    """Build the corpus, measure and diagnose every case (each DOF of `excited` in turn),
+    print a line each and the rates.
 
     Returns
     -------
@@ -299,12 +347,13 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
     """
     from twind.analysis.diagnose import diagnose
 
-    cases = make_cases(cfg, reference_data(cfg, seed), per_effect, nulls, seed, effects)
+    cases = make_cases(cfg, reference_data(cfg, seed, excited), per_effect, nulls, seed,
+                       effects)
     scores = []
     with tempfile.TemporaryDirectory(prefix="twind-corpus-") as tmp:
         for k, case in enumerate(cases):
             t0 = time.perf_counter()
-            tfs = measure(case, route, Path(tmp), seed + 100 + k)
+            tfs = measure(case, route, Path(tmp), seed + 100 + k, excited)
             try:
                 d = diagnose(tfs, cfg)
             except FitError as err:  # a failure of the tool, scored as a miss

@@ -331,6 +331,28 @@ def geometric_mechanics(geom: WireGeometry) -> Mechanics:
     return geometric_model(geom).mechanics
 
 
+def pendulum_centre_offset(model: GeometricModel) -> float:
+    """MODEL.md's ``wire_asymmetry`` delta (m): how far the centre of mass lies along SIDE from
+    the wires' pendulum centre, the ``T/L``-weighted mean lateral position of the break-offs.
+
+    With it the POS<->YAW stiffness of near-vertical wires is ``-m g delta / l``
+    (``sum_i T_i y_i / L_i``, see the module docstring); unequal wire lengths make it, a
+    sideways centre of mass between equal wires does not.
+
+    Parameters
+    ----------
+    model : GeometricModel
+
+    Returns
+    -------
+    float
+    """
+    eq = model.equilibrium
+    y = (eq.rotation @ model.geometry.attach_m.T)[1]  # lab-frame, from the centre of mass
+    w = eq.tensions_N / eq.lengths_m
+    return float(-np.sum(w * y) / np.sum(w))
+
+
 def solve_equilibrium(geom: WireGeometry) -> Equilibrium:
     """Minimise the potential energy of `geom`, starting from the nominal pose.
 
