@@ -55,8 +55,9 @@ SPREAD = {"wire_length_m": 0.015, "b_m": 0.02, "R1_m": 0.02, "coil_N_per_ct": 0.
           "osem_lever_m": 0.015, "Q_POS": 0.15, "Q_PIT": 0.15, "Q_YAW": 0.15, "Q_SIDE": 0.15}
 """Relative standard deviation of each nominal parameter's drift from case to case."""
 EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole", "wire_asymmetry")
-"""The catalogue effects the corpus hides by default (``side_coupling`` too on request: a
-POS/PIT/YAW measurement barely moves SIDE, so no physical coupling reaches 3 sigma in it)."""
+"""The catalogue effects the corpus hides by default. ``side_coupling`` on request, with SIDE
+among the excited DOFs: a POS/PIT/YAW measurement barely moves SIDE, so no physical
+coupling reaches 3 sigma in it."""
 KEY_TOLERANCE = 0.35
 BW, AVERAGES, RMS = 0.05, 10, 3.0
 EXCITED = ("POS", "PIT", "YAW")
