@@ -3,6 +3,7 @@ concealed to the issue's size, scored as the issue asks; the MCAP route's record
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -12,11 +13,13 @@ from twind.analysis.corpus import (
     CONCEAL_SIGMA,
     FACES,
     Case,
+    Score,
     conceal,
     hidden,
     key_error,
     raised_clamp,
     score,
+    summary,
 )
 from twind.analysis.diagnose import MIN_COHERENCE
 from twind.analysis.fit import FitData
@@ -151,3 +154,12 @@ def test_the_corpus_benchmark_names_an_effect_or_dof_it_cannot_use(
 
     assert main(["bench", "--suite", "diagnose", option, value]) == 2
     assert named in capsys.readouterr().err
+
+
+def test_the_summary_leaves_out_what_the_corpus_did_not_hold(etmx) -> None:  # noqa: ANN001
+    plant = Plant.from_params(etmx.sus, etmx.mechanics())
+    null = Score(Case("null #1", None, etmx, plant), True, [], math.nan, math.nan, 1.3, 1.3, 2.0)
+    lines = summary([null])
+    assert not any(line.startswith("effects named") for line in lines)
+    assert "nulls with an effect claimed: 0/1 (target 0)" in lines
+    assert "chi2/nu: nulls' mean 1.30, max 1.30" in lines

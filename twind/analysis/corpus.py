@@ -381,30 +381,36 @@ def _line(s: Score) -> str:
 
 
 def summary(scores: Sequence[Score]) -> list[str]:
-    """The issue's targets, as measured on `scores`."""
+    """The issue's targets, as measured on `scores` (a corpus without effect cases or without
+    nulls leaves their lines out)."""
     effects = [s for s in scores if s.case.effect]
     nulls = [s for s in scores if not s.case.effect]
     named = [s for s in effects if s.named]
     keyed = [s for s in named if s.key_error <= KEY_TOLERANCE]
-    null_chi = np.array([s.chi2_nu_nominal for s in nulls]) if nulls else np.array([np.nan])
-    final = np.array([s.chi2_nu_final for s in named]) if named else np.array([np.nan])
     secs = np.array([s.seconds for s in scores])
-    z = np.array([s.key_z for s in named if math.isfinite(s.key_z)] or [np.nan])
-    return [
-        f"effects named (or equivalent): {len(named)}/{len(effects)} "
-        f"= {100 * len(named) / max(len(effects), 1):.0f} % (target >= 90 %)",
-        f"  with the key parameter within {100 * KEY_TOLERANCE:.0f} %: {len(keyed)}/"
-        f"{len(effects)} = {100 * len(keyed) / max(len(effects), 1):.0f} %",
-        f"  key parameter errors in the fit's own sigmas: RMS {np.sqrt(np.mean(z**2)):.2f} "
-        f"over {int(np.isfinite(z).sum())} cases (1 when the sigmas are honest), beyond 2 sigma in "
-        f"{int(np.sum(z > 2))}",
-        f"nulls with an effect claimed: {sum(not s.named for s in nulls)}/{len(nulls)} "
-        "(target 0)",
-        f"chi2/nu after augmentation: mean {np.mean(final):.2f}, max {np.max(final):.2f}; "
-        f"nulls' mean {np.mean(null_chi):.2f}, max {np.max(null_chi):.2f}",
-        f"seconds per case (measurement + diagnosis): median {np.median(secs):.0f}, "
-        f"max {np.max(secs):.0f} (target < 60)",
-    ]
+    out = []
+    if effects:
+        z = np.array([s.key_z for s in named if math.isfinite(s.key_z)] or [np.nan])
+        out += [f"effects named (or equivalent): {len(named)}/{len(effects)} "
+                f"= {100 * len(named) / len(effects):.0f} % (target >= 90 %)",
+                f"  with the key parameter within {100 * KEY_TOLERANCE:.0f} %: {len(keyed)}/"
+                f"{len(effects)} = {100 * len(keyed) / len(effects):.0f} %",
+                f"  key parameter errors in the fit's own sigmas: RMS "
+                f"{np.sqrt(np.mean(z**2)):.2f} over {int(np.isfinite(z).sum())} cases (1 when "
+                f"the sigmas are honest), beyond 2 sigma in {int(np.sum(z > 2))}"]
+    if nulls:
+        out.append(f"nulls with an effect claimed: {sum(not s.named for s in nulls)}/"
+                   f"{len(nulls)} (target 0)")
+    final = [s.chi2_nu_final for s in named]
+    null_chi = [s.chi2_nu_nominal for s in nulls]
+    chi = [f"mean {np.mean(final):.2f}, max {np.max(final):.2f}" if final else "",
+           f"nulls' mean {np.mean(null_chi):.2f}, max {np.max(null_chi):.2f}" if null_chi else ""]
+    label = "chi2/nu after augmentation" if final else "chi2/nu"
+    out.append(f"{label}: " + "; ".join(c for c in chi if c))
+    if len(secs):
+        out.append(f"seconds per case (measurement + diagnosis): median {np.median(secs):.0f}, "
+                   f"max {np.max(secs):.0f} (target < 60)")
+    return out
 
 
 # ------------------------------------------------------------------------------ the demo
