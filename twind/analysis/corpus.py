@@ -405,8 +405,9 @@ def summary(scores: Sequence[Score]) -> list[str]:
     null_chi = [s.chi2_nu_nominal for s in nulls]
     chi = [f"mean {np.mean(final):.2f}, max {np.max(final):.2f}" if final else "",
            f"nulls' mean {np.mean(null_chi):.2f}, max {np.max(null_chi):.2f}" if null_chi else ""]
-    label = "chi2/nu after augmentation" if final else "chi2/nu"
-    out.append(f"{label}: " + "; ".join(c for c in chi if c))
+    if any(chi):
+        label = "chi2/nu after augmentation" if final else "chi2/nu"
+        out.append(f"{label}: " + "; ".join(c for c in chi if c))
     if len(secs):
         out.append(f"seconds per case (measurement + diagnosis): median {np.median(secs):.0f}, "
                    f"max {np.max(secs):.0f} (target < 60)")
