@@ -133,12 +133,11 @@ class Watcher:
         """The channels seen once any block (or one of `channel`) has come, or at `timeout`:
         a step's channels arrive one block at a time, so the first may be another's."""
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            seen = {b.channel for b in list(self.blocks)}
-            if (channel in seen) if channel else seen:
-                return seen
+        seen: set[str] = set()
+        while time.monotonic() < deadline and not ((channel in seen) if channel else seen):
             time.sleep(0.05)
-        return {b.channel for b in list(self.blocks)}
+            seen = {b.channel for b in list(self.blocks)}  # the subscriber appends meanwhile
+        return seen
 
     def close(self) -> None:
         self.session.close()
