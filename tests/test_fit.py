@@ -18,6 +18,7 @@ from measurekit import record_excited_session
 
 from twind.analysis.fit import (
     FIT_PARAMS,
+    FitData,
     FitError,
     fit,
     param_value,
@@ -143,3 +144,46 @@ def test_a_left_out_coil_imbalance_is_fitted_and_worth_its_parameters(etmx) -> N
     butterfly = np.array([1, -1, -1, 1]) / 2
     miss = (got - gains) - butterfly * (butterfly @ (got - gains))
     assert np.max(np.abs(miss)) < 0.002, (got, gains)
+
+
+def test_pull_test_side_by_side_is_the_same_test() -> None:
+    """Realisation i is seed + i whichever process runs it: two workers give the pulls one
+    gives, and the report prints the pooled figure."""
+    from twind.analysis.calibration import pull_test
+
+    cfg = load_config(None, ["ETMX"]).optics["ETMX"]
+    kw = {"n": 2, "bw": 0.2, "estimator": "lpm", "verbose": False}
+    one, two = pull_test(cfg, workers=1, **kw), pull_test(cfg, workers=2, **kw)
+    assert np.array_equal(one.pulls, two.pulls, equal_nan=True)
+    assert np.isfinite(one.pulls).sum() >= 8
+    assert "pooled: " in one.lines()[-1]
+
+
+def test_correlated_responses_are_whitened_together() -> None:
+    """Errors of two responses correlated at 0.95 come out of the whitening independent and
+    of unit variance, also where one response is not used."""
+    rng = np.random.default_rng(3)
+    nf, rho = 4000, 0.95 * np.exp(0.4j)
+    C = np.array([[1, rho], [np.conj(rho), 1]])
+    L = np.linalg.cholesky(C)
+    e = (rng.standard_normal((nf, 2)) + 1j * rng.standard_normal((nf, 2))) @ L.T
+    sigma = np.array([0.5, 2.0])
+    H = (e * sigma)[:, :, None]
+    mask = np.ones((nf, 2, 1), bool)
+    mask[::3, 1] = False  # one bin in three without the second response
+    corr = np.broadcast_to(C[None, :, :, None], (nf, 2, 2, 1))
+    data = FitData(np.arange(1.0, nf + 1), ["POS", "PIT"], ["POS"], H,
+                   np.broadcast_to(sigma[None, :, None], H.shape), mask, 10,
+                   correlation=corr)
+    z = data.whiten(np.zeros_like(H))
+    assert abs(np.var(z) - 1) < 0.05
+    n = data.bins
+    full = np.flatnonzero(mask[:, 1, 0])
+    zc = (z[:n] + 1j * z[n:])
+    pos = np.cumsum(mask.reshape(nf, 2)).reshape(nf, 2) - 1  # index among the used bins
+    a, b = zc[pos[full, 0]], zc[pos[full, 1]]
+    assert abs(np.mean(a * np.conj(b))) < 0.1  # it was 0.95 before
+    plain = FitData(data.frequency_hz, data.responses, data.excited, H, data.sigma, mask, 10)
+    zp = plain.whiten(np.zeros_like(H))
+    zp = zp[:n] + 1j * zp[n:]
+    assert abs(np.mean(zp[pos[full, 0]] * np.conj(zp[pos[full, 1]])) / 2) > 0.9

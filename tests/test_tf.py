@@ -116,6 +116,37 @@ def test_session_plant_recovered_from_a_twin_recording(tmp_path: Path) -> None:
     assert np.array(obj["plant"]["re"]).shape == (len(tfs.frequency_hz), 3, 3)
 
 
+def test_session_lpm_errors_are_the_residuals_of_the_model(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture) -> None:
+    """MCAP route, local polynomial method: over each 60 s excitation (windows of 0.25 Hz,
+    wider than the 0.14 Hz POS resonance) IN1/EXC differs from the model, seen through
+    the LPM's kernel, by its own errors: ``|z|^2 / 2`` averages F(2, 2q)'s mean."""
+    from twind.analysis.fit import ClosedLoopModel, FitData
+
+    cfg = load_config(None, ["ETMX"]).optics["ETMX"]
+    path = record_excited_session(cfg, tmp_path / "twin.mcap",
+                                  {"POS": 2.0, "PIT": 5.0, "YAW": 5.0}, seconds=60)
+    tfs = from_session([path], estimator="lpm", max_hz=10.0)
+    assert tfs.window == "lpm" and tfs.kernel is not None
+    data = FitData.from_tfset(tfs, band=(0.3, 8.0))
+    z = (data.H - ClosedLoopModel.of(cfg, data).for_data(data)({})) / data.sigma
+    q = tfs.averages - 1
+    for j in range(len(data.excited)):
+        i = data.responses.index(data.excited[j])
+        k = data.mask[:, i, j]
+        power = np.mean(np.abs(z[k, i, j]) ** 2) / 2
+        assert k.sum() > 20 and 0.7 < power / (q / (q - 1)) < 1.4, (data.excited[j], power)
+
+    out = io.StringIO()
+    with redirect_stdout(out):
+        assert main(["tf", str(path), "--estimator", "lpm", "--json", "--band", "0.3", "8"]) == 0
+    obj = json.loads(out.getvalue())
+    assert np.allclose(np.array(obj["sigma_IN1"]), tfs.band(0.3, 8).sigma("IN1"))
+    capsys.readouterr()
+    assert main(["tf", *NULL, "--estimator", "lpm"]) != 0
+    assert "diaggui's Welch estimates only" in capsys.readouterr().err
+
+
 def test_channels_joined_late_are_cut_by_their_own_start(tmp_path: Path) -> None:
     """A recorder that joins mid-stream can miss one channel's first block: each channel is
     cut by its own start time, so the TFs are those of a complete recording."""

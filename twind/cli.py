@@ -262,9 +262,15 @@ def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
         raise TwindError(msg)
     kinds = {p.suffix.lower() for p in paths}
     if kinds <= {".xml"}:
+        if args.estimator != "welch":
+            msg = (f"--estimator {args.estimator} needs the time series: diaggui XML holds "
+                   "diaggui's Welch estimates only")
+            raise TwindError(msg)
         return from_diaggui(paths)
     if kinds <= {".mcap"}:
-        return from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic)
+        return from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic,
+                            estimator=args.estimator,
+                            max_hz=args.band[1] if args.band else None)
     msg = f"inputs must be all diaggui .xml or all .mcap, got {sorted(kinds)}"
     raise TwindError(msg)
 
@@ -274,6 +280,9 @@ def _input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bw", type=float, default=0.01, help="MCAP: Welch resolution (Hz)")
     p.add_argument("--overlap", type=float, default=0.5, help="MCAP: Welch overlap")
     p.add_argument("--optic", help="MCAP: the optic, when several were excited")
+    p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
+                   help="MCAP: Welch (diaggui's) or Pintelon-Schoukens' local polynomial "
+                        "method over each whole excitation (leakage removed; --bw unused)")
     p.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"))
     p.add_argument("--json", action="store_true")
 
@@ -382,7 +391,8 @@ def _bench_pull(args: argparse.Namespace) -> int:
     """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
     from twind.analysis.calibration import pull_test
     cfg = _etmx(args)
-    report = pull_test(cfg, n=args.realisations, bw=args.bw)
+    report = pull_test(cfg, n=args.realisations, bw=args.bw, estimator=args.estimator,
+                       workers=args.workers)
     print("\n".join(report.lines()))
     return 0
 
@@ -603,7 +613,12 @@ def build_parser() -> argparse.ArgumentParser:
                                          "wire asymmetry)")
     bench.add_argument("--excite", help="diagnose: comma-separated DOFs excited in turn "
                                         "(default POS,PIT,YAW; add SIDE for side_coupling)")
-    bench.add_argument("--bw", type=float, default=0.02, help="pull: Welch resolution (Hz)")
+    bench.add_argument("--bw", type=float, default=0.02, help="pull: Welch resolution (Hz); "
+                       "the LPM's record is as long as 10 averages of it")
+    bench.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
+                       help="pull: TF estimator")
+    bench.add_argument("--workers", type=int, default=1,
+                       help="pull: realisations measured and fitted side by side")
     bench.add_argument("--no-marginal", action="store_true",
                        help="skip the 200 s - 20 s marginal speed of 'twind simulate'")
     bench.set_defaults(func=cmd_bench)

@@ -185,7 +185,7 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
 
     Returns the plant, its effect parameters, the largest change and the summed one."""
     base = Plant.from_params(real.sus, real.mechanics())
-    model = ClosedLoopModel(real, reference.frequency_hz, reference.resolution_hz)
+    model = ClosedLoopModel.of(real, reference)
     rows, cols = _indices(reference)
 
     def in1(plant: Plant) -> NDArray[np.complex128]:

@@ -277,7 +277,7 @@ def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -
         fits["augmented"] = diagnosis.final
     series = {}
     for label, result in fits.items():
-        model = ClosedLoopModel(cfg, f, data.resolution_hz, result.effect).for_data(data)
+        model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
         pred = model(result.as_dict())
         for i, r in enumerate(data.responses):
             for j, e in enumerate(data.excited):

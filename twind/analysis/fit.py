@@ -1,10 +1,11 @@
 """Fit an optic's nominal physical parameters to its measured closed-loop transfer functions.
 
 The data are the ``IN1/EXC`` columns of the excited DOFs, each bin weighted by its
-Bendat-Piersol error; the model is MODEL.md's ``IN1/EXC = (I - P K)^-1 - I`` with the optic's
-configured mechanics (analytical or geometric) and controller. ``IN1/EXC`` is fitted rather
-than the recovered plant because its errors are those of one Welch estimate, while the plant's
-mix the correlated errors of IN1 and OUT; ``OUT/EXC = K IN2/EXC`` holds no further information.
+Bendat-Piersol error (a local-polynomial estimate by its own); the model is MODEL.md's
+``IN1/EXC = (I - P K)^-1 - I`` with the optic's configured mechanics (analytical or
+geometric) and controller. ``IN1/EXC`` is fitted rather than the recovered plant because its
+errors are those of one estimate, while the plant's mix the correlated errors of IN1 and OUT;
+``OUT/EXC = K IN2/EXC`` holds no further information.
 
 Parameters are fitted in ``log(p / p_nominal)`` so every one is positive and the Fisher matrix
 compares relative changes. What the data cannot fix (a singular value of the whitened
@@ -19,10 +20,17 @@ the correlation of neighbouring frequency bins (a Hann window correlates the err
 adjacent bins, so ``n`` bins carry less than ``n`` bins' information). Both enter as a
 sandwich covariance ``s^2 A^+ (J^T R J) A^+`` with ``A = J^T J`` and ``R`` the banded bin
 correlation.  ``twind bench --suite pull`` checks the result on the twin.
+
+The responses of one optic to one excitation share their noise: around the 40m's POS
+resonance the POS and PIT readbacks' noises correlate at 0.99, and residuals taken as
+independent count that noise twice. A local-polynomial estimate measures that correlation,
+and its residuals are whitened across the responses of each bin with it; a Welch estimate's
+coherences do not give it, and its residuals are whitened bin by bin.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -35,7 +43,7 @@ from scipy import ndimage
 from scipy.optimize import least_squares
 
 from twind import DOFS
-from twind.analysis.tf import TFSet
+from twind.analysis.tf import Kernel, TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.loop.plant import Plant
@@ -121,6 +129,11 @@ class FitData:
     averages : int
     resolution_hz : float
         Bin width of a Hann-windowed estimate (0 for a rectangular window).
+    kernel : Kernel, optional
+        What each estimate sees of the true response, when not the response at its bin (LPM).
+    correlation : ndarray of complex, shape (nf, nr, nr, ne), optional
+        Correlation of the errors of one bin's responses to one excitation (LPM); the
+        residuals are whitened with it, otherwise bin by bin.
     """
 
     frequency_hz: NDArray[np.float64]
@@ -131,6 +144,8 @@ class FitData:
     mask: NDArray[np.bool_]
     averages: int
     resolution_hz: float = 0.0
+    kernel: Kernel | None = None
+    correlation: NDArray[np.complex128] | None = None
 
     @classmethod
     def from_tfset(cls, tfs: TFSet, min_coherence: float = MIN_COHERENCE,
@@ -165,7 +180,7 @@ class FitData:
             raise FitError(msg)
         resolution = float(np.median(np.diff(f))) if tfs.window == "hann" and f.size > 1 else 0.0
         return cls(f, list(tfs.responses), list(tfs.excited), H, sigma, mask, tfs.averages,
-                   resolution)
+                   resolution, tfs.kernel, tfs.in1_correlation)
 
     @property
     def bins(self) -> int:
@@ -173,9 +188,35 @@ class FitData:
         return int(self.mask.sum())
 
     def whiten(self, model: NDArray[np.complex128]) -> NDArray[np.float64]:
-        """``(H - model) / sigma`` over the used bins, real parts then imaginary parts."""
-        r = (self.H[self.mask] - model[self.mask]) / self.sigma[self.mask]
+        """``(H - model) / sigma`` over the used bins, real parts then imaginary parts;
+        with a :attr:`correlation`, decorrelated across each bin's used responses."""
+        if self.correlation is None:
+            r = (self.H[self.mask] - model[self.mask]) / self.sigma[self.mask]
+        else:
+            r = np.where(self.mask, (self.H - model) / np.where(self.mask, self.sigma, 1), 0)
+            r = np.einsum("feij,fje->fie", self._whitener, r)[self.mask]
         return np.concatenate([r.real, r.imag])
+
+    @functools.cached_property
+    def _whitener(self) -> NDArray[np.complex128]:
+        """``L^-1`` per bin and excitation, (nf, ne, nr, nr), with ``L L^H`` the correlation
+        of the used responses (zero rows and columns for the unused)."""
+        nf, nr, ne = self.H.shape
+        out = np.zeros((nf, ne, nr, nr), dtype=complex)
+        used = np.moveaxis(self.mask, 2, 1)  # (nf, ne, nr)
+        rho = np.moveaxis(self.correlation, 3, 1)  # (nf, ne, nr, nr)
+        for pattern in {tuple(u) for u in used.reshape(-1, nr) if u.any()}:
+            at = np.all(used == np.array(pattern), axis=2)
+            rows = np.flatnonzero(pattern)
+            c = rho[at][:, rows][:, :, rows]
+            # a smoothed correlation may lose definiteness: its eigenvalues are floored
+            w, v = np.linalg.eigh(c)
+            c = (v * np.clip(w, 1e-3, None)[:, None, :]) @ np.conj(np.swapaxes(v, 1, 2))
+            block = np.linalg.inv(np.linalg.cholesky(c))
+            sub = out[at]
+            sub[:, rows[:, None], rows[None, :]] = block
+            out[at] = sub
+        return out
 
 
 def _smoothed(coherence: NDArray[np.float64], bins: int = SMOOTH_BINS) -> NDArray[np.float64]:
@@ -191,23 +232,36 @@ def _smoothed(coherence: NDArray[np.float64], bins: int = SMOOTH_BINS) -> NDArra
 class ClosedLoopModel:
     """``IN1/EXC`` (all four DOFs) of an optic's damping loop as a function of its fit
     parameters, at fixed frequencies, as a spectral estimate of resolution `resolution_hz`
-    sees it.
+    or with `kernel` sees it.
 
     A Hann-windowed Welch estimate is the true TF averaged over the window's power kernel,
     whose second moment is 1/3 bin^2: to second order it is the mean of the TF half a
     kernel width either side, ``f +- resolution / sqrt(3)``.  Near the closed-loop
     resonances (a few bins wide at 0.04 Hz) leaving this out biases the fitted Qs by
     several sigma; periodic excitations analysed with a rectangular window need none.
+    An LPM estimate's kernel is exact: the columns of the `excited` DOFs are its weighted
+    sums of the TF over each window.
     """
 
     def __init__(self, cfg: OpticConfig, f_hz: NDArray[np.float64],
-                 resolution_hz: float = 0.0, effect: str | None = None) -> None:
+                 resolution_hz: float = 0.0, effect: str | None = None,
+                 kernel: Kernel | None = None, excited: Sequence[str] = ()) -> None:
         self.cfg, self.effect = cfg, effect
         self.f = np.asarray(f_hz, dtype=float)
+        self.kernel, self.excited = kernel, list(excited)
         a = resolution_hz / math.sqrt(3.0)
-        self._at = np.concatenate([self.f - a, self.f + a]) if a > 0 else self.f
+        if kernel is not None:
+            self._at = (self.f[:, None] + kernel.offsets_hz).ravel()
+        else:
+            self._at = np.concatenate([self.f - a, self.f + a]) if a > 0 else self.f
         self._K = cfg.loop().controller(self._at)[:, :, None] * np.eye(len(DOFS))
         self.resolution_hz = resolution_hz
+
+    @classmethod
+    def of(cls, cfg: OpticConfig, data: FitData, effect: str | None = None) -> ClosedLoopModel:
+        """The model at `data`'s frequencies, as its estimator sees the TF."""
+        return cls(cfg, data.frequency_hz, data.resolution_hz, effect, data.kernel,
+                   data.excited)
 
     def sus(self, values: Mapping[str, float]) -> SOSParams:
         """The configured suspension with the nominal parameters of `values` set."""
@@ -227,13 +281,24 @@ class ClosedLoopModel:
         P = plant.response(self._at)
         eye = np.eye(len(DOFS))
         T = np.linalg.inv(eye - P @ self._K) - eye
+        if self.kernel is not None:
+            T = T.reshape(self.f.size, self.kernel.offsets_hz.size, len(DOFS), len(DOFS))
+            out = T[:, self.kernel.offsets_hz.size // 2].copy()  # the centre: not excited
+            for j, d in enumerate(self.excited):
+                m = DOFS.index(d)
+                out[:, :, m] = np.einsum("fr,fri->fi", self.kernel.weights[:, :, j],
+                                         T[:, :, :, m])
+            return out
         return 0.5 * (T[: self.f.size] + T[self.f.size :]) if self._at is not self.f else T
 
     def for_data(self, data: FitData) -> Callable[[Mapping[str, float]], NDArray]:
         """The model shaped like `data` (its responses and excited DOFs; zeros in unused
         bins), evaluated only at the frequencies `data` uses."""
         keep = data.mask.any(axis=(1, 2))
-        sub = ClosedLoopModel(self.cfg, self.f[keep], self.resolution_hz, self.effect)
+        kernel = (Kernel(self.kernel.offsets_hz, self.kernel.weights[keep])
+                  if self.kernel is not None else None)
+        sub = ClosedLoopModel(self.cfg, self.f[keep], self.resolution_hz, self.effect,
+                              kernel, self.excited)
         rows = [DOFS.index(d) for d in data.responses]
         cols = [DOFS.index(d) for d in data.excited]
 
@@ -405,8 +470,7 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         names += list(CATALOGUE[effect].params)
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
     datas = [FitData.from_tfset(t, min_coherence, band) for t in sets]
-    models = [ClosedLoopModel(cfg, d.frequency_hz, d.resolution_hz, effect).for_data(d)
-              for d in datas]
+    models = [ClosedLoopModel.of(cfg, d, effect).for_data(d) for d in datas]
     coords = _Coords(names, cfg.sus, effect)
 
     size = sum(2 * d.bins for d in datas)
@@ -635,8 +699,7 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     import matplotlib.pyplot as plt
 
     data = FitData.from_tfset(tfs, min_coherence=0.0)
-    model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz,
-                            result.effect).for_data(data)
+    model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
     used = FitData.from_tfset(tfs, result.min_coherence).mask
     curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
               model(result.as_dict())}

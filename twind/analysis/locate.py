@@ -68,7 +68,7 @@ def locate(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult,
     tests = []
     for t in sets:
         data = FitData.from_tfset(t, result.min_coherence)
-        model = ClosedLoopModel(cfg, data.frequency_hz, data.resolution_hz, result.effect)
+        model = ClosedLoopModel.of(cfg, data, result.effect)
         pred = model.for_data(data)(result.as_dict())
         z = np.zeros(data.H.shape, dtype=complex)
         z[data.mask] = (data.H - pred)[data.mask] / data.sigma[data.mask]

@@ -23,10 +23,11 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
+from twind.analysis.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import TwindError
 
-__all__ = ["POINTS", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
+__all__ = ["POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
            "highpassed", "welch_tf", "welch_tfs", "xml_transfer"]
 
 POINTS = ("IN1", "IN2", "OUT")
@@ -35,6 +36,16 @@ _CHANNEL = re.compile(r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW
 
 class TFError(TwindError):
     """A measurement cannot be turned into transfer functions."""
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """What an estimate at frequency ``f`` sees of the true response of excited DOF ``e``:
+    ``sum_r weights[f, r, e] G(f + offsets_hz[r])`` (the LPM's, which depends on the
+    excitation's spectrum; :mod:`twind.analysis.lpm`)."""
+
+    offsets_hz: NDArray[np.float64]  # (K,)
+    weights: NDArray[np.complex128]  # (nf, K, n_excited)
 
 
 @dataclass
@@ -51,11 +62,20 @@ class TFSet:
     tf: dict[str, NDArray[np.complex128]]  # "IN1", "IN2", "OUT" per EXC
     coherence: dict[str, NDArray[np.float64]]
     averages: int
-    window: str = "hann"  # of the spectral estimates: "hann" smooths H over ~1 bin
+    window: str = "hann"  # of the spectral estimates: "hann" smooths H over ~1 bin; "lpm"
     exc_psd: dict[str, NDArray[np.float64]] | None = None  # per excited DOF, when known
+    error: dict[str, NDArray[np.float64]] | None = None  # the estimator's own, when it has one
+    kernel: Kernel | None = None  # when the estimate is not the TF at its frequency
+    # correlation of the IN1/EXC errors of the responses, [f, response, response, excited]
+    # (the LPM's; Welch's are taken as independent)
+    in1_correlation: NDArray[np.complex128] | None = None
 
     def sigma(self, point: str) -> NDArray[np.float64]:
-        """Standard error of each element of ``point``/EXC (Bendat & Piersol)."""
+        """Standard error of the real and of the imaginary part of each element of
+        ``point``/EXC: the estimator's own (the LPM's, from its residuals), else Bendat &
+        Piersol's from the coherence."""
+        if self.error is not None:
+            return self.error[point]
         g2 = np.clip(self.coherence[point], 1e-12, 1.0)
         return np.abs(self.tf[point]) * np.sqrt((1 - g2) / (2 * self.averages * g2))
 
@@ -86,7 +106,11 @@ class TFSet:
                      {k: v[keep] for k, v in self.tf.items()},
                      {k: v[keep] for k, v in self.coherence.items()}, self.averages,
                      self.window,
-                     {k: v[keep] for k, v in self.exc_psd.items()} if self.exc_psd else None)
+                     {k: v[keep] for k, v in self.exc_psd.items()} if self.exc_psd else None,
+                     {k: v[keep] for k, v in self.error.items()} if self.error else None,
+                     Kernel(self.kernel.offsets_hz, self.kernel.weights[keep])
+                     if self.kernel else None,
+                     None if self.in1_correlation is None else self.in1_correlation[keep])
 
     def write(self, path: str | Path) -> Path:
         """HDF5 (``.h5``/``.hdf5``: one complex dataset per test point, coherence, errors,
@@ -196,7 +220,8 @@ def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201
 
 
 def assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
-    """A TFSet from ``columns[excited][(response, point)] = (tf, coherence)``."""
+    """A TFSet from ``columns[excited][(response, point)] = (tf, coherence)``, or
+    ``(tf, coherence, sigma)`` from an estimator with its own errors."""
     excited = [d for d in DOFS if d in columns]
     responses = [d for d in DOFS if all((d, p) in columns[e] for e in excited for p in POINTS)]
     if not excited or not set(excited) <= set(responses):
@@ -217,7 +242,9 @@ def assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
     with ThreadPoolExecutor(2) as pool:
         tf = dict(zip(POINTS, pool.map(matrix, POINTS, [0] * len(POINTS)), strict=True))
         coh = dict(zip(POINTS, pool.map(matrix, POINTS, [1] * len(POINTS)), strict=True))
-    return TFSet(optic, np.asarray(freq), excited, responses, tf, coh, averages)
+    own = len(next(iter(columns[excited[0]].values()))) == 3
+    err = {p: matrix(p, 2) for p in POINTS} if own else None
+    return TFSet(optic, np.asarray(freq), excited, responses, tf, coh, averages, error=err)
 
 
 # ------------------------------------------------------------------------------ MCAP sessions
@@ -233,8 +260,9 @@ def _test_point(optic: str | None) -> Callable[[str], bool]:
 
 def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float = 0.5,
                  optic: str | None = None, window: str = "hann", settle_s: float = 0.0,
-                 highpass_hz: float | None = None) -> TFSet:
-    """Welch transfer functions of the excitations recorded in MCAP sessions.
+                 highpass_hz: float | None = None, estimator: str = "welch",
+                 max_hz: float | None = None) -> TFSet:
+    """Transfer functions of the excitations recorded in MCAP sessions.
 
     Each excited DOF's segment runs from its injection's start to its end (the recorded
     ``start``/``end``/``stop`` events); windows of ``1/bw`` seconds. Only the test points
@@ -260,6 +288,13 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     highpass_hz : float, optional
         High-pass EXC and responses alike from the excitation's start (see
         :func:`highpassed`).
+    estimator : str
+        ``"welch"``, or ``"lpm"``: Pintelon and Schoukens' local polynomial method over each
+        excitation's whole record (:mod:`twind.analysis.lpm`; `bw`, `overlap` and `window`
+        unused). Every excitation is cut to the shortest one's length, so that their
+        estimates fall on the same frequencies.
+    max_hz : float, optional
+        LPM: the highest frequency estimated (default: Nyquist).
 
     Returns
     -------
@@ -271,7 +306,10 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         If no excitation is found, several optics were excited and `optic` is not given, or
         an excitation is shorter than ``1/bw``.
     """
-    if not highpass_hz:
+    if estimator not in ("welch", "lpm"):
+        msg = f"unknown estimator {estimator!r}: 'welch' or 'lpm'"
+        raise TFError(msg)
+    if not highpass_hz and estimator == "welch":
         tfs = _streamed(paths, bw, overlap, optic, window, settle_s)
         if tfs is not None:
             return tfs
@@ -279,9 +317,11 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
 
     session = read_channels(list(paths), _test_point(optic))
     extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in session.channels.items()}
-    columns, freq, averages = {}, None, None
-    for key, (start, end) in _excitations(session.events, extents, optic, paths).items():
-        plan = _Plan.of(key, start, end, extents, settle_s)
+    plans = {key: _Plan.of(key, start, end, extents, settle_s) for key, (start, end)
+             in _excitations(session.events, extents, optic, paths).items()}
+    shortest = min(plan.n - plan.skip for plan in plans.values())
+    columns, freq, averages, estimates = {}, None, None, {}
+    for key, plan in plans.items():
         whole = [session[c].samples[o:][:plan.n] for c, o in zip(plan.names, plan.offsets,
                                                                   strict=True)]
         rate = session[plan.names[0]].rate
@@ -289,12 +329,41 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
             x, *ys = highpassed(whole, rate, highpass_hz, plan.skip)
         else:
             x, *ys = (w[plan.skip:] for w in whole)
+        if estimator == "lpm":
+            est = estimates[key[2]] = lpm_tfs(x[:shortest], [y[:shortest] for y in ys], rate,
+                                              max_hz=max_hz, correlated=in1_rows(plan.keys))
+            freq, averages = est.frequency_hz, est.averages
+            columns[key[2]] = lpm_columns(est, plan.keys)
+            continue
         nperseg = _nperseg(rate, bw, plan, settle_s)
-        f, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
-        freq, averages = f, navg
+        freq, h, g2, averages = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
         columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(plan.keys)}
     tfs = assemble(key[1], freq, columns, averages)
     tfs.window = window
+    return with_lpm(tfs, estimates) if estimates else tfs
+
+
+def in1_rows(keys: Sequence[tuple[str, str]]) -> list[int]:
+    """Indices of the IN1 responses among `keys` ((response DOF, point))."""
+    return [i for i, (_, p) in enumerate(keys) if p == "IN1"]
+
+
+def lpm_columns(est: LPMEstimate, keys: Sequence[tuple[str, str]]) -> dict:
+    """:func:`assemble`'s column of one excitation's LPM estimate, whose responses are
+    `keys` ((response DOF, point), in order)."""
+    return {k: (est.tf[i], est.coherence[i], est.sigma[i]) for i, k in enumerate(keys)}
+
+
+def with_lpm(tfs: TFSet, estimates: Mapping[str, LPMEstimate]) -> TFSet:
+    """`tfs` marked as LPM estimates, with their kernel and IN1 error correlation, from the
+    estimate of each excited DOF (its IN1 responses correlated, in `tfs.responses`' order)."""
+    first = estimates[tfs.excited[0]]
+    tfs.window = "lpm"
+    tfs.kernel = Kernel(first.offsets_hz,
+                        np.stack([estimates[d].weights for d in tfs.excited], axis=-1))
+    rho = [estimates[d].correlation for d in tfs.excited]
+    if all(r is not None and r.shape[1] == len(tfs.responses) for r in rho):
+        tfs.in1_correlation = np.stack(rho, axis=-1)
     return tfs
 
 

@@ -18,7 +18,16 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
-from twind.analysis.tf import POINTS, TFSet, assemble, highpassed
+from twind.analysis.lpm import lpm_tfs
+from twind.analysis.tf import (
+    POINTS,
+    TFSet,
+    assemble,
+    highpassed,
+    in1_rows,
+    lpm_columns,
+    with_lpm,
+)
 from twind.analysis.welch import welch_tfs
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
@@ -46,6 +55,7 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
                 excitation: Mapping[str, NDArray[np.float64]] | None = None,
                 rms: float = 1.0, f_max: float = 30.0, seed: int = 0, window: str = "hann",
                 highpass_hz: float | None = None, plant: Plant | None = None,
+                estimator: str = "welch",
                 progress: Callable[[float], None] | None = None) -> TFSet:
     """Closed-loop transfer functions of `cfg`'s optic, measured on the twin.
 
@@ -69,6 +79,9 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
         The plant the twin runs instead of `cfg`'s (physics the model leaves out).
     highpass_hz : float, optional
         High-pass EXC and responses alike, from the start (:func:`~twind.analysis.tf.highpassed`).
+    estimator : str
+        ``"welch"`` (diaggui's), or ``"lpm"``: the local polynomial method over the whole
+        record of ``averages`` segments (:mod:`twind.analysis.lpm`), up to ``4 f_max``.
     progress : callable, optional
         Called with the fraction done.
 
@@ -76,6 +89,9 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     -------
     TFSet
     """
+    if estimator not in ("welch", "lpm"):
+        msg = f"unknown estimator {estimator!r}: 'welch' or 'lpm'"
+        raise ValueError(msg)
     rate = cfg.sus.sample_rate_hz
     nperseg, n = _averaged(rate, bw, averages, overlap)
     step = nperseg - int(nperseg * overlap)
@@ -110,18 +126,26 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
         done += k
         if progress:
             progress(done / (settle + n))
-    columns, freq, navg, exc_psd = {}, None, averages, {}
+    columns, freq, navg, exc_psd, estimates = {}, None, averages, {}, {}
     for i, d in enumerate(dofs):
         x = exc[i, DOFS.index(d), settle - keep:]
         ys = [record[p][i, j] for j in range(len(DOFS)) for p in POINTS]
         if highpass_hz:
             x, *ys = highpassed([x, *ys], rate, highpass_hz, keep)
+        keys = [(r, p) for r in DOFS for p in POINTS]
+        if estimator == "lpm":
+            est = estimates[d] = lpm_tfs(x, ys, rate, max_hz=4 * f_max,
+                                         correlated=in1_rows(keys))
+            freq, navg = est.frequency_hz, est.averages
+            columns[d] = lpm_columns(est, keys)
+            continue
         freq, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
-        columns[d] = {(r, p): (h[k], g2[k]) for k, (r, p) in
-                      enumerate((r, p) for r in DOFS for p in POINTS)}
+        columns[d] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
         exc_psd[d] = signal.welch(x, fs=rate, window=window, nperseg=nperseg,
                                   noverlap=nperseg - step)[1]
     tfs = assemble(cfg.name, freq, columns, navg)
+    if estimates:
+        return with_lpm(tfs, estimates)
     tfs.window, tfs.exc_psd = window, exc_psd
     return tfs
 
