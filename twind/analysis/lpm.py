@@ -209,14 +209,19 @@ def _smoothed_variance(var: NDArray[np.float64], q: int) -> tuple[NDArray[np.flo
     and has about three times the degrees of freedom. The log's bias, ``psi(q) - ln q``
     for a chi-square of ``2 q``, is taken out.
     """
-    m = min(SMOOTH_WINDOWS, var.shape[-1] - (1 - var.shape[-1] % 2))
-    ok = np.isfinite(var) & (var > 0)
-    if m < 5 or not ok.all():
+    span = _span(var.shape[-1])
+    if span < 5 or not np.all(np.isfinite(var) & (var > 0)):
         return var, q
-    coef = signal.savgol_coeffs(m, 2)
-    smooth = np.exp(signal.savgol_filter(np.log(var), m, 2, axis=-1)
+    coef = signal.savgol_coeffs(span, 2)
+    smooth = np.exp(signal.savgol_filter(np.log(var), span, 2, axis=-1)
                     + math.log(q) - special.digamma(q))
     return smooth, int(q / np.sum(coef**2))
+
+
+def _span(n: int) -> int:
+    """Windows smoothed over: :data:`SMOOTH_WINDOWS`, or the odd number of the `n` there
+    are if fewer (below 5 a quadratic is not worth smoothing with)."""
+    return min(SMOOTH_WINDOWS, n - (1 - n % 2))
 
 
 def _correlation(cross: NDArray[np.complex128]) -> NDArray[np.complex128]:
@@ -226,7 +231,7 @@ def _correlation(cross: NDArray[np.complex128]) -> NDArray[np.complex128]:
     d = np.sqrt(np.einsum("wii->wi", cross).real)
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.nan_to_num(cross / (d[:, :, None] * d[:, None, :]))
-    span = min(SMOOTH_WINDOWS, len(rho) - (1 - len(rho) % 2))
+    span = _span(len(rho))
     if span >= 5:
         rho = (signal.savgol_filter(rho.real, span, 2, axis=0)
                + 1j * signal.savgol_filter(rho.imag, span, 2, axis=0))

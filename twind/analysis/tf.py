@@ -27,10 +27,12 @@ from twind.analysis.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import TwindError
 
-__all__ = ["POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
+__all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
            "highpassed", "welch_tf", "welch_tfs", "xml_transfer"]
 
 POINTS = ("IN1", "IN2", "OUT")
+ESTIMATORS = ("welch", "lpm")
+"""Welch's (diaggui's), or the local polynomial method's (:mod:`twind.analysis.lpm`)."""
 _CHANNEL = re.compile(r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
 
 
@@ -306,8 +308,8 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         If no excitation is found, several optics were excited and `optic` is not given, or
         an excitation is shorter than ``1/bw``.
     """
-    if estimator not in ("welch", "lpm"):
-        msg = f"unknown estimator {estimator!r}: 'welch' or 'lpm'"
+    if estimator not in ESTIMATORS:
+        msg = f"unknown estimator {estimator!r}: one of {', '.join(ESTIMATORS)}"
         raise TFError(msg)
     if not highpass_hz and estimator == "welch":
         tfs = _streamed(paths, bw, overlap, optic, window, settle_s)

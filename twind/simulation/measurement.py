@@ -20,6 +20,7 @@ from scipy import signal
 from twind import DOFS
 from twind.analysis.lpm import lpm_tfs
 from twind.analysis.tf import (
+    ESTIMATORS,
     POINTS,
     TFSet,
     assemble,
@@ -89,8 +90,8 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     -------
     TFSet
     """
-    if estimator not in ("welch", "lpm"):
-        msg = f"unknown estimator {estimator!r}: 'welch' or 'lpm'"
+    if estimator not in ESTIMATORS:
+        msg = f"unknown estimator {estimator!r}: one of {', '.join(ESTIMATORS)}"
         raise ValueError(msg)
     rate = cfg.sus.sample_rate_hz
     nperseg, n = _averaged(rate, bw, averages, overlap)
