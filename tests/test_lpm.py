@@ -47,6 +47,17 @@ def test_lpm_errors_match_the_scatter() -> None:
     assert np.std(pulls) < 1.3
 
 
+def test_estimates_below_max_hz_do_not_depend_on_it() -> None:
+    """Cutting the record's spectrum at 2 Hz or at 3 Hz gives the same estimates and
+    errors up to 2 Hz: the smoothing of the variance does not see the cut."""
+    x, y = _record(400.0, 1)
+    lo, hi = (lpm_tfs(x, [y], RATE, max_hz=m) for m in (2.0, 3.0))
+    n = int(np.sum(lo.frequency_hz <= 2.0))
+    assert np.allclose(lo.frequency_hz[:n], hi.frequency_hz[:n])
+    assert np.allclose(lo.tf[:, :n], hi.tf[:, :n])
+    assert np.allclose(lo.sigma[:, :n], hi.sigma[:, :n], rtol=1e-9)
+
+
 def test_correlation_of_two_responses_sharing_a_noise() -> None:
     """The second response's noise is the first's a few samples later: their errors
     correlate fully, with E[e0 conj(e1)] turning by +2 pi f delay."""

@@ -256,7 +256,8 @@ def lpm_tfs(x: NDArray[np.float64], ys: Sequence[NDArray[np.float64]], rate: flo
     half_width, order : int
         Window half-width ``n`` (bins of ``rate / len(x)``) and polynomial order ``R``.
     max_hz : float, optional
-        Highest frequency estimated (default: Nyquist).
+        Estimates up to here are those of the whole band (default: Nyquist); a few
+        windows beyond are estimated too.
     correlated : sequence of int
         Responses whose errors' correlation is estimated.
 
@@ -268,8 +269,11 @@ def lpm_tfs(x: NDArray[np.float64], ys: Sequence[NDArray[np.float64]], rate: flo
     if x.ndim != 1 or any(np.shape(y) != x.shape for y in ys):
         msg = f"responses of {[np.shape(y) for y in ys]} samples for an excitation of {x.shape}"
         raise LPMError(msg)
+    # Past max_hz: the window holding it, and the windows its smoothing reaches, so that
+    # estimates up to max_hz do not depend on where the cut falls.
+    reach = (SMOOTH_WINDOWS // 2 + 2) * (2 * half_width + 1)
     keep = x.size // 2 + 1 if max_hz is None else min(
-        x.size // 2 + 1, int(np.ceil(max_hz * x.size / rate)) + 2 * half_width + 2)
+        x.size // 2 + 1, int(np.ceil(max_hz * x.size / rate)) + reach)
     U = fft.rfft(x)[:keep]
     Y = np.stack([fft.rfft(np.asarray(y, dtype=np.float64))[:keep] for y in ys])
     return lpm(U, Y, rate / x.size, half_width, order, correlated)

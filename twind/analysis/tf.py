@@ -296,7 +296,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         unused). Every excitation is cut to the shortest one's length, so that their
         estimates fall on the same frequencies.
     max_hz : float, optional
-        LPM: the highest frequency estimated (default: Nyquist).
+        LPM: estimates up to here are those of the whole band (default: Nyquist).
 
     Returns
     -------
