@@ -72,6 +72,33 @@ def test_correlation_of_two_responses_sharing_a_noise() -> None:
     assert np.median(np.abs(turn)) < 0.01  # the other convention: 2 x 2 pi f delay, ~1 rad
 
 
+def test_the_difference_of_two_readbacks_sharing_their_noise_is_calibrated() -> None:
+    """The second response reads the first's noise through a Q = 10 resonance, so their
+    correlation stays near 0.99 and turns by pi across 1 Hz. The second's error given the
+    first (what a fit whitened with the correlation learns from) scatters as its smoothed
+    estimate says: smoothing the correlation itself got that 5 times too small here."""
+    b, a = _resonance()
+    w0 = 2 * np.pi * F0
+    bd, ad = signal.bilinear([w0**2], [1, w0 / 10, w0**2], fs=RATE)
+    left = []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        x = rng.standard_normal(int(400 * RATE))
+        noise = 0.05 * rng.standard_normal(x.size)
+        y = signal.lfilter(b, a, x)
+        est = lpm_tfs(x, [y + noise, 0.5 * y + signal.lfilter(bd, ad, noise)
+                          + 0.005 * rng.standard_normal(x.size)], RATE, max_hz=3.0,
+                      correlated=[0, 1])
+        z = (est.tf - np.array([[1.0], [0.5]]) * _truth(est.frequency_hz)) / est.sigma
+        rho = est.correlation[:, 0, 1]
+        left.append((z[1] - np.conj(rho) * z[0]) / np.sqrt(1 - np.abs(rho) ** 2))
+    left = np.array(left)
+    f = est.frequency_hz
+    for lo, hi in [(0.3, 0.8), (0.8, 1.2), (1.2, 2.5)]:
+        band = (f > lo) & (f < hi)
+        assert 0.75 < np.mean(np.abs(left[:, band]) ** 2) / 2 < 1.3, (lo, hi)
+
+
 def test_lpm_removes_the_leakage_welch_keeps() -> None:
     """Noise-free, the LPM's error at the resonance is far below a Welch estimate's from
     the same record: what is left of Welch's is the leakage of the transient and the

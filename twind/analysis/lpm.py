@@ -76,9 +76,10 @@ class LPMEstimate:
         comes out as this sum, which a model can then predict exactly.
     correlation : ndarray of complex, shape (nw, m, m), optional
         Correlation of the errors of the `correlated` responses' estimates (their noises'
-        in the window, smoothed as the variances are). The readbacks of one optic share
-        their noise: around the 40m's POS resonance POS and PIT IN1 correlate at 0.99,
-        and a fit that took them as independent would count that noise twice.
+        in the window, smoothed over windows by :func:`_correlation`). The readbacks of
+        one optic share their noise: around the 40m's POS resonance POS and PIT IN1
+        correlate at 0.99, and a fit that took them as independent would count that noise
+        twice.
     """
 
     frequency_hz: NDArray[np.float64]
@@ -159,7 +160,7 @@ def lpm(U: NDArray[np.complex128], Y: NDArray[np.complex128], df: float,
     G[bad], sig[bad], coh[bad] = np.nan, np.nan, 0.0
     f = (1 + np.arange(n_win) * width + half_width) * df
     return LPMEstimate(f, G, sig, coh, dof, (np.arange(width) - half_width) * df, weights,
-                       _correlation(cross) if m else None)
+                       _correlation(cross, width - p) if m else None)
 
 
 def _windows(Uw: NDArray[np.complex128], Yw: NDArray[np.complex128], poly: NDArray[np.float64],
@@ -224,20 +225,38 @@ def _span(n: int) -> int:
     return min(SMOOTH_WINDOWS, n - (1 - n % 2))
 
 
-def _correlation(cross: NDArray[np.complex128]) -> NDArray[np.complex128]:
-    """Correlation matrices from the windows' noise covariances (nw, m, m), each element
-    smoothed over :data:`SMOOTH_WINDOWS` as the variances are (linearly: it may change
-    sign)."""
+def _correlation(cross: NDArray[np.complex128], q: int) -> NDArray[np.complex128]:
+    """Correlation matrices of the responses' noises, from the windows' sums of residual
+    products (nw, m, m) of ``q`` degrees of freedom, smoothed over :data:`SMOOTH_WINDOWS`.
+
+    Smoothed as a chain of regressions, ``R = L D L^H`` with ``L`` unit lower triangular:
+    the fraction of each noise's variance the ones before it leave (``D``, a quadratic in
+    its log as the variances are; ``q - i`` degrees of freedom against the variance's
+    ``q``) and its regression on them (``L``, linearly: it may change sign). Where two
+    readbacks share 0.99 of their noise, what a fit learns from their difference rests on
+    the 2 % left over; a smoothed correlation misplaces that by its own size where the
+    correlation turns, and ``1 - |rho|^2`` of a few windows' estimate is biased low.
+    """
+    m = cross.shape[1]
     d = np.sqrt(np.einsum("wii->wi", cross).real)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.nan_to_num(cross / (d[:, :, None] * d[:, None, :]))
+        rho = cross / (d[:, :, None] * d[:, None, :])
+    good = np.all(np.isfinite(rho), axis=(1, 2))
+    # a window with a silent response has no correlation; identical responses, one of 1
+    rho = np.where(good[:, None, None], rho, np.eye(m)) + 1e-12 * np.eye(m)
     span = _span(len(rho))
-    if span >= 5:
-        rho = (signal.savgol_filter(rho.real, span, 2, axis=0)
-               + 1j * signal.savgol_filter(rho.imag, span, 2, axis=0))
-    idx = np.arange(rho.shape[1])
-    rho[:, idx, idx] = 1.0
-    return rho
+    if span < 5:
+        return rho
+    c = np.linalg.cholesky(rho)
+    diag = np.einsum("wii->wi", c).real
+    bias = special.digamma(q) - special.digamma(q - np.arange(m))
+    left = np.exp(signal.savgol_filter(2 * np.log(diag), span, 2, axis=0) + bias)
+    unit = c / diag[:, None, :]
+    unit = np.tril(signal.savgol_filter(unit.real, span, 2, axis=0)
+                   + 1j * signal.savgol_filter(unit.imag, span, 2, axis=0), -1) + np.eye(m)
+    cov = unit @ (left[:, :, None] * np.conj(np.swapaxes(unit, 1, 2)))
+    d = np.sqrt(np.einsum("wii->wi", cov).real)
+    return cov / (d[:, :, None] * d[:, None, :])
 
 
 def lpm_tfs(x: NDArray[np.float64], ys: Sequence[NDArray[np.float64]], rate: float,
