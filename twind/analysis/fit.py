@@ -209,7 +209,8 @@ class FitData:
             at = np.all(used == np.array(pattern), axis=2)
             rows = np.flatnonzero(pattern)
             c = rho[at][:, rows][:, :, rows]
-            # a smoothed correlation may lose definiteness: its eigenvalues are floored
+            # eigenvalues floored, so that responses correlated to rounding (or a correlation
+            # from elsewhere that lost definiteness) still whiten to finite residuals
             w, v = np.linalg.eigh(c)
             c = (v * np.clip(w, 1e-3, None)[:, None, :]) @ np.conj(np.swapaxes(v, 1, 2))
             block = np.linalg.inv(np.linalg.cholesky(c))

@@ -213,16 +213,21 @@ def _smoothed_variance(var: NDArray[np.float64], q: int) -> tuple[NDArray[np.flo
     span = _span(var.shape[-1])
     if span < 5 or not np.all(np.isfinite(var) & (var > 0)):
         return var, q
-    coef = signal.savgol_coeffs(span, 2)
-    smooth = np.exp(signal.savgol_filter(np.log(var), span, 2, axis=-1)
-                    + math.log(q) - special.digamma(q))
-    return smooth, int(q / np.sum(coef**2))
+    smooth = np.exp(_quadratic(np.log(var), span, -1) + math.log(q) - special.digamma(q))
+    return smooth, int(q / np.sum(signal.savgol_coeffs(span, 2) ** 2))
 
 
 def _span(n: int) -> int:
     """Windows smoothed over: :data:`SMOOTH_WINDOWS`, or the odd number of the `n` there
     are if fewer (below 5 a quadratic is not worth smoothing with)."""
     return min(SMOOTH_WINDOWS, n - (1 - n % 2))
+
+
+def _quadratic(x: NDArray, span: int, axis: int) -> NDArray:
+    """`x` (real or complex) smoothed by a quadratic over `span` windows (Savitzky-Golay)."""
+    if np.iscomplexobj(x):
+        return _quadratic(x.real, span, axis) + 1j * _quadratic(x.imag, span, axis)
+    return signal.savgol_filter(x, span, 2, axis=axis)
 
 
 def _correlation(cross: NDArray[np.complex128], q: int) -> NDArray[np.complex128]:
@@ -250,10 +255,8 @@ def _correlation(cross: NDArray[np.complex128], q: int) -> NDArray[np.complex128
     c = np.linalg.cholesky(rho)
     diag = np.einsum("wii->wi", c).real
     bias = special.digamma(q) - special.digamma(q - np.arange(m))
-    left = np.exp(signal.savgol_filter(2 * np.log(diag), span, 2, axis=0) + bias)
-    unit = c / diag[:, None, :]
-    unit = np.tril(signal.savgol_filter(unit.real, span, 2, axis=0)
-                   + 1j * signal.savgol_filter(unit.imag, span, 2, axis=0), -1) + np.eye(m)
+    left = np.exp(_quadratic(2 * np.log(diag), span, 0) + bias)
+    unit = np.tril(_quadratic(c / diag[:, None, :], span, 0), -1) + np.eye(m)
     cov = unit @ (left[:, :, None] * np.conj(np.swapaxes(unit, 1, 2)))
     d = np.sqrt(np.einsum("wii->wi", cov).real)
     return cov / (d[:, :, None] * d[:, None, :])

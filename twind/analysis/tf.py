@@ -308,9 +308,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         If no excitation is found, several optics were excited and `optic` is not given, or
         an excitation is shorter than ``1/bw``.
     """
-    if estimator not in ESTIMATORS:
-        msg = f"unknown estimator {estimator!r}: one of {', '.join(ESTIMATORS)}"
-        raise TFError(msg)
+    check_estimator(estimator)
     if not highpass_hz and estimator == "welch":
         tfs = _streamed(paths, bw, overlap, optic, window, settle_s)
         if tfs is not None:
@@ -332,10 +330,9 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         else:
             x, *ys = (w[plan.skip:] for w in whole)
         if estimator == "lpm":
-            est = estimates[key[2]] = lpm_tfs(x[:shortest], [y[:shortest] for y in ys], rate,
-                                              max_hz=max_hz, correlated=in1_rows(plan.keys))
-            freq, averages = est.frequency_hz, est.averages
-            columns[key[2]] = lpm_columns(est, plan.keys)
+            est, columns[key[2]] = lpm_column(x[:shortest], [y[:shortest] for y in ys], rate,
+                                              plan.keys, max_hz)
+            freq, averages, estimates[key[2]] = est.frequency_hz, est.averages, est
             continue
         nperseg = _nperseg(rate, bw, plan, settle_s)
         freq, h, g2, averages = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
@@ -345,15 +342,21 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     return with_lpm(tfs, estimates) if estimates else tfs
 
 
-def in1_rows(keys: Sequence[tuple[str, str]]) -> list[int]:
-    """Indices of the IN1 responses among `keys` ((response DOF, point))."""
-    return [i for i, (_, p) in enumerate(keys) if p == "IN1"]
+def check_estimator(estimator: str) -> None:
+    """A TFError unless `estimator` is one of :data:`ESTIMATORS`."""
+    if estimator not in ESTIMATORS:
+        msg = f"unknown estimator {estimator!r}: one of {', '.join(ESTIMATORS)}"
+        raise TFError(msg)
 
 
-def lpm_columns(est: LPMEstimate, keys: Sequence[tuple[str, str]]) -> dict:
-    """:func:`assemble`'s column of one excitation's LPM estimate, whose responses are
-    `keys` ((response DOF, point), in order)."""
-    return {k: (est.tf[i], est.coherence[i], est.sigma[i]) for i, k in enumerate(keys)}
+def lpm_column(x: NDArray[np.float64], ys: Sequence[NDArray[np.float64]], rate: float,
+               keys: Sequence[tuple[str, str]], max_hz: float | None = None
+               ) -> tuple[LPMEstimate, dict]:
+    """One excitation's LPM estimate, its IN1 responses' errors correlated, and
+    :func:`assemble`'s column of it; `keys` name `ys` ((response DOF, point), in order)."""
+    est = lpm_tfs(x, ys, rate, max_hz=max_hz,
+                  correlated=[i for i, (_, p) in enumerate(keys) if p == "IN1"])
+    return est, {k: (est.tf[i], est.coherence[i], est.sigma[i]) for i, k in enumerate(keys)}
 
 
 def with_lpm(tfs: TFSet, estimates: Mapping[str, LPMEstimate]) -> TFSet:

@@ -18,15 +18,13 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
-from twind.analysis.lpm import lpm_tfs
 from twind.analysis.tf import (
-    ESTIMATORS,
     POINTS,
     TFSet,
     assemble,
+    check_estimator,
     highpassed,
-    in1_rows,
-    lpm_columns,
+    lpm_column,
     with_lpm,
 )
 from twind.analysis.welch import welch_tfs
@@ -90,9 +88,7 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     -------
     TFSet
     """
-    if estimator not in ESTIMATORS:
-        msg = f"unknown estimator {estimator!r}: one of {', '.join(ESTIMATORS)}"
-        raise ValueError(msg)
+    check_estimator(estimator)
     rate = cfg.sus.sample_rate_hz
     nperseg, n = _averaged(rate, bw, averages, overlap)
     step = nperseg - int(nperseg * overlap)
@@ -135,10 +131,8 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
             x, *ys = highpassed([x, *ys], rate, highpass_hz, keep)
         keys = [(r, p) for r in DOFS for p in POINTS]
         if estimator == "lpm":
-            est = estimates[d] = lpm_tfs(x, ys, rate, max_hz=4 * f_max,
-                                         correlated=in1_rows(keys))
-            freq, navg = est.frequency_hz, est.averages
-            columns[d] = lpm_columns(est, keys)
+            est, columns[d] = lpm_column(x, ys, rate, keys, 4 * f_max)
+            freq, navg, estimates[d] = est.frequency_hz, est.averages, est
             continue
         freq, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
         columns[d] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
