@@ -20,13 +20,14 @@ from twind.analysis.corpus import (
     raised_clamp,
     score,
     summary,
+    tilted_heads,
 )
 from twind.analysis.diagnose import MIN_COHERENCE
 from twind.analysis.fit import FitData
 from twind.analysis.tf import from_session
 from twind.config import load_config
 from twind.loop.plant import Plant
-from twind.model.effects import model_names
+from twind.model.effects import CATALOGUE, model_names, with_effect
 from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
 
 
@@ -85,6 +86,44 @@ def test_a_raised_clamp_is_model_md_wire_asymmetry_from_the_geometry(etmx, rise:
     assert np.array_equal(mech.M, base.mechanics.M)
     for name in ("actuation", "sensing", "delay_s"):
         assert np.array_equal(getattr(plant, name), getattr(base, name)), name
+
+
+@pytest.mark.parametrize("pitch", [0.05, -0.1])
+def test_a_pitched_optic_is_model_md_bounce_roll_from_3d_kinematics(etmx, pitch: float
+                                                                     ) -> None:  # noqa: ANN001
+    """Face heads whose axes tilt towards VERT (3-D kinematics of the tilted axis at each
+    face point, the geometric body's VERT and ROLL) make the plant the catalogue's
+    bounce_roll makes at the parameters the geometry reports: vertical = roll = tilt^2,
+    the roll in the YAW pattern (angle pi/2), the geometry's mode frequencies; also at the
+    modes themselves."""
+    p = etmx.sus
+    base = Plant.from_params(p, etmx.mechanics())
+    plant, truth = tilted_heads(base, p, 0.0, pitch)
+    assert truth["vertical"] == pytest.approx(pitch**2) == truth["roll"]
+    assert truth["roll_angle"] == pytest.approx(math.pi / 2)
+    assert truth["f_roll_hz"] != pytest.approx(p.uncoupled_frequencies_hz()["ROLL"], rel=1e-4)
+    model = with_effect(base, p, "bounce_roll",
+                        {k: truth[k] for k in CATALOGUE["bounce_roll"].params})
+    f = np.concatenate([np.logspace(-1, 1.5, 100),
+                        truth["f_vertical_hz"] + np.linspace(-0.05, 0.05, 21),
+                        truth["f_roll_hz"] + np.linspace(-0.05, 0.05, 21)])
+    P, P0 = plant.response(f), base.response(f)
+    change = np.abs(P - P0).max()
+    assert change > 1e-3 * np.abs(P0).max() * pitch**2
+    np.testing.assert_allclose(model.response(f), P, rtol=0, atol=1e-9 * change)
+
+
+def test_a_yawed_optic_reads_side_as_model_md_side_coupling(etmx) -> None:  # noqa: ANN001
+    """Tilted towards SIDE by a, each face head reads a SIDE and its coil pushes a along
+    SIDE: MODEL.md's side_coupling with sensing = actuation = a (away from the roll mode,
+    which the same tilt couples at second order)."""
+    p = etmx.sus
+    base = Plant.from_params(p, etmx.mechanics())
+    plant, _ = tilted_heads(base, p, 0.01, 0.0)
+    side = with_effect(base, p, "side_coupling", {"sensing": 0.01, "actuation": 0.01})
+    f = np.logspace(-1, 1, 100)
+    change = np.abs(side.response(f) - base.response(f)).max()
+    assert np.abs(plant.response(f) - side.response(f)).max() < 1e-3 * change
 
 
 def test_the_key_parameter_ignores_what_the_measurement_cannot_see() -> None:

@@ -85,6 +85,22 @@ def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa:
     assert 0 < key_z("coil_imbalance", truth, d.effects[0].result) < 4
 
 
+def test_a_pitched_optic_s_bounce_is_named_from_its_compliance(etmx) -> None:  # noqa: ANN001
+    """Face heads tilted 0.15 rad towards VERT against the optic (3-D kinematics, the
+    geometric body's VERT and ROLL: corpus.tilted_heads): the BounceRoll notches keep the
+    modes' peaks out of IN1/EXC, but the bounce's compliance, rising as f^2 against the
+    optic's above the pendulum modes, names bounce_roll with its coupling."""
+    from twind.analysis.corpus import tilted_heads
+
+    plant, truth = tilted_heads(Plant.from_params(etmx.sus, etmx.mechanics()), etmx.sus,
+                                0.0, 0.15)
+    d = diagnose(_measured(etmx, plant), etmx)
+    best = d.effects[0]
+    assert best.effect == "bounce_roll" and best.p_value < 1e-6
+    assert best.to_json()["params"]["vertical"] == pytest.approx(truth["vertical"], rel=0.35)
+    assert 0 < key_z("bounce_roll", truth, best.result) < 3
+
+
 def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noqa: ANN001
     from servicekit import serving
 

@@ -5,7 +5,9 @@ Each case is an optic whose nominal parameters drifted at random (:data:`SPREAD`
 except for the nulls, that carries one effect of MODEL.md's catalogue, put into the plant
 the twin runs *by hand here*: the coil or OSEM columns of the actuation and sensing
 matrices, the loop delay, the coil-driver pole, the SIDE column of the face OSEMs; a wire
-asymmetry is one loop's clamp raised in the geometric rigid-body model (:func:`raised_clamp`).
+asymmetry is one loop's clamp raised in the geometric rigid-body model (:func:`raised_clamp`);
+bounce and roll are the geometric body's VERT and ROLL seen by face heads whose axes tilt
+against the optic, in 3-D kinematics (:func:`tilted_heads`).
 None of it goes through :mod:`twind.model.effects`, whose models the diagnosis fits to
 explain it.
 The twin's time-domain engine measures the optic, noise through the loop, and the
@@ -21,8 +23,7 @@ parameter within 35 %; nothing claimed on the nulls; chi^2/nu after augmentation
 the nulls'; seconds per case. To tell a miss's scatter from a bias, each key parameter's
 error is also given in its own fit's sigma (:func:`key_z`).
 
-Not in the default corpus: ``side_coupling`` (see :data:`EFFECTS`) and bounce/roll (not in
-the catalogue's models).
+Not in the default corpus: ``side_coupling`` (see :data:`EFFECTS`).
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ CONCEAL_SIGMA = 3.0
 SPREAD = {"wire_length_m": 0.015, "b_m": 0.02, "R1_m": 0.02, "coil_N_per_ct": 0.03,
           "osem_lever_m": 0.015, "Q_POS": 0.15, "Q_PIT": 0.15, "Q_YAW": 0.15, "Q_SIDE": 0.15}
 """Relative standard deviation of each nominal parameter's drift from case to case."""
-EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole", "wire_asymmetry")
+EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole", "wire_asymmetry",
+           "bounce_roll")
 """The catalogue effects the corpus hides by default. ``side_coupling`` on request, with SIDE
 among the excited DOFs: a POS/PIT/YAW measurement barely moves SIDE, so no physical
 coupling reaches 3 sigma in it."""
@@ -134,11 +136,15 @@ def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64
         sens = plant.sensing.copy()
         sens[:4, 3] += size
         return replace(plant, sensing=sens), {"sensing": size}
-    if effect == "wire_asymmetry":
+    if effect in ("wire_asymmetry", "bounce_roll"):
         if sus is None:
-            msg = "a raised clamp needs the suspension's parameters (sus)"
+            msg = f"a hand-made {effect} needs the suspension's parameters (sus)"
             raise ValueError(msg)
-        return raised_clamp(plant, sus, size)
+        if effect == "wire_asymmetry":
+            return raised_clamp(plant, sus, size)
+        # the optic pitched against its heads: a yaw would put SIDE into the face OSEMs at
+        # first order, and that side coupling, not the modes, is what a measurement sees
+        return tilted_heads(plant, sus, 0.0, size)
     msg = f"the corpus has no hand-made {effect!r}; it makes {', '.join(MADE)}"
     raise ValueError(msg)
 
@@ -171,8 +177,58 @@ def raised_clamp(plant: Plant, sus: SOSParams, rise_m: float) -> tuple[Plant, di
             {"delta_m": pendulum_centre_offset(raised)})
 
 
+def tilted_heads(plant: Plant, sus: SOSParams, towards_side: float, towards_vert: float
+                 ) -> tuple[Plant, dict]:
+    """`plant` with the geometric rigid body's VERT and ROLL modes, and every face OSEM's
+    axis (and its coaxial coil's) tilted by the same small angles (rad) towards SIDE and
+    towards VERT: how a statically pitched or yawed optic sits against its heads.
+
+    What each head reads and pushes is 3-D kinematics of the tilted axis ``n`` at the face
+    point ``r``: ``n . (t + theta x r)``, with ``t = (POS, SIDE, VERT)`` and ``theta`` =
+    (ROLL, PIT, -YAW) in the plant's sign convention; the modes' mass, stiffness and damping
+    are the geometric model's (its roll lies 0.47 % above ``sqrt(k_v R2^2 / I_roll)``).
+    Nothing goes through the catalogue's ``bounce_roll``; MODEL.md's parameters come out of
+    the geometry: ``vertical`` = (sensing x actuation of VERT per face head), ``roll`` the
+    same of ROLL per unit lever, and the modes' frequencies."""
+    from twind.model.geometric import WireGeometry, geometric_mechanics
+    from twind.model.osem import FACE_POSITION
+
+    geo = geometric_mechanics(WireGeometry.from_params(sus))
+    mech, extra = plant.mechanics, ("VERT", "ROLL")
+    at = [geo.index(d) for d in extra]
+    n0 = mech.n
+    M, C, K = (np.pad(a, (0, 2)) for a in (mech.M, mech.C, mech.K))
+    for a, g in ((M, geo.M), (C, geo.C), (K, geo.K)):
+        a[n0:, n0:] = g[np.ix_(at, at)]
+    dofs = (*mech.dofs, *extra)
+    # not normalised: the cos(tilt) it would take off each head's POS reading and push is a
+    # common OSEM and coil gain, the drift's business; the case hides what tilt adds
+    axis = np.array([1.0, towards_side, towards_vert])
+    sensing = np.pad(plant.sensing, ((0, 0), (0, 2)))
+    for i, (y, z) in enumerate(FACE_POSITION.values()):
+        r = np.array([0.0, y, z]) * sus.osem_lever_m
+        motion = np.zeros((3, len(dofs)))  # face-point displacement per coordinate
+        for d, e in (("POS", 0), ("SIDE", 1), ("VERT", 2)):
+            motion[e, dofs.index(d)] = 1.0
+        for d, w in (("ROLL", (1, 0, 0)), ("PIT", (0, 1, 0)), ("YAW", (0, 0, -1))):
+            motion[:, dofs.index(d)] = np.cross(w, r)
+        sensing[i] = axis @ motion
+    gains = np.array([sus.coil_N_per_ct] * 4 + [sus.side_coil_N_per_ct])
+    tilted = replace(plant, mechanics=Mechanics(dofs, M, C, K), sensing=sensing,
+                     actuation=-sensing.T * gains)
+    f = {d: float(np.sqrt(K[i, i] / M[i, i]) / (2 * np.pi)) for i, d in enumerate(dofs)
+         if d in extra}
+    lever = sus.osem_lever_m
+    vertical = sensing[0, dofs.index("VERT")] ** 2
+    roll = float(np.mean(sensing[:4, dofs.index("ROLL")] ** 2)) / lever**2
+    return tilted, {"vertical": float(vertical), "roll": roll,
+                    "f_vertical_hz": f["VERT"], "f_roll_hz": f["ROLL"],
+                    "roll_angle": math.atan2(towards_vert, -towards_side) % math.pi}
+
+
 _FIRST_SIZE = {"coil_imbalance": 1e-3, "osem_imbalance": 1e-3, "loop_delay": 1e-4,
-               "actuator_pole": 1 / 300, "side_coupling": 1e-2, "wire_asymmetry": 1e-3}
+               "actuator_pole": 1 / 300, "side_coupling": 1e-2, "wire_asymmetry": 1e-3,
+               "bounce_roll": 1e-3}
 MADE = tuple(_FIRST_SIZE)
 """Every effect the corpus can hide."""
 
@@ -200,8 +256,10 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
     size = _FIRST_SIZE[effect]
     if effect == "wire_asymmetry":  # either loop's clamp raised
         size = math.copysign(size, direction[0])
-    for _ in range(3):  # nearly linear in size: a few secant steps
-        size *= target / max(change(size).max(), 1e-12)
+    # nearly linear in size (a tilt's modes: in its square): a few secant steps
+    power = 0.5 if effect == "bounce_roll" else 1.0
+    for _ in range(3):
+        size *= (target / max(change(size).max(), 1e-12)) ** power
     if effect == "loop_delay":  # the engine delays by whole samples
         rate = real.sus.sample_rate_hz
         size = max(round(size * rate), 1) / rate
@@ -263,13 +321,14 @@ class Score:
 
 def key_error(effect: str, truth: dict, fitted: dict) -> float:
     """Relative error of an effect's key parameter: the face gains' pitch- and yaw-like
-    part (what the measurement determines), ``extra_s``, ``f_hz`` or ``sensing``."""
+    part (what the measurement determines), ``extra_s``, ``f_hz``, ``sensing``, ``delta_m``
+    or ``vertical`` (the bounce's coupling: its compliance is what IN1/EXC shows)."""
     if effect in ("coil_imbalance", "osem_imbalance"):
         t = _SEEN @ np.array([truth["gains"][f] for f in FACES])
         g = _SEEN @ np.array([fitted["gains"][f] for f in FACES])
         return float(np.linalg.norm(g - t) / np.linalg.norm(t))
     key = {"loop_delay": "extra_s", "actuator_pole": "f_hz", "side_coupling": "sensing",
-           "wire_asymmetry": "delta_m"}[effect]
+           "wire_asymmetry": "delta_m", "bounce_roll": "vertical"}[effect]
     return abs(fitted[key] - truth[key]) / abs(truth[key])
 
 
@@ -282,7 +341,8 @@ def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResul
         d = _SEEN @ np.array([got[f"gain_{f}"] - truth["gains"][f] for f in FACES])
     else:  # a driver pole is fitted as 1/f
         name = {"loop_delay": "extra_s", "actuator_pole": "inv_f_hz",
-                "side_coupling": "sensing", "wire_asymmetry": "delta_m"}[effect]
+                "side_coupling": "sensing", "wire_asymmetry": "delta_m",
+                "bounce_roll": "vertical"}[effect]
         value = 1 / truth["f_hz"] if effect == "actuator_pole" else truth[name]
         combos = [{name: 1.0}]
         d = np.array([result.as_dict()[name] - value])

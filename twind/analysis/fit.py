@@ -47,7 +47,7 @@ from twind.analysis.tf import Kernel, TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.loop.plant import Plant
-from twind.model.effects import CATALOGUE, with_effect
+from twind.model.effects import CATALOGUE, MODE_SEARCH, with_effect
 from twind.model.params import SOSParams
 
 FIT_PARAMS = ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct", "osem_lever_m",
@@ -66,6 +66,9 @@ ROUND_EVALUATIONS = 30
 """Residual evaluations per fitted direction in one round of the fit (scipy's default is
 100): a well-posed fit converges in a few, a direction the data leave free only runs away."""
 _NULL_COMPONENT = 0.05
+NARROW_REACH_BINS = 6
+"""Bins either side of a narrow mode averaged over the Hann kernel itself (beyond, the mode
+is smooth over the kernel, and its two-point rule errs by (1/6)^4 of the mode's tail)."""
 _STEP = 1e-4  # log-parameter step of the finite-difference Jacobian
 
 
@@ -149,12 +152,15 @@ class FitData:
 
     @classmethod
     def from_tfset(cls, tfs: TFSet, min_coherence: float = MIN_COHERENCE,
-                   band: tuple[float, float] | None = None) -> FitData:
+                   band: tuple[float, float] | None = None,
+                   whole: Sequence[tuple[float, float]] = ()) -> FitData:
         """The bins of `tfs` worth fitting; a FitError when none is.
 
         Those whose neighbour-averaged coherence reaches `min_coherence` (or whose own
         reaches :data:`SURE_COHERENCE`); with `min_coherence` <= 0, every response at the
         frequencies where the excited DOF's own response is coherent (``twind diagnose``).
+        In the bands `whole` (Hz) every bin is used, coherent or not: chosen by frequency
+        alone, their errors are not biased by the choice (where a narrow mode may lie).
         """
         f = tfs.frequency_hz
         H, sigma = tfs.tf["IN1"], tfs.sigma("IN1")
@@ -169,6 +175,8 @@ class FitData:
             own = [tfs.responses.index(d) for d in tfs.excited]
             driven = _smoothed(g2[:, own, range(len(own))]) >= MIN_COHERENCE
             coherent = np.broadcast_to(driven[:, None, :], g2.shape)
+        for lo, hi in whole:
+            coherent = coherent | ((f >= lo) & (f <= hi))[:, None, None]
         mask = coherent & np.isfinite(H) & (sigma > 0)
         mask &= (f > 0)[:, None, None]
         if band is not None:
@@ -242,6 +250,9 @@ class ClosedLoopModel:
     several sigma; periodic excitations analysed with a rectangular window need none.
     An LPM estimate's kernel is exact: the columns of the `excited` DOFs are its weighted
     sums of the TF over each window.
+    A plant with VERT and ROLL modes (Q 1000: narrower than a bin) is averaged over the Hann
+    power kernel itself (:func:`hann_kernel`) within :data:`NARROW_REACH_BINS` of them: there
+    a bin's estimate is the mode's area under the kernel, which the two-point rule misses.
     """
 
     def __init__(self, cfg: OpticConfig, f_hz: NDArray[np.float64],
@@ -257,6 +268,7 @@ class ClosedLoopModel:
             self._at = np.concatenate([self.f - a, self.f + a]) if a > 0 else self.f
         self._K = cfg.loop().controller(self._at)[:, :, None] * np.eye(len(DOFS))
         self.resolution_hz = resolution_hz
+        self._narrow: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
 
     @classmethod
     def of(cls, cfg: OpticConfig, data: FitData, effect: str | None = None) -> ClosedLoopModel:
@@ -279,9 +291,13 @@ class ClosedLoopModel:
 
     def response(self, plant: Plant) -> NDArray[np.complex128]:
         """``IN1/EXC`` of the configured loop around any `plant`, shape (len(f), 4, 4)."""
-        P = plant.response(self._at)
-        eye = np.eye(len(DOFS))
-        T = np.linalg.inv(eye - P @ self._K) - eye
+        T = self._averaged(_closed_loop(plant.response(self._at), self._K))
+        if self.kernel is None and self.resolution_hz > 0 and {"VERT", "ROLL"} & set(
+                plant.mechanics.dofs):
+            T = self._with_narrow(plant, T)
+        return T
+
+    def _averaged(self, T: NDArray[np.complex128]) -> NDArray[np.complex128]:
         if self.kernel is not None:
             T = T.reshape(self.f.size, self.kernel.offsets_hz.size, len(DOFS), len(DOFS))
             out = T[:, self.kernel.offsets_hz.size // 2].copy()  # the centre: not excited
@@ -291,6 +307,40 @@ class ClosedLoopModel:
                                          T[:, :, :, m])
             return out
         return 0.5 * (T[: self.f.size] + T[self.f.size :]) if self._at is not self.f else T
+
+    def _with_narrow(self, plant: Plant, T: NDArray[np.complex128]) -> NDArray[np.complex128]:
+        if self._narrow is None:
+            self._narrow = self._narrow_grid()
+        bins, at, weights, K = self._narrow
+        mech = plant.mechanics
+        modes = [math.sqrt(mech.K[i, i] / mech.M[i, i]) / (2 * math.pi)
+                 for i, d in enumerate(mech.dofs) if d in ("VERT", "ROLL")]
+        # further out a mode is smooth over the kernel and the two-point rule holds
+        near = np.flatnonzero(np.min(np.abs(self.f[bins, None] - np.array(modes)), axis=1)
+                              < NARROW_REACH_BINS * self.resolution_hz)
+        if near.size:
+            at = at.reshape(bins.size, weights.size)[near].ravel()
+            K = K.reshape(bins.size, weights.size, *K.shape[1:])[near].reshape(-1, *K.shape[1:])
+            fine = _closed_loop(plant.response(at), K).reshape(near.size, weights.size, 4, 4)
+            T = T.copy()
+            T[bins[near]] = np.einsum("k,fkij->fij", weights, fine)
+        return T
+
+    def _narrow_grid(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Bins where a narrow mode may lie, their Hann-kernel frequencies and weights, and
+        the controller there."""
+        sus = self.cfg.sus
+        nominal = sus.uncoupled_frequencies_hz()
+        reach = NARROW_REACH_BINS * self.resolution_hz
+        near = np.zeros(self.f.size, dtype=bool)
+        for dof, lo, hi in MODE_SEARCH.values():
+            near |= (self.f > lo * nominal[dof] - reach) & (self.f < hi * nominal[dof] + reach)
+        bins = np.flatnonzero(near)
+        width = min(lo * nominal[dof] / sus.Q[dof] for dof, lo, _ in MODE_SEARCH.values())
+        d, w = hann_kernel(self.resolution_hz, width)
+        at = (self.f[bins, None] + self.resolution_hz * d).ravel()
+        K = self.cfg.loop().controller(at)[:, :, None] * np.eye(len(DOFS))
+        return bins, at, w, K
 
     def for_data(self, data: FitData) -> Callable[[Mapping[str, float]], NDArray]:
         """The model shaped like `data` (its responses and excited DOFs; zeros in unused
@@ -439,7 +489,8 @@ class FitResult:
 # ------------------------------------------------------------------------------ the fit
 def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = FIT_PARAMS,
         min_coherence: float = MIN_COHERENCE, band: tuple[float, float] | None = None,
-        effect: str | None = None) -> FitResult:
+        effect: str | None = None, effect_start: Mapping[str, float] | None = None,
+        whole: Sequence[tuple[float, float]] = ()) -> FitResult:
     """Fit `params` of `cfg`'s optic to the measured transfer functions `tfs`.
 
     Parameters
@@ -458,6 +509,11 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     effect : str, optional
         A catalogue entry (:data:`twind.model.effects.CATALOGUE`) fitted together with
         `params`, from zero (the nominal model); its parameters are fitted linearly.
+    effect_start : mapping of str to float, optional
+        Where the effect's parameters start instead (a narrow mode's frequency, which
+        moves nothing at zero coupling, from :func:`twind.analysis.narrow.search`).
+    whole : sequence of (float, float)
+        Bands (Hz) fitted bin by bin whatever their coherence (:meth:`FitData.from_tfset`).
 
     Returns
     -------
@@ -470,9 +526,9 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
             raise FitError(msg)
         names += list(CATALOGUE[effect].params)
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
-    datas = [FitData.from_tfset(t, min_coherence, band) for t in sets]
+    datas = [FitData.from_tfset(t, min_coherence, band, whole) for t in sets]
     models = [ClosedLoopModel.of(cfg, d, effect).for_data(d) for d in datas]
-    coords = _Coords(names, cfg.sus, effect)
+    coords = _Coords(names, cfg.sus, effect, effect_start or {})
 
     size = sum(2 * d.bins for d in datas)
 
@@ -511,6 +567,25 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     r = residuals(x)
     return replace(_result(cfg.name, coords, x, r, J, null, datas, effect),
                    min_coherence=min_coherence)
+
+
+def hann_kernel(resolution_hz: float, width_hz: float
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Offsets (bins) and weights of a Hann-windowed estimate's power kernel,
+    ``(sinc d / (1 - d^2))^2`` out to 3 bins (99.99 % of it), sampled finely enough for a
+    feature `width_hz` wide (a quarter of it, 1/16 to 1/4 bin)."""
+    step = float(np.clip(0.25 * width_hz / resolution_hz, 1 / 16, 1 / 4))
+    d = np.linspace(-3.0, 3.0, 2 * round(3 / step) + 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(np.abs(np.abs(d) - 1) < 1e-9, 0.5, np.sinc(d) / (1 - d**2)) ** 2
+    return d, w / w.sum()
+
+
+def _closed_loop(P: NDArray[np.complex128], K: NDArray[np.complex128]
+                 ) -> NDArray[np.complex128]:
+    """``IN1/EXC`` from the plant and the controller at the same frequencies."""
+    eye = np.eye(len(DOFS))
+    return np.linalg.inv(eye - P @ K) - eye
 
 
 def _jacobian(fun, x: NDArray[np.float64]) -> NDArray[np.float64]:  # noqa: ANN001
@@ -595,20 +670,22 @@ def _sandwich(J: NDArray[np.float64], rho: list[float], datas: Sequence[FitData]
 
 
 class _Coords:
-    """Fit coordinates: ``log(p / p_start)`` for physical parameters, ``p / scale`` for an
-    effect's (which start at zero, where a logarithm cannot)."""
+    """Fit coordinates: ``log(p / p_start)`` for physical parameters, ``(p - p_start) / scale``
+    for an effect's (which start at zero, where a logarithm cannot, or where told)."""
 
-    def __init__(self, names: list[str], sus: SOSParams, effect: str | None) -> None:
+    def __init__(self, names: list[str], sus: SOSParams, effect: str | None,
+                 effect_start: Mapping[str, float]) -> None:
         self.names = names
         self.log = np.array([n in FIT_PARAMS for n in names])
         scale = CATALOGUE[effect].scale if effect else {}
-        self.start = np.array([param_value(sus, n) if n in FIT_PARAMS else 0.0 for n in names])
+        self.start = np.array([param_value(sus, n) if n in FIT_PARAMS
+                               else effect_start.get(n, 0.0) for n in names])
         self.scale = np.array([1.0 if n in FIT_PARAMS else scale[n] for n in names])
 
     def values(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Parameter values at coordinates `x`."""
         with np.errstate(over="ignore"):  # a trial step to infinity: rejected as a misfit
-            return np.where(self.log, self.start * np.exp(x), self.scale * x)
+            return np.where(self.log, self.start * np.exp(x), self.start + self.scale * x)
 
     def sigma(self, x: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
         """One-sigma of each parameter from the variances `var` of the coordinates."""

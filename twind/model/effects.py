@@ -12,8 +12,19 @@ a likelihood-ratio test needs).  Parameters carry MODEL.md's names, flattened fo
 | actuator_pole    | every coil driver x 1 / (1 + s / 2 pi f)                     | f_hz (Hz)               |
 | side_coupling    | face OSEMs also read ks y; face coils also push ka F_i along y | sensing, actuation    |
 | wire_asymmetry   | centre of mass off the wire plane by d: K_xphi = K_phix = -m g d / l | delta_m (m)     |
+| bounce_roll      | VERT and ROLL modes read by the face OSEMs, driven by the face coils | vertical, roll, f_vertical_hz, f_roll_hz, roll_angle |
 
-``bounce_roll`` needs the VERT and ROLL coordinates of the geometric model and is not here.
+``bounce_roll`` is what OSEM axes tilted against the optic (a static pitch or yaw of the
+optic, a head mounted askew) do: a head tilted by (a towards SIDE, b towards VERT) at face
+point (y, z) reads ``b VERT + (b y - a z) ROLL`` besides POS/PIT/YAW, and its coil, coaxial,
+pushes along the same tilted axis. A common tilt puts VERT into the POS pattern (every face
+OSEM alike) and ROLL into a mix of the PIT and YAW patterns, ``cos(angle) z + sin(angle) y``.
+Each mode reaches the loop as sensing x actuation, so its parameter is that product
+(``vertical`` = b^2 and ``roll`` = a^2 + b^2 for a common tilt): linear in it, the model
+nests the nominal one. The modes are narrower than a spectral bin (Q 1000: 0.016 Hz at
+16 Hz), so their frequencies are fitted too, within :data:`MODE_SEARCH` of the nominal
+``sqrt(k_v / m)`` and ``sqrt(k_v R2^2 / I_roll)``; at zero coupling they and the angle move
+nothing, so a fit starts them where a search put them (``twind.analysis.narrow``).
 """
 
 from __future__ import annotations
@@ -62,6 +73,12 @@ class Effect:
     scale: dict[str, float]
 
 
+MODE_SEARCH = {"f_vertical_hz": ("VERT", 0.92, 1.08), "f_roll_hz": ("ROLL", 0.92, 1.08)}
+"""Where a narrow mode is looked for: (coordinate, lowest, highest) as fractions of its
+nominal frequency. An SOS's bounce and roll lie within a few percent of the wire-stiffness
+values (the 40m's BounceRoll notches span 15.85-16.34 Hz and sit at 23.14 Hz)."""
+
+
 def _gains(values: Mapping[str, float]) -> np.ndarray:
     return np.array([1.0 + values.get(f"gain_{f}", 0.0) for f in FACES] + [1.0])
 
@@ -103,6 +120,42 @@ def _wire_asymmetry(plant: Plant, sus: SOSParams, v: Mapping[str, float]) -> Pla
     return replace(plant, mechanics=Mechanics(mech.dofs, mech.M, mech.C, K))
 
 
+def _bounce_roll(plant: Plant, sus: SOSParams, v: Mapping[str, float]) -> Plant:
+    nominal = sus.uncoupled_frequencies_hz()
+    mech = _with_modes(plant.mechanics, sus, {
+        "VERT": v.get("f_vertical_hz") or nominal["VERT"],
+        "ROLL": v.get("f_roll_hz") or nominal["ROLL"]})
+    grow = mech.n - plant.mechanics.n
+    sensing = np.hstack([plant.sensing, np.zeros((5, grow))])
+    actuation = np.vstack([plant.actuation, np.zeros((grow, 5))])
+    h = sus.osem_lever_m
+    y, z = (np.array([p[k] for p in FACE_POSITION.values()]) * h for k in (0, 1))
+    angle = v.get("roll_angle", 0.0)
+    roll = math.cos(angle) * z + math.sin(angle) * y  # m of a face point per rad of ROLL
+    push = actuation[mech.index("POS"), :4]  # each face coil's force along its axis
+    vert, rol = mech.index("VERT"), mech.index("ROLL")
+    # the product sits in the sensing; the coils push with the unit tilt's pattern
+    sensing[:4, vert] = v.get("vertical", 0.0)
+    actuation[vert, :4] = push
+    sensing[:4, rol] = v.get("roll", 0.0) * roll
+    actuation[rol, :4] = push * roll
+    return replace(plant, mechanics=mech, sensing=sensing, actuation=actuation)
+
+
+def _with_modes(mech: Mechanics, sus: SOSParams, f_hz: Mapping[str, float]) -> Mechanics:
+    """`mech` with uncoupled VERT (mass m) and ROLL (I_roll) coordinates at `f_hz`, Q from
+    `sus`; coordinates it already has are retuned."""
+    inertia = {"VERT": sus.mass_kg, "ROLL": sus.I_roll_kgm2}
+    new = [d for d in f_hz if d not in mech.dofs]
+    M, C, K = (np.pad(a, (0, len(new))) for a in (mech.M, mech.C, mech.K))
+    dofs = mech.dofs + tuple(new)
+    for d, f in f_hz.items():
+        i, w = dofs.index(d), 2 * np.pi * f
+        M[i, i] = M[i, i] if d in mech.dofs else inertia[d]
+        K[i, i], C[i, i] = M[i, i] * w**2, M[i, i] * w / sus.Q[d]
+    return Mechanics(dofs, M, C, K)
+
+
 _GAINS = tuple(f"gain_{f}" for f in FACES)
 CATALOGUE: dict[str, Effect] = {e.id: e for e in (
     Effect("coil_imbalance", _GAINS, "face coils of unequal strength: F_i x (1 + g_i)",
@@ -118,7 +171,16 @@ CATALOGUE: dict[str, Effect] = {e.id: e for e in (
            _side_coupling, {"sensing": 0.01, "actuation": 0.01}),
     Effect("wire_asymmetry", ("delta_m",), "centre of mass off the wire plane: K_x,yaw",
            _wire_asymmetry, {"delta_m": 1e-4}),
+    Effect("bounce_roll", ("vertical", "roll", "f_vertical_hz", "f_roll_hz", "roll_angle"),
+           "VERT and ROLL modes read by tilted face OSEMs and driven by their coils",
+           # scales as wide as the parameters can physically be: a fit holds a parameter
+           # whose sigma exceeds its scale (a mode's frequency, seen only through its
+           # compliance below resonance) where it started
+           _bounce_roll, {"vertical": 1.0, "roll": 1.0, "f_vertical_hz": 1.0,
+                          "f_roll_hz": 1.0, "roll_angle": 1.0}),
 )}
+NARROW = {"bounce_roll": ("f_vertical_hz", "f_roll_hz")}
+"""Effects whose modes are narrower than a spectral bin, and their frequency parameters."""
 
 
 def with_effect(plant: Plant, sus: SOSParams, effect: str, values: Mapping[str, float]
