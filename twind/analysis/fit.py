@@ -47,7 +47,7 @@ from twind.analysis.tf import Kernel, TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.loop.plant import Plant
-from twind.model.effects import CATALOGUE, MODE_SEARCH, with_effect
+from twind.model.effects import CATALOGUE, MODE_SEARCH, mode_bands, with_effect
 from twind.model.params import SOSParams
 
 FIT_PARAMS = ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct", "osem_lever_m",
@@ -321,7 +321,8 @@ class ClosedLoopModel:
         if near.size:
             at = at.reshape(bins.size, weights.size)[near].ravel()
             K = K.reshape(bins.size, weights.size, *K.shape[1:])[near].reshape(-1, *K.shape[1:])
-            fine = _closed_loop(plant.response(at), K).reshape(near.size, weights.size, 4, 4)
+            fine = _closed_loop(plant.response(at), K).reshape(near.size, weights.size,
+                                                              *T.shape[1:])
             T = T.copy()
             T[bins[near]] = np.einsum("k,fkij->fij", weights, fine)
         return T
@@ -330,12 +331,11 @@ class ClosedLoopModel:
         """Bins where a narrow mode may lie, their Hann-kernel frequencies and weights, and
         the controller there."""
         sus = self.cfg.sus
-        nominal = sus.uncoupled_frequencies_hz()
-        reach = NARROW_REACH_BINS * self.resolution_hz
         near = np.zeros(self.f.size, dtype=bool)
-        for dof, lo, hi in MODE_SEARCH.values():
-            near |= (self.f > lo * nominal[dof] - reach) & (self.f < hi * nominal[dof] + reach)
+        for lo, hi in mode_bands(sus, NARROW_REACH_BINS * self.resolution_hz):
+            near |= (self.f > lo) & (self.f < hi)
         bins = np.flatnonzero(near)
+        nominal = sus.uncoupled_frequencies_hz()
         width = min(lo * nominal[dof] / sus.Q[dof] for dof, lo, _ in MODE_SEARCH.values())
         d, w = hann_kernel(self.resolution_hz, width)
         at = (self.f[bins, None] + self.resolution_hz * d).ravel()

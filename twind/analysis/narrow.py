@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,7 @@ from twind import DOFS
 from twind.analysis.fit import ClosedLoopModel, FitData, hann_kernel
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
-from twind.model.effects import MODE_SEARCH, with_effect
+from twind.model.effects import MODE_SEARCH, mode_bands, with_effect
 
 _REACH_BINS = 3  # the Hann power kernel's reach (99.99 % of it)
 _ANGLES = (0.0, math.pi / 2, math.pi / 4)  # ROLL's PIT-like, YAW-like and mixed pattern
@@ -39,10 +40,7 @@ probability (over the frequencies searched) starts uncoupled at its nominal freq
 def bands(cfg: OpticConfig, resolution_hz: float) -> list[tuple[float, float]]:
     """The bands (Hz) a narrow mode of `cfg`'s optic can touch: each search range widened
     by the Hann kernel's reach."""
-    nominal = cfg.sus.uncoupled_frequencies_hz()
-    reach = _REACH_BINS * resolution_hz
-    return [(lo * nominal[d] - reach, hi * nominal[d] + reach)
-            for d, lo, hi in MODE_SEARCH.values()]
+    return mode_bands(cfg.sus, _REACH_BINS * resolution_hz)
 
 
 def _cells(cfg: OpticConfig, param: str, resolution_hz: float) -> float:
@@ -162,14 +160,15 @@ def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: 
     Every used bin counts: below its resonance a mode also adds its static compliance."""
     res = data.resolution_hz
     sus = ClosedLoopModel.of(cfg, data).sus(values)
-    plant = Plant.from_params(sus, cfg.mechanics())
+    plant = Plant.from_params(sus, replace(cfg, sus=sus).mechanics())
     width = band[0] / sus.Q[dof]
     step = 0.25 * max(res, width)
     grid = np.arange(band[0], band[1] + step / 2, step)
     f = data.frequency_hz
     used = data.mask.any(axis=(1, 2))
     near = (f > band[0] - _REACH_BINS * res) & (f < band[1] + _REACH_BINS * res)
-    # the Hann kernel sampled finely next to the band, its two-point rule elsewhere
+    # the Hann kernel sampled finely next to the band, its two-point rule elsewhere (an LPM
+    # estimate's own kernel is left to the fit: the search only has to start it nearby)
     fine = hann_kernel(res, width) if res > 0 else (np.zeros(1), np.ones(1))
     groups = [(np.flatnonzero(used & near), *fine),
               (np.flatnonzero(used & ~near), *_two_point(res))]

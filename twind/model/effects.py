@@ -79,6 +79,14 @@ nominal frequency. An SOS's bounce and roll lie within a few percent of the wire
 values (the 40m's BounceRoll notches span 15.85-16.34 Hz and sit at 23.14 Hz)."""
 
 
+def mode_bands(sus: SOSParams, reach_hz: float = 0.0) -> list[tuple[float, float]]:
+    """The bands (Hz) :data:`MODE_SEARCH` looks for `sus`'s narrow modes in, each widened by
+    `reach_hz` (how far a spectral estimate's kernel carries a mode)."""
+    nominal = sus.uncoupled_frequencies_hz()
+    return [(lo * nominal[d] - reach_hz, hi * nominal[d] + reach_hz)
+            for d, lo, hi in MODE_SEARCH.values()]
+
+
 def _gains(values: Mapping[str, float]) -> np.ndarray:
     return np.array([1.0 + values.get(f"gain_{f}", 0.0) for f in FACES] + [1.0])
 
