@@ -186,7 +186,7 @@ def tilted_heads(plant: Plant, sus: SOSParams, towards_side: float, towards_vert
     What each head reads and pushes is 3-D kinematics of the tilted axis ``n`` at the face
     point ``r``: ``n . (t + theta x r)``, with ``t = (POS, SIDE, VERT)`` and ``theta`` =
     (ROLL, PIT, -YAW) in the plant's sign convention; the modes' mass, stiffness and damping
-    are the geometric model's (its roll lies 0.47 % above ``sqrt(k_v R2^2 / I_roll)``).
+    are the geometric model's (its roll a little above ``sqrt(k_v R2^2 / I_roll)``).
     Nothing goes through the catalogue's ``bounce_roll``; MODEL.md's parameters come out of
     the geometry: ``vertical`` = (sensing x actuation of VERT per face head), ``roll`` the
     same of ROLL per unit lever, and the modes' frequencies."""

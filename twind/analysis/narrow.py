@@ -174,6 +174,7 @@ def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: 
               (np.flatnonzero(used & ~near), *_two_point(res))]
     rows = [DOFS.index(x) for x in data.responses]
     cols = [DOFS.index(x) for x in data.excited]
+    loops = [_loop_at(cfg, plant, f[bins, None] + res * d) for bins, d, _ in groups]
     out = np.zeros((grid.size, len(patterns), 2 * data.bins))
     for p, pattern in enumerate(patterns):
         coupled = with_effect(plant, sus, "bounce_roll", {"vertical": 1.0, "roll": 1.0,
@@ -181,8 +182,8 @@ def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: 
         j = coupled.mechanics.index(dof)
         c = np.outer(plant.input_matrix @ coupled.sensing[:, j],
                      coupled.actuation[j] @ plant.output_matrix)
-        parts = [(bins, w, *_loop_terms(cfg, plant, c, f[bins, None] + res * d, rows, cols))
-                 for bins, d, w in groups]
+        parts = [(bins, w, _first_order(loop, c, rows, cols), loop[3])
+                 for (bins, _, w), loop in zip(groups, loops, strict=True)]
         for g, f0 in enumerate(grid):
             dT = np.zeros(data.H.shape, dtype=complex)
             for bins, w, B, s in parts:
@@ -193,17 +194,25 @@ def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: 
     return out, grid
 
 
-def _loop_terms(cfg: OpticConfig, plant: Plant, c: NDArray[np.float64], at: NDArray,
-                rows: list[int], cols: list[int]) -> tuple[NDArray, NDArray]:
-    """``B`` of ``dT = B h`` at frequencies `at` (bins, points): the closed loop's first-order
-    response to a plant term ``c h`` (c the coupling pattern, DOF basis), and ``s``."""
+def _loop_at(cfg: OpticConfig, plant: Plant, at: NDArray[np.float64]
+             ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """The loop at frequencies `at` (bins, points): sensitivity ``(1 - P K)^-1``, the
+    controller, the drive's delay and pole, and ``s``."""
     flat = at.ravel()
     s = 2j * np.pi * flat
     K = cfg.loop().controller(flat)[:, :, None] * np.eye(len(DOFS))
     S = np.linalg.inv(np.eye(len(DOFS)) - plant.response(flat) @ K)
     drive = np.exp(-s * plant.delay_s) / (1 + s / (2 * np.pi * plant.drive_pole_hz))
+    return S, K, drive, s.reshape(at.shape)
+
+
+def _first_order(loop: tuple[NDArray, NDArray, NDArray, NDArray], c: NDArray[np.float64],
+                 rows: list[int], cols: list[int]) -> NDArray[np.complex128]:
+    """``B`` of ``dT = B h``: the closed loop's first-order response to a plant term ``c h``
+    (c the coupling pattern in the DOF basis, h the mode's response)."""
+    S, K, drive, s = loop
     B = (S @ (c[None] * drive[:, None, None]) @ K @ S)[:, rows][:, :, cols]
-    return B.reshape(*at.shape, len(rows), len(cols)), s.reshape(at.shape)
+    return B.reshape(*s.shape, len(rows), len(cols))
 
 
 def _two_point(res: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
