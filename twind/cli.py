@@ -585,7 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--config")
     demo.add_argument("--effect", default="actuator_pole",
                       choices=["coil_imbalance", "osem_imbalance", "loop_delay",
-                               "actuator_pole"])
+                               "actuator_pole", "wire_asymmetry", "bounce_roll"])
     demo.add_argument("-o", "--output", default="twind-demo",
                       help="directory for the recordings and reports (default twind-demo)")
     demo.set_defaults(func=cmd_demo)
