@@ -24,7 +24,13 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from twind import DOFS
-from twind.analysis.fit import ClosedLoopModel, FitData, hann_kernel
+from twind.analysis.fit import (
+    FIT_PARAMS,
+    ClosedLoopModel,
+    FitData,
+    hann_kernel,
+    with_params,
+)
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
 from twind.model.effects import MODE_SEARCH, mode_bands, with_effect
@@ -159,7 +165,7 @@ def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: 
     frequency in `band`: shape (trials, patterns, residuals), and the trial frequencies.
     Every used bin counts: below its resonance a mode also adds its static compliance."""
     res = data.resolution_hz
-    sus = ClosedLoopModel.of(cfg, data).sus(values)
+    sus = with_params(cfg.sus, {k: v for k, v in values.items() if k in FIT_PARAMS})
     plant = Plant.from_params(sus, replace(cfg, sus=sus).mechanics())
     width = band[0] / sus.Q[dof]
     step = 0.25 * max(res, width)
@@ -176,6 +182,7 @@ def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: 
     cols = [DOFS.index(x) for x in data.excited]
     loops = [_loop_at(cfg, plant, f[bins, None] + res * d) for bins, d, _ in groups]
     out = np.zeros((grid.size, len(patterns), 2 * data.bins))
+    zero = data.whiten(np.zeros(data.H.shape, dtype=complex))  # whiten is affine in the model
     for p, pattern in enumerate(patterns):
         coupled = with_effect(plant, sus, "bounce_roll", {"vertical": 1.0, "roll": 1.0,
                                                           **pattern})
@@ -190,7 +197,7 @@ def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: 
                 h = 1 / (coupled.mechanics.M[j, j] * (s**2 + s * 2 * np.pi * f0 / sus.Q[dof]
                                                       + (2 * np.pi * f0) ** 2))
                 dT[bins] = np.einsum("k,bkij->bij", w, B * h[..., None, None])
-            out[g, p] = data.whiten(np.zeros_like(dT)) - data.whiten(dT)
+            out[g, p] = zero - data.whiten(dT)
     return out, grid
 
 
