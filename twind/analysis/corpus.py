@@ -317,6 +317,7 @@ class Score:
     chi2_nu_nominal: float
     chi2_nu_final: float
     seconds: float
+    p_value: float = math.nan  # the hidden effect's; a null's smallest (its nearest claim)
 
 
 def key_error(effect: str, truth: dict, fitted: dict) -> float:
@@ -361,12 +362,15 @@ def score(case: Case, diagnosis, seconds: float) -> Score:  # noqa: ANN001 - Dia
     claimed = [e["effect"] for e in out["effects"]]
     named = not claimed if case.effect is None else case.effect in claimed
     err = z = math.nan
+    tried = diagnosis.p_values
+    p = (tried.get(case.effect, math.nan) if case.effect else
+         min(tried.values(), default=math.nan))
     if named and case.effect is not None:
         fitted = next(e for e in diagnosis.effects if e.effect == case.effect)
         err = key_error(case.effect, case.truth, fitted.to_json()["params"])
         z = key_z(case.effect, case.truth, fitted.result)
     return Score(case, named, claimed, err, z, out["chi2_nu_nominal"],
-                 out["chi2_nu_final"], seconds)
+                 out["chi2_nu_final"], seconds, p)
 
 
 # ------------------------------------------------------------------------------ routes
@@ -437,7 +441,7 @@ def _line(s: Score) -> str:
     verdict = ", ".join(s.claimed) or "consistent"
     return (f"{c.name:18s} {hidden_}  chi2/nu {s.chi2_nu_nominal:6.2f} -> "
             f"{s.chi2_nu_final:5.2f}  {'ok ' if s.named else 'MISS'} {verdict}{key}"
-            f"  [{s.seconds:.0f} s]")
+            f"  p {s.p_value:.1g}  [{s.seconds:.0f} s]")
 
 
 def summary(scores: Sequence[Score]) -> list[str]:

@@ -99,6 +99,9 @@ class Diagnosis:
     final: FitResult
     unexplained: list[Located]
     separations: dict[tuple[str, str], tuple[str, str, float]] = field(default_factory=dict)
+    p_values: dict[str, float] = field(default_factory=dict)
+    """Every hypothesis fitted and its p-value, claimed or not: how near the data came to
+    each explanation."""
 
     @property
     def consistent(self) -> bool:
@@ -142,6 +145,10 @@ class Diagnosis:
                        "the noise)")
         if not self.consistent and not self.effects:
             out.append("  no catalogue effect explains it")
+        shown = {e.effect for e in self.effects}
+        rest = sorted((p, e) for e, p in self.p_values.items() if e not in shown and p < 1)[:3]
+        if rest:
+            out.append("  nearest unclaimed: " + ", ".join(f"{e} p {p:.2g}" for p, e in rest))
         for x in self.unexplained[:8]:
             out.append(f"  unexplained: {x.element} {x.band_hz[0]:.3g}-{x.band_hz[1]:.3g} Hz")
         if not self.consistent:
@@ -183,15 +190,16 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     claimed = sorted((c for c in candidates
                       if c.p_value < ALPHA),
                      key=lambda c: -c.delta_bic)
+    p_values = {c.effect: c.p_value for c in candidates}
     if not claimed:
-        return Diagnosis(nominal, located, [], nominal, located)
+        return Diagnosis(nominal, located, [], nominal, located, p_values=p_values)
     best = claimed[0]
     best.equivalent = [c.effect for c in claimed[1:] if best.lr - c.lr < EQUIVALENT_LR]
     shown = [best] + [c for c in claimed[1:] if c.effect in best.equivalent]
     separations = {(best.effect, c.effect): separating_measurement(cfg, best.result, c.result)
                    for c in shown[1:]}
     return Diagnosis(nominal, located, shown, best.result, locate(tfs, cfg, best.result),
-                     separations)
+                     separations, p_values)
 
 
 def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult

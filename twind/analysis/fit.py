@@ -205,6 +205,17 @@ class FitData:
             r = np.einsum("feij,fje->fie", self._whitener, r)[self.mask]
         return np.concatenate([r.real, r.imag])
 
+    def whitened_change(self, dT: NDArray[np.complex128], at: NDArray[np.int64]
+                        ) -> NDArray[np.complex128]:
+        """What a model change `dT` at bins `at` (sorted; shape (..., len(at), nr, ne))
+        takes off :meth:`whiten`'s residuals there: their used entries as complex numbers,
+        in :meth:`whiten`'s order (its real parts, then its imaginary parts, are these')."""
+        used = self.mask[at]
+        if self.correlation is None:
+            return dT[..., used] / self.sigma[at][used]
+        r = np.where(used, dT / np.where(used, self.sigma[at], 1), 0)
+        return np.einsum("feij,...fje->...fie", self._whitener[at], r)[..., used]
+
     @functools.cached_property
     def _whitener(self) -> NDArray[np.complex128]:
         """``L^-1`` per bin and excitation, (nf, ne, nr, nr), with ``L L^H`` the correlation

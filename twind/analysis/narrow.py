@@ -15,9 +15,10 @@ cost (:func:`p_value`).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +27,7 @@ from scipy import stats
 from twind import DOFS
 from twind.analysis.fit import (
     FIT_PARAMS,
+    NARROW_REACH_BINS,
     ClosedLoopModel,
     FitData,
     hann_kernel,
@@ -34,10 +36,12 @@ from twind.analysis.fit import (
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
 from twind.model.effects import MODE_SEARCH, mode_bands, with_effect
+from twind.model.params import SOSParams
 
 _REACH_BINS = 3  # the Hann power kernel's reach (99.99 % of it)
 _ANGLES = (0.0, math.pi / 2, math.pi / 4)  # ROLL's PIT-like, YAW-like and mixed pattern
 _FLAT = 4.0  # chi^2 a trial frequency must gain over the nominal one to be preferred
+_SHAPE_TOL = 1e-10  # singular values kept of a mode's response far from it, relative
 _UNSEEN_P = 0.05
 """A mode whose best couplings gain less than the noise would at this false-alarm
 probability (over the frequencies searched) starts uncoupled at its nominal frequency."""
@@ -83,20 +87,25 @@ def search(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
     model = ClosedLoopModel.of(cfg, data).for_data(data)
     r = data.whiten(model(values))
     Q = _nominal_directions(data, model, values, free)
+    sus = with_params(cfg.sus, {k: v for k, v in values.items() if k in FIT_PARAMS})
+    plant = Plant.from_params(sus, replace(cfg, sus=sus).mechanics())
     nominal = cfg.sus.uncoupled_frequencies_hz()
     signatures = {}
     for param, (dof, lo, hi) in MODE_SEARCH.items():
         patterns = [{"roll_angle": a} for a in _ANGLES] if dof == "ROLL" else [{}]
-        cols, grid = _columns(data, cfg, values, dof, patterns,
-                              (lo * nominal[dof], hi * nominal[dof]))
-        signatures[param] = (cols - (cols @ Q) @ Q.T, grid)
-    path = sum(_path(cols) for cols, _ in signatures.values())
+        cols, grid, red = _columns(data, cfg, plant, sus, dof, patterns,
+                                   (lo * nominal[dof], hi * nominal[dof]), Q)
+        q = red.to(Q.T).T
+        for p in range(len(patterns)):  # the nominal parameters' part is not the mode's
+            cols[:, p] -= (cols[:, p] @ q) @ q.T
+        signatures[param] = (cols, grid, red)
+    path = sum(_path(cols) for cols, _, _ in signatures.values())
     start: dict[str, float] = {}
     found = dict.fromkeys(signatures, np.zeros_like(r))
     for _ in range(2):  # each mode searched again in what the other one leaves
-        for param, (cols, grid) in signatures.items():
+        for param, (cols, grid, red) in signatures.items():
             dof = MODE_SEARCH[param][0]
-            others = r - sum(v for k, v in found.items() if k != param)
+            others = red.to(r - sum(v for k, v in found.items() if k != param))
             drop, x = _best(cols, others)
             drop /= unit
             k = _choice(drop, x, int(np.argmin(np.abs(grid - nominal[dof]))))
@@ -108,7 +117,7 @@ def search(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
                 found[param] = np.zeros_like(r)
                 continue
             start[param] = float(grid[k])
-            found[param] = x[k] @ cols[k]
+            found[param] = red.back(x[k] @ cols[k])
             if dof == "VERT":
                 start[coupling] = float(x[k, 0])
             else:
@@ -158,47 +167,135 @@ def _choice(drop: NDArray[np.float64], x: NDArray[np.float64], at_nominal: int) 
     return at_nominal if drop[best] - drop[at_nominal] < _FLAT else best
 
 
-def _columns(data: FitData, cfg: OpticConfig, values: Mapping[str, float], dof: str,
-             patterns: Sequence[dict], band: tuple[float, float]
-             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+@dataclass(frozen=True)
+class _Reduced:
+    """Short coordinates for one mode's trial columns: their entries at the bins near the
+    mode as they are, the others in an orthonormal basis of what the columns (and the
+    nominal directions) span there. Far from the mode its response is smooth in the mode's
+    frequency, so a few shapes make every trial's: a column's inner products with any
+    vector are those of its coordinates with the vector's (:meth:`to`)."""
+
+    near: NDArray[np.int64]  # indices into the whitened residual vector
+    far: NDArray[np.int64]
+    basis: NDArray[np.float64]  # (m, len(far)), orthonormal rows
+    size: int  # length of the whitened residual vector
+
+    def to(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Coordinates of `v` (shape (..., size))."""
+        return np.concatenate([v[..., self.near], v[..., self.far] @ self.basis.T], axis=-1)
+
+    def back(self, u: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The vector of coordinates `u`, when it lies in their span."""
+        out = np.zeros(self.size)
+        out[self.near] = u[: self.near.size]
+        out[self.far] = u[self.near.size :] @ self.basis
+        return out
+
+
+def _columns(data: FitData, cfg: OpticConfig, plant: Plant, sus: SOSParams, dof: str,
+             patterns: Sequence[dict], band: tuple[float, float], Q: NDArray[np.float64]
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64], _Reduced]:
     """Whitened change of the data's bins per unit coupling of each pattern, for every trial
-    frequency in `band`: shape (trials, patterns, residuals), and the trial frequencies.
-    Every used bin counts: below its resonance a mode also adds its static compliance."""
+    frequency in `band`: shape (trials, patterns, coordinates) in the returned coordinates,
+    and the trial frequencies. Every used bin counts: below its resonance a mode also adds
+    its static compliance. As in ClosedLoopModel, a bin within NARROW_REACH_BINS of a trial
+    sees the mode through the Hann kernel itself, any other through the two-point rule."""
     res = data.resolution_hz
-    sus = with_params(cfg.sus, {k: v for k, v in values.items() if k in FIT_PARAMS})
-    plant = Plant.from_params(sus, replace(cfg, sus=sus).mechanics())
     width = band[0] / sus.Q[dof]
     step = 0.25 * max(res, width)
     grid = np.arange(band[0], band[1] + step / 2, step)
     f = data.frequency_hz
-    used = data.mask.any(axis=(1, 2))
-    near = (f > band[0] - _REACH_BINS * res) & (f < band[1] + _REACH_BINS * res)
-    # the Hann kernel sampled finely next to the band, its two-point rule elsewhere (an LPM
-    # estimate's own kernel is left to the fit: the search only has to start it nearby)
-    fine = hann_kernel(res, width) if res > 0 else (np.zeros(1), np.ones(1))
-    groups = [(np.flatnonzero(used & near), *fine),
-              (np.flatnonzero(used & ~near), *_two_point(res))]
+    bins = np.flatnonzero(data.mask.any(axis=(1, 2)))
+    reach = NARROW_REACH_BINS * res
+    is_near = (f[bins] > band[0] - reach) & (f[bins] < band[1] + reach)
+    near, far = bins[is_near], bins[~is_near]
     rows = [DOFS.index(x) for x in data.responses]
     cols = [DOFS.index(x) for x in data.excited]
-    loops = [_loop_at(cfg, plant, f[bins, None] + res * d) for bins, d, _ in groups]
-    out = np.zeros((grid.size, len(patterns), 2 * data.bins))
-    zero = data.whiten(np.zeros(data.H.shape, dtype=complex))  # whiten is affine in the model
-    for p, pattern in enumerate(patterns):
-        coupled = with_effect(plant, sus, "bounce_roll", {"vertical": 1.0, "roll": 1.0,
-                                                          **pattern})
-        j = coupled.mechanics.index(dof)
-        c = np.outer(plant.input_matrix @ coupled.sensing[:, j],
-                     coupled.actuation[j] @ plant.output_matrix)
-        parts = [(bins, w, _first_order(loop, c, rows, cols), loop[3])
-                 for (bins, _, w), loop in zip(groups, loops, strict=True)]
-        for g, f0 in enumerate(grid):
-            dT = np.zeros(data.H.shape, dtype=complex)
-            for bins, w, B, s in parts:
-                h = 1 / (coupled.mechanics.M[j, j] * (s**2 + s * 2 * np.pi * f0 / sus.Q[dof]
-                                                      + (2 * np.pi * f0) ** 2))
-                dT[bins] = np.einsum("k,bkij->bij", w, B * h[..., None, None])
-            out[g, p] = zero - data.whiten(dT)
-    return out, grid
+    coupled = [with_effect(plant, sus, "bounce_roll", {"vertical": 1.0, "roll": 1.0, **p})
+               for p in patterns]
+    j = coupled[0].mechanics.index(dof)
+    mode = functools.partial(_mode, mass=coupled[0].mechanics.M[j, j], q=sus.Q[dof])
+    patterns_c = [np.outer(plant.input_matrix @ c.sensing[:, j],
+                           c.actuation[j] @ plant.output_matrix) for c in coupled]
+
+    def first_order(at: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+        loop = _loop_at(cfg, plant, at)  # B: (bins, points, patterns x responses x excited)
+        B = np.stack([_first_order(loop, c, rows, cols) for c in patterns_c], axis=2)
+        return B.reshape(*at.shape, -1), loop[3]
+
+    d2, w2 = _two_point(res)
+    B2, s2 = first_order(f[bins, None] + res * d2)
+    red, far_coords = _far(data, near, far, B2[~is_near] * w2[:, None], s2[~is_near],
+                           mode(s2[~is_near][None], grid[:, None, None]), Q, len(patterns))
+    out = np.empty((grid.size, len(patterns), red.near.size + red.basis.shape[0]))
+    out[..., red.near.size :] = far_coords
+    fine = None
+    if res > 0:
+        d, w = hann_kernel(res, width)
+        fine = (*first_order(f[near, None] + res * d), w)
+    shape = (len(patterns), len(rows), len(cols))
+    for chunk in np.array_split(np.arange(grid.size), max(1, grid.size // 128)):
+        dT = _near(f[near], grid[chunk], B2[is_near] * w2[:, None], s2[is_near], fine, mode,
+                   reach)
+        z = data.whitened_change(np.moveaxis(dT.reshape(*dT.shape[:2], *shape), 2, 1), near)
+        out[chunk, :, : red.near.size] = np.concatenate([z.real, z.imag], axis=-1)
+    return out, grid, red
+
+
+def _mode(s: NDArray[np.complex128], f0: NDArray[np.float64], mass: float, q: float
+          ) -> NDArray[np.complex128]:
+    """A mode's response (per unit force) at `s` when it lies at `f0` Hz."""
+    w0 = 2 * np.pi * f0
+    return 1 / (mass * (s**2 + s * w0 / q + w0**2))
+
+
+def _near(f: NDArray[np.float64], grid: NDArray[np.float64], B2: NDArray, s2: NDArray,
+          fine: tuple[NDArray, NDArray, NDArray] | None, mode: Callable, reach: float
+          ) -> NDArray[np.complex128]:
+    """The change of the near bins (frequencies `f`) for each trial of `grid`: the two-point
+    rule (`B2` weighted, at `s2`), then the Hann kernel itself (`fine`: B, s, weights) in
+    place of it within `reach` of the trial. Shape (trials, bins, patterns x elements)."""
+    dT = np.einsum("gbk,bkm->gbm", mode(s2[None], grid[:, None, None]), B2)
+    if fine is None:
+        return dT
+    Bf, sf, wf = fine
+    lo = np.searchsorted(f, grid - reach, side="right")
+    hi = np.searchsorted(f, grid + reach, side="left")
+    for t in range(int(np.max(hi - lo, initial=0))):
+        g = np.flatnonzero(lo + t < hi)
+        b = lo[g] + t
+        kernel = np.einsum("gk,gkm->gm", wf * mode(sf[b], grid[g, None]), Bf[b])
+        dT[g, b] += kernel - np.einsum("gk,gkm->gm", mode(s2[b], grid[g, None]), B2[b])
+    return dT
+
+
+def _far(data: FitData, near: NDArray[np.int64], far: NDArray[np.int64], B2: NDArray,
+         s2: NDArray, h: NDArray[np.complex128], Q: NDArray[np.float64], patterns: int
+         ) -> tuple[_Reduced, NDArray[np.float64]]:
+    """The reduced coordinates (:class:`_Reduced`) and every trial's columns in their far
+    part, from the mode's response `h` (trials, far bins, points) at the far bins' points.
+    Its few shapes over the far points come from an SVD of every 8th trial: ``h`` is
+    analytic in the mode's frequency, which is at least NARROW_REACH_BINS away."""
+    entry = np.nonzero(data.mask)[0]
+    k = entry.size
+    at_near = np.flatnonzero(np.isin(entry, near))
+    at_far = np.flatnonzero(~np.isin(entry, near))
+    flat = h.reshape(h.shape[0], -1)
+    _, sv, vh = np.linalg.svd(flat[::8], full_matrices=False)
+    shapes = vh[sv > _SHAPE_TOL * sv[0]]
+    a = flat @ shapes.conj().T  # (trials, shapes)
+    dT = np.einsum("rbk,bkm->rbm", shapes.reshape(-1, *h.shape[1:]), B2)
+    z = data.whitened_change(np.moveaxis(dT.reshape(*dT.shape[:2], patterns, *data.H.shape[1:]),
+                                         2, 0), far)  # (patterns, shapes, entries)
+    # a complex coefficient's real and imaginary parts each have their own real column
+    F = np.concatenate([np.concatenate([z.real, z.imag], -1),
+                        np.concatenate([-z.imag, z.real], -1)], axis=1)
+    far_idx = np.concatenate([at_far, k + at_far])
+    span = np.concatenate([F.reshape(-1, far_idx.size), Q[far_idx].T])
+    basis = np.linalg.qr(span.T)[0].T
+    red = _Reduced(np.concatenate([at_near, k + at_near]), far_idx, basis, 2 * k)
+    coef = np.concatenate([a.real, a.imag], axis=1)
+    return red, np.einsum("gr,prm->gpm", coef, F @ basis.T)
 
 
 def _loop_at(cfg: OpticConfig, plant: Plant, at: NDArray[np.float64]
