@@ -10,10 +10,10 @@ import pytest
 
 from twind import DOFS
 from twind.analysis.fit import ClosedLoopModel, FitData
-from twind.analysis.narrow import p_value, search
+from twind.analysis.narrow import _columns, p_value, search
 from twind.config import load_config
 from twind.loop.plant import Plant
-from twind.model.effects import with_effect
+from twind.model.effects import MODE_SEARCH, with_effect
 
 RES = 0.05
 ROLL = {"roll": 0.01, "f_roll_hz": 22.713, "roll_angle": 1.1}
@@ -71,6 +71,36 @@ def test_the_search_finds_a_mode_seen_at_its_peak(etmx) -> None:  # noqa: ANN001
     assert start["roll_angle"] == pytest.approx(ROLL["roll_angle"], abs=0.1)
     assert abs(start["vertical"]) < 0.02 * ROLL["roll"]
     assert path > 1.0  # a peak turns the signature as the trial frequency sweeps past it
+
+
+@pytest.mark.parametrize(("dof", "param"), [("VERT", "f_vertical_hz"), ("ROLL", "f_roll_hz")])
+def test_the_search_s_columns_are_the_model_s_own_change(etmx, dof, param) -> None:  # noqa: ANN001
+    """Each trial's column, rebuilt from the search's short coordinates (the far bins in a
+    few shapes), is what ClosedLoopModel's bins change by per unit coupling of a mode at
+    that frequency, to 1e-4 of itself (2e-5 in an ad-hoc look, the central difference's
+    rounding where a notch leaves IN1/EXC tiny), at the mode and far from it."""
+    f = np.arange(1, 601) * RES
+    plant = Plant.from_params(etmx.sus, etmx.mechanics())
+    loop = ClosedLoopModel(etmx, f, RES)
+    sigma = 0.01 * np.abs(loop.response(plant)[:, :, :3]) + 1e-12
+    mask = np.ones(sigma.shape, dtype=bool)
+    mask[::7, 1] = False
+    data = FitData(f, list(DOFS), ["POS", "PIT", "YAW"], np.zeros(sigma.shape, complex), sigma,
+                   mask, 10, RES)
+    _, lo, hi = MODE_SEARCH[param]
+    nominal = etmx.sus.uncoupled_frequencies_hz()
+    cols, grid, red = _columns(data, etmx, plant, etmx.sus, dof, [{"roll_angle": 0.3}],
+                               (lo * nominal[dof], hi * nominal[dof]), np.zeros((2 * data.bins, 0)))
+    model = ClosedLoopModel.of(etmx, data, "bounce_roll").for_data(data)
+    coupling = "vertical" if dof == "VERT" else "roll"
+    for g in (0, grid.size // 2 + 1, grid.size - 1):
+        at = {"vertical": 0.0, "roll": 0.0, "roll_angle": 0.3, "f_vertical_hz": nominal["VERT"],
+              "f_roll_hz": nominal["ROLL"], param: grid[g]}
+        change = (data.whiten(model({**at, coupling: -1e-5}))
+                  - data.whiten(model({**at, coupling: 1e-5}))) / 2e-5
+        rebuilt = red.back(cols[g, 0])
+        assert np.linalg.norm(rebuilt - change) < 1e-4 * np.linalg.norm(change)
+    assert red.near.size + red.basis.shape[0] < 0.5 * red.size  # short
 
 
 def test_the_search_is_charged_for_where_it_looked() -> None:

@@ -6,8 +6,11 @@ frequency over :data:`~twind.model.effects.MODE_SEARCH` in steps of a quarter of
 of the mode's width, if wider) and fits its couplings linearly at each: to first order a
 mode adds ``B(f) h(f; f0)`` to ``IN1/EXC``, with ``B`` smooth in f (the loop around the
 coupling pattern) and ``h`` the mode's own response, so ``B`` is computed once on the Hann
-kernel's points and every trial frequency costs a product. The best frequency of each mode,
-with its couplings, is where the nonlinear fit starts.
+kernel's points and every trial frequency costs a product. Far from the mode ``h`` is smooth
+in its frequency: there every trial's column is a combination of a few shapes, and the
+search works in short coordinates (:class:`_Reduced`) that keep every inner product it
+takes. The best frequency of each mode, with its couplings, is where the nonlinear fit
+starts.
 
 The evidence is searched over many frequencies: its p-value carries that look-elsewhere
 cost (:func:`p_value`).
@@ -225,7 +228,7 @@ def _columns(data: FitData, cfg: OpticConfig, plant: Plant, sus: SOSParams, dof:
 
     d2, w2 = _two_point(res)
     B2, s2 = first_order(f[bins, None] + res * d2)
-    red, far_coords = _far(data, near, far, B2[~is_near] * w2[:, None], s2[~is_near],
+    red, far_coords = _far(data, near, far, B2[~is_near] * w2[:, None],
                            mode(s2[~is_near][None], grid[:, None, None]), Q, len(patterns))
     out = np.empty((grid.size, len(patterns), red.near.size + red.basis.shape[0]))
     out[..., red.near.size :] = far_coords
@@ -270,7 +273,7 @@ def _near(f: NDArray[np.float64], grid: NDArray[np.float64], B2: NDArray, s2: ND
 
 
 def _far(data: FitData, near: NDArray[np.int64], far: NDArray[np.int64], B2: NDArray,
-         s2: NDArray, h: NDArray[np.complex128], Q: NDArray[np.float64], patterns: int
+         h: NDArray[np.complex128], Q: NDArray[np.float64], patterns: int
          ) -> tuple[_Reduced, NDArray[np.float64]]:
     """The reduced coordinates (:class:`_Reduced`) and every trial's columns in their far
     part, from the mode's response `h` (trials, far bins, points) at the far bins' points.
@@ -281,8 +284,10 @@ def _far(data: FitData, near: NDArray[np.int64], far: NDArray[np.int64], B2: NDA
     at_near = np.flatnonzero(np.isin(entry, near))
     at_far = np.flatnonzero(~np.isin(entry, near))
     flat = h.reshape(h.shape[0], -1)
-    _, sv, vh = np.linalg.svd(flat[::8], full_matrices=False)
-    shapes = vh[sv > _SHAPE_TOL * sv[0]]
+    shapes = np.zeros((0, flat.shape[1]))
+    if flat.size:  # (a measurement may lie wholly near the mode)
+        _, sv, vh = np.linalg.svd(flat[::8], full_matrices=False)
+        shapes = vh[sv > _SHAPE_TOL * sv[0]]
     a = flat @ shapes.conj().T  # (trials, shapes)
     dT = np.einsum("rbk,bkm->rbm", shapes.reshape(-1, *h.shape[1:]), B2)
     z = data.whitened_change(np.moveaxis(dT.reshape(*dT.shape[:2], patterns, *data.H.shape[1:]),
