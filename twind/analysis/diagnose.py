@@ -261,7 +261,7 @@ def _try_narrow(tfs: TFSet | Sequence[TFSet], start: OpticConfig, free: list[str
     res = FitData.from_tfset(first, nominal.min_coherence).resolution_hz
     whole = narrow.bands(start, res)
     nominal = fit(tfs, start, free, nominal.min_coherence, whole=whole)
-    data = FitData.from_tfset(first, nominal.min_coherence, whole=whole)
+    data = FitData.from_tfset(first, nominal.min_coherence, whole=whole).span()
     found, path = narrow.search(data, start, nominal.as_dict(), free, _unit(nominal, tfs))
     result = fit(tfs, start, free, nominal.min_coherence, effect="bounce_roll",
                  effect_start=found, whole=whole)

@@ -195,6 +195,18 @@ class FitData:
         """Number of complex bins used."""
         return int(self.mask.sum())
 
+    def span(self) -> FitData:
+        """The same bins with the arrays cut to the frequencies from the first used bin to
+        the last: a measurement up to Nyquist fitted below 30 Hz is evaluated, whitened and
+        its neighbouring bins paired there alone."""
+        used = np.flatnonzero(self.mask.any(axis=(1, 2)))
+        cut = slice(int(used[0]), int(used[-1]) + 1)
+        kernel = (None if self.kernel is None
+                  else Kernel(self.kernel.offsets_hz, self.kernel.weights[cut]))
+        return replace(self, frequency_hz=self.frequency_hz[cut], H=self.H[cut],
+                       sigma=self.sigma[cut], mask=self.mask[cut], kernel=kernel,
+                       correlation=None if self.correlation is None else self.correlation[cut])
+
     def whiten(self, model: NDArray[np.complex128]) -> NDArray[np.float64]:
         """``(H - model) / sigma`` over the used bins, real parts then imaginary parts;
         with a :attr:`correlation`, decorrelated across each bin's used responses."""
@@ -277,9 +289,14 @@ class ClosedLoopModel:
             self._at = (self.f[:, None] + kernel.offsets_hz).ravel()
         else:
             self._at = np.concatenate([self.f - a, self.f + a]) if a > 0 else self.f
-        self._K = cfg.loop().controller(self._at)[:, :, None] * np.eye(len(DOFS))
         self.resolution_hz = resolution_hz
         self._narrow: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
+
+    @functools.cached_property
+    def _K(self) -> NDArray[np.complex128]:
+        # when first needed: a model made only to be cut down to a measurement's bins
+        # (for_data) would otherwise evaluate the filters at every bin up to Nyquist
+        return self.cfg.loop().controller(self._at)[:, :, None] * np.eye(len(DOFS))
 
     @classmethod
     def of(cls, cfg: OpticConfig, data: FitData, effect: str | None = None) -> ClosedLoopModel:
@@ -537,7 +554,7 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
             raise FitError(msg)
         names += list(CATALOGUE[effect].params)
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
-    datas = [FitData.from_tfset(t, min_coherence, band, whole) for t in sets]
+    datas = [FitData.from_tfset(t, min_coherence, band, whole).span() for t in sets]
     models = [ClosedLoopModel.of(cfg, d, effect).for_data(d) for d in datas]
     coords = _Coords(names, cfg.sus, effect, effect_start or {})
 

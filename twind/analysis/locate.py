@@ -67,7 +67,7 @@ def locate(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult,
     scale2 = result.noise_scale**2
     tests = []
     for t in sets:
-        data = FitData.from_tfset(t, result.min_coherence)
+        data = FitData.from_tfset(t, result.min_coherence).span()
         model = ClosedLoopModel.of(cfg, data, result.effect)
         pred = model.for_data(data)(result.as_dict())
         z = np.zeros(data.H.shape, dtype=complex)
