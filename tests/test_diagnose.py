@@ -17,7 +17,7 @@ import pytest
 from conftest import REFERENCE
 
 from twind.analysis.corpus import FACES, key_z
-from twind.analysis.diagnose import diagnose
+from twind.analysis.diagnose import ALPHA, diagnose
 from twind.cli import main
 from twind.config import load_config
 from twind.loop.plant import Plant
@@ -66,6 +66,10 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     delay = next(e for e in d.effects if e.effect == "loop_delay")
     assert delay.to_json()["params"]["extra_s"] == pytest.approx(extra, rel=0.35)
     assert d.final.chi2_nu < 1.4 < d.nominal.chi2_nu
+    # every hypothesis keeps its p-value, the unclaimed ones too (how near they came)
+    assert all(d.p_values[e.effect] == e.p_value < ALPHA for e in d.effects)
+    assert set(d.p_values) - {e.effect for e in d.effects}
+    assert all(0 <= p <= 1 for p in d.p_values.values())
 
 
 def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa: ANN001
