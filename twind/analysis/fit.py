@@ -220,8 +220,8 @@ class FitData:
     def whitened_change(self, dT: NDArray[np.complex128], at: NDArray[np.int64]
                         ) -> NDArray[np.complex128]:
         """What a model change `dT` at bins `at` (sorted; shape (..., len(at), nr, ne))
-        takes off :meth:`whiten`'s residuals there: their used entries as complex numbers,
-        in :meth:`whiten`'s order (its real parts, then its imaginary parts, are these')."""
+        takes off :meth:`whiten`'s residuals there, as complex numbers: one per used entry,
+        in the order whose real parts, then imaginary parts, :meth:`whiten` lists."""
         used = self.mask[at]
         if self.correlation is None:
             return dT[..., used] / self.sigma[at][used]
