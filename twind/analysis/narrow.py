@@ -237,9 +237,9 @@ def _columns(data: FitData, cfg: OpticConfig, plant: Plant, sus: SOSParams, dof:
         d, w = hann_kernel(res, width)
         fine = (*first_order(f[near, None] + res * d), w)
     shape = (len(patterns), len(rows), len(cols))
+    two = B2[is_near] * w2[:, None]
     for chunk in np.array_split(np.arange(grid.size), max(1, grid.size // 128)):
-        dT = _near(f[near], grid[chunk], B2[is_near] * w2[:, None], s2[is_near], fine, mode,
-                   reach)
+        dT = _near(f[near], grid[chunk], two, s2[is_near], fine, mode, reach)
         z = data.whitened_change(np.moveaxis(dT.reshape(*dT.shape[:2], *shape), 2, 1), near)
         out[chunk, :, : red.near.size] = np.concatenate([z.real, z.imag], axis=-1)
     return out, grid, red
@@ -281,8 +281,8 @@ def _far(data: FitData, near: NDArray[np.int64], far: NDArray[np.int64], B2: NDA
     analytic in the mode's frequency, which is at least NARROW_REACH_BINS away."""
     entry = np.nonzero(data.mask)[0]
     k = entry.size
-    at_near = np.flatnonzero(np.isin(entry, near))
-    at_far = np.flatnonzero(~np.isin(entry, near))
+    is_near = np.isin(entry, near)
+    at_near, at_far = np.flatnonzero(is_near), np.flatnonzero(~is_near)
     flat = h.reshape(h.shape[0], -1)
     shapes = np.zeros((0, flat.shape[1]))
     if flat.size:  # (a measurement may lie wholly near the mode)
