@@ -12,11 +12,13 @@ import pytest
 from twind.analysis.corpus import (
     CONCEAL_SIGMA,
     FACES,
+    STOP_HZ,
     Case,
     Score,
     conceal,
     hidden,
     key_error,
+    measure,
     raised_clamp,
     score,
     summary,
@@ -168,6 +170,19 @@ def test_the_mcap_route_records_what_measure_tfs_measures(etmx, tmp_path: Path) 
     assert tfs.coherence["IN1"][k, 0, 0] > 0.5  # POS excited, POS responds
 
 
+def test_the_xml_route_is_a_diaggui_set_up_to_its_stop_frequency(etmx, tmp_path: Path  # noqa: ANN001
+                                                                  ) -> None:
+    """As example_null: one file per excited DOF, the bins from 0 to 30 Hz alone (a set
+    written up to Nyquist at 0.01 Hz would be 160 MB a file)."""
+    case = Case("null #1", None, etmx, Plant.from_params(etmx.sus, etmx.mechanics()))
+    tfs = measure(case, "xml", tmp_path, 3, ("POS", "PIT"), bw=0.5)
+    assert tfs.excited == ["POS", "PIT"]
+    assert tfs.frequency_hz[0] == 0 and tfs.frequency_hz[-1] == pytest.approx(STOP_HZ)
+    files = sorted(tmp_path.rglob("*.xml"))
+    assert [f.name for f in files] == ["ETMX_PIT_exc.xml", "ETMX_POS_exc.xml"]
+    assert '<Param Name="StopFrequency" Type="double" Unit="Hz">30.0<' in files[0].read_text()
+
+
 def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
         etmx, tmp_path: Path) -> None:  # noqa: ANN001
     """twind demo: the "real" twin's recording is diagnosed with its hidden driver pole (or
@@ -197,8 +212,11 @@ def test_the_corpus_benchmark_names_an_effect_or_dof_it_cannot_use(
 
 def test_the_summary_leaves_out_what_the_corpus_did_not_hold(etmx) -> None:  # noqa: ANN001
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
-    null = Score(Case("null #1", None, etmx, plant), True, [], math.nan, math.nan, 1.3, 1.3, 2.0)
+    null = Score(Case("null #1", None, etmx, plant), True, [], math.nan, math.nan, 1.3, 1.3, 2.0,
+                 diagnosis_seconds=1.0)
     lines = summary([null])
+    assert ("seconds per case: diagnosis median 1, max 1 (target < 60); with the measurement "
+            "median 2, max 2") in lines
     assert not any(line.startswith("effects named") for line in lines)
     assert "nulls with an effect claimed: 0/1 (target 0)" in lines
     assert "chi2/nu: nulls' mean 1.30, max 1.30" in lines

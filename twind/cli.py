@@ -391,7 +391,7 @@ def _bench_pull(args: argparse.Namespace) -> int:
     """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
     from twind.analysis.calibration import pull_test
     cfg = _etmx(args)
-    report = pull_test(cfg, n=args.realisations, bw=args.bw, estimator=args.estimator,
+    report = pull_test(cfg, n=args.realisations, bw=args.bw or 0.02, estimator=args.estimator,
                        workers=args.workers)
     print("\n".join(report.lines()))
     return 0
@@ -421,7 +421,7 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
     for route in ("xml", "mcap") if args.route == "both" else (args.route,):
         print(f"--- route: {route}", flush=True)
         run_corpus(_etmx(args), route, args.per_effect, args.nulls, effects=effects,
-                   say=lambda line: print(line, flush=True), excited=excited)
+                   say=lambda line: print(line, flush=True), excited=excited, bw=args.bw)
     return 0
 
 
@@ -613,8 +613,10 @@ def build_parser() -> argparse.ArgumentParser:
                                          "wire asymmetry)")
     bench.add_argument("--excite", help="diagnose: comma-separated DOFs excited in turn "
                                         "(default POS,PIT,YAW; add SIDE for side_coupling)")
-    bench.add_argument("--bw", type=float, default=0.02, help="pull: Welch resolution (Hz); "
-                       "the LPM's record is as long as 10 averages of it")
+    bench.add_argument("--bw", type=float, help="pull: Welch resolution (Hz, default 0.02; "
+                       "the LPM's record is as long as 10 averages of it); diagnose: the "
+                       "corpus measurement's (default 0.01 for XML, example_null's; 0.05 for "
+                       "MCAP)")
     bench.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
                        help="pull: TF estimator")
     bench.add_argument("--workers", type=int, default=1,

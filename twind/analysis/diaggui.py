@@ -189,9 +189,11 @@ def _index(exc: str, names: list[str], nf: int) -> str:
 
 
 def write_measurement_set(tfs: TFSet, directory: str | Path, ifo: str = "C1",
-                          rate_hz: float = 16384.0, gps: float = 1.4e9) -> list[Path]:
+                          rate_hz: float = 16384.0, gps: float = 1.4e9,
+                          stop_hz: float | None = None) -> list[Path]:
     """One diaggui file per excited DOF of `tfs` (``<OPTIC>_<DOF>_exc.xml``, as
-    example_null), for TFs whose excitation PSD is known (``tfs.exc_psd``)."""
+    example_null), for TFs whose excitation PSD is known (``tfs.exc_psd``); with `stop_hz`,
+    the bins up to it alone, as diaggui keeps its StopFrequency (example_null: 30 Hz)."""
     from twind.analysis.tf import POINTS
 
     if not tfs.exc_psd:
@@ -199,13 +201,15 @@ def write_measurement_set(tfs: TFSet, directory: str | Path, ifo: str = "C1",
         raise TFError(msg)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    keep = slice(None) if stop_hz is None else tfs.frequency_hz <= stop_hz
     out = []
     for j, dof in enumerate(tfs.excited):
         keys = [(r, p) for r in tfs.responses for p in POINTS]
         chans = [f"{ifo}:SUS-{tfs.optic}_SUS{r}_{p}" for r, p in keys]
-        tf = np.array([tfs.tf[p][:, tfs.responses.index(r), j] for r, p in keys])
-        coh = np.array([tfs.coherence[p][:, tfs.responses.index(r), j] for r, p in keys])
+        tf = np.array([tfs.tf[p][keep, tfs.responses.index(r), j] for r, p in keys])
+        coh = np.array([tfs.coherence[p][keep, tfs.responses.index(r), j] for r, p in keys])
         out.append(write_fft_measurement(
             directory / f"{tfs.optic}_{dof}_exc.xml", f"{ifo}:SUS-{tfs.optic}_SUS{dof}_EXC",
-            chans, tfs.frequency_hz, tfs.exc_psd[dof], tf, coh, tfs.averages, rate_hz, gps))
+            chans, tfs.frequency_hz[keep], tfs.exc_psd[dof][keep], tf, coh, tfs.averages,
+            rate_hz, gps))
     return out
