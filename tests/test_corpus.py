@@ -201,7 +201,8 @@ def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
 
 
 @pytest.mark.parametrize(("option", "value", "named"), [
-    ("--effects", "bounce,loop_delay", "bounce"), ("--excite", "POS,ROLL", "ROLL")])
+    ("--effects", "bounce,loop_delay", "bounce"), ("--excite", "POS,ROLL", "ROLL"),
+    ("--optic", "ETMZ", "ETMZ")])
 def test_the_corpus_benchmark_names_an_effect_or_dof_it_cannot_use(
         option: str, value: str, named: str, capsys: pytest.CaptureFixture) -> None:
     from twind.cli import main

@@ -418,9 +418,12 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
     if unknown:
         msg = f"the corpus cannot hide {', '.join(unknown)}; it makes {', '.join(MADE)}"
         raise TwindError(msg)
+    from twind.config import load_config
+
+    cfg = load_config(args.config, [args.optic]).optics[args.optic]
     for route in ("xml", "mcap") if args.route == "both" else (args.route,):
         print(f"--- route: {route}", flush=True)
-        run_corpus(_etmx(args), route, args.per_effect, args.nulls, effects=effects,
+        run_corpus(cfg, route, args.per_effect, args.nulls, effects=effects,
                    say=lambda line: print(line, flush=True), excited=excited, bw=args.bw)
     return 0
 
@@ -606,6 +609,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--realisations", type=int, default=100, help="pull: noise realisations")
     bench.add_argument("--route", choices=["xml", "mcap", "both"], default="xml",
                        help="diagnose: the corpus as diaggui XML sets or MCAP sessions")
+    bench.add_argument("--optic", default="ETMX",
+                       help="diagnose: the optic of --config whose drifts make the corpus")
     bench.add_argument("--per-effect", type=int, default=3, help="diagnose: cases per effect")
     bench.add_argument("--nulls", type=int, default=3, help="diagnose: drift-only cases")
     bench.add_argument("--effects", help="diagnose: comma-separated effects to hide (default "
