@@ -380,17 +380,17 @@ def _bench_tf(args: argparse.Namespace) -> int:
     return 0
 
 
-def _etmx(args: argparse.Namespace):  # noqa: ANN202 - OpticConfig
-    """The ETMX of ``--config``: the optic the identification benchmarks run on."""
+def _optic(args: argparse.Namespace, name: str = "ETMX"):  # noqa: ANN202 - OpticConfig
+    """Optic `name` of ``--config``: the one the identification benchmarks run on."""
     from twind.config import load_config
 
-    return load_config(args.config, ["ETMX"]).optics["ETMX"]
+    return load_config(args.config, [name]).optics[name]
 
 
 def _bench_pull(args: argparse.Namespace) -> int:
     """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
     from twind.analysis.calibration import pull_test
-    cfg = _etmx(args)
+    cfg = _optic(args)
     report = pull_test(cfg, n=args.realisations, bw=args.bw or 0.02, estimator=args.estimator,
                        workers=args.workers)
     print("\n".join(report.lines()))
@@ -400,7 +400,7 @@ def _bench_pull(args: argparse.Namespace) -> int:
 def _bench_information(args: argparse.Namespace) -> int:
     """D-optimal multisines against white noise of equal RMS, measured and fitted on the twin."""
     from twind.analysis.calibration import information_benchmark
-    cfg = _etmx(args)
+    cfg = _optic(args)
     print("\n".join(information_benchmark(cfg)))
     return 0
 
@@ -418,9 +418,7 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
     if unknown:
         msg = f"the corpus cannot hide {', '.join(unknown)}; it makes {', '.join(MADE)}"
         raise TwindError(msg)
-    from twind.config import load_config
-
-    cfg = load_config(args.config, [args.optic]).optics[args.optic]
+    cfg = _optic(args, args.optic)
     for route in ("xml", "mcap") if args.route == "both" else (args.route,):
         print(f"--- route: {route}", flush=True)
         run_corpus(cfg, route, args.per_effect, args.nulls, effects=effects,
@@ -436,7 +434,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """A "real" twin with a concealed effect beside a nominal one, recorded and diagnosed."""
     from twind.analysis.corpus import run_demo
 
-    run_demo(_etmx(args), args.output, args.effect, say=lambda line: print(line, flush=True))
+    run_demo(_optic(args), args.output, args.effect, say=lambda line: print(line, flush=True))
     return 0
 
 
