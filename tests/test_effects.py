@@ -8,7 +8,7 @@ import pytest
 from twind import DOFS
 from twind.loop.plant import Plant
 from twind.model.analytical import analytical_mechanics
-from twind.model.effects import CATALOGUE, EffectError, with_effect
+from twind.model.effects import CATALOGUE, CHANNEL_FILTERS, EffectError, with_effect
 from twind.model.params import SOSParams
 
 F = np.logspace(-1, 1.5, 60)
@@ -83,3 +83,65 @@ def test_bad_effects_are_named(plant: Plant, sus: SOSParams) -> None:
         with_effect(plant, sus, "gremlins", {})
     with pytest.raises(EffectError, match="extra_s"):
         with_effect(plant, sus, "loop_delay", {"delay": 1e-4})
+
+
+def test_a_resonance_is_the_body_the_corpus_attaches(plant: Plant, sus: SOSParams) -> None:
+    """Two paths to one physics: the catalogue's unit-mass body pulling along g, and the
+    corpus's body of mass m on a spring at a face point in 3-D kinematics."""
+    from twind.analysis.corpus import attached_body
+
+    m, y, z = 2e-4, 0.012, -0.02
+    real, truth = attached_body(plant, sus, m, 7.0, 30.0, (y, z))
+    g = np.sqrt(m) * np.array([1.0, z, y, 0.0])
+    model = with_effect(plant, sus, "resonance", {
+        "f_hz": 7.0, "q": 30.0, **{f"g_{d}": x for d, x in zip(DOFS, g, strict=True)}})
+    P = real.response(F)
+    np.testing.assert_allclose(model.response(F), P, rtol=1e-9, atol=1e-12 * np.abs(P).max())
+    assert truth["coupled"] == ["POS", "PIT", "YAW"]
+    assert np.max(np.abs(P - plant.response(F))) > 1e-3 * np.abs(P).max()
+
+
+def test_effects_combine_and_a_mode_may_come_twice(plant: Plant, sus: SOSParams) -> None:
+    from twind.model.effects import effect_params
+
+    both = with_effect(plant, sus, "coil_imbalance+loop_delay",
+                       {"coil_imbalance.gain_UL": 0.02, "loop_delay.extra_s": 1e-4})
+    one = with_effect(with_effect(plant, sus, "coil_imbalance", {"gain_UL": 0.02}), sus,
+                      "loop_delay", {"extra_s": 1e-4})
+    np.testing.assert_array_equal(both.response(F), one.response(F))
+    names = effect_params("resonance+resonance#2")
+    assert "resonance.f_hz" in names and "resonance#2.g_PIT" in names
+    two = with_effect(plant, sus, "resonance+resonance#2", {
+        "resonance.f_hz": 5.0, "resonance.q": 20.0, "resonance.g_POS": 0.01,
+        "resonance#2.f_hz": 9.0, "resonance#2.q": 20.0, "resonance#2.g_PIT": 1e-4})
+    assert two.mechanics.dofs[-2:] == ("BODY", "BODY#2")
+    for bad in ("coil_imbalance#2", "loop_delay+loop_delay", "gremlins+loop_delay"):
+        with pytest.raises(EffectError):
+            with_effect(plant, sus, bad, {})
+
+
+@pytest.mark.parametrize("effect", list(CHANNEL_FILTERS))
+def test_a_channel_filter_is_one_channel_s_stage_in_model_and_engine(
+        effect: str, plant: Plant, sus: SOSParams) -> None:
+    """The frequency response and the state space the engine integrates agree, the stage
+    touches its own coil's column (OSEM's row) only, and none nests the nominal model."""
+    zero = with_effect(plant, sus, effect, {"inv_pole_hz": 0.0, "inv_zero_hz": 0.0})
+    np.testing.assert_array_equal(zero.response(F), plant.response(F))
+    moved = with_effect(plant, sus, effect, {"inv_pole_hz": 1 / 20.0, "inv_zero_hz": 1 / 35.0})
+    A, B, _, C = moved.osem_state_space()
+    G = np.array([C @ np.linalg.solve(s * np.eye(A.shape[0]) - A, B) for s in S])
+    H = plant.mechanics.admittance(S)
+    G0 = plant.sensing @ H @ plant.actuation
+    F_stage = ((1 + S / (2 * np.pi * 35.0)) / (1 + S / (2 * np.pi * 20.0)))[:, None]
+    kind, _, name = effect.partition("_filter_")
+    k = ("UL", "UR", "LL", "LR", "SIDE").index(name)
+    want = G0.copy()
+    if kind == "coil":
+        want[:, :, k] *= F_stage
+    else:
+        want[:, k, :] *= F_stage
+    np.testing.assert_allclose(G, want, rtol=1e-9, atol=1e-10 * np.abs(G0).max())
+    R = moved.response(F)
+    np.testing.assert_allclose(R, plant.input_matrix @ want @ plant.output_matrix
+                               * np.exp(-S * plant.delay_s)[:, None, None],
+                               rtol=1e-9, atol=1e-12 * np.abs(R).max())

@@ -115,12 +115,16 @@ def drifted(cfg: OpticConfig, rng: np.random.Generator) -> OpticConfig:
 
 
 def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64],
-           sus: SOSParams | None = None) -> tuple[Plant, dict]:
+           sus: SOSParams | None = None, shape: dict | None = None) -> tuple[Plant, dict]:
     """`plant` with `effect` of `size` put in by hand, and its parameters in MODEL.md's names.
 
     `direction` (4 values) spreads an imbalance over the face coils or OSEMs.
     ``wire_asymmetry`` is one wire loop's clamp raised by `size` (m) in the geometric
-    rigid-body model of `sus` (the suspension's parameters), not MODEL.md's formula."""
+    rigid-body model of `sus` (the suspension's parameters), not MODEL.md's formula.
+    ``resonance`` is a body of mass `size` (kg) attached as `shape` says (``f_hz``, ``q``,
+    ``point_m``, ``axis``: :func:`attached_body`)."""
+    if effect == "resonance":
+        return attached_body(plant, sus, size, **(shape or {}))
     if effect == "coil_imbalance":
         gains = size * direction  # MODEL.md's g_i: F_i (1 + g_i)
         act = plant.actuation.copy()
@@ -232,15 +236,53 @@ def tilted_heads(plant: Plant, sus: SOSParams, towards_side: float, towards_vert
                     "roll_angle": math.atan2(towards_vert, -towards_side) % math.pi}
 
 
+def attached_body(plant: Plant, sus: SOSParams, mass_kg: float, f_hz: float, q: float,
+                  point_m: tuple[float, float], axis: Sequence[float] = (1.0, 0.0, 0.0)
+                  ) -> tuple[Plant, dict]:
+    """`plant` with a small body (`mass_kg`) held by a spring (resonance `f_hz`, quality
+    factor `q`) to the face point ``point_m`` = (y, z), pulling along `axis` (POS, SIDE,
+    VERT components): a loose cable or a ringing standoff.
+
+    The spring stretches by ``u - n . (t + theta x r)``, the body's displacement less the
+    face point's along the axis, in 3-D kinematics with ``t = (POS, SIDE, VERT)`` and
+    ``theta = (ROLL, PIT, -YAW)`` as :func:`tilted_heads` has them; the body is a new
+    coordinate of the mechanics in metres. Nothing goes through the catalogue's
+    ``resonance``; the truth is given as the issue's reading: ``f_hz``, ``q``, ``mass_kg``,
+    the point and the DOFs it couples (``coupled``)."""
+    mech = plant.mechanics
+    n = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    r = np.array([0.0, *point_m])
+    motion = np.zeros((3, mech.n))
+    for d, e in (("POS", 0), ("SIDE", 1), ("VERT", 2)):
+        if d in mech.dofs:
+            motion[e, mech.index(d)] = 1.0
+    for d, w in (("ROLL", (1, 0, 0)), ("PIT", (0, 1, 0)), ("YAW", (0, 0, -1))):
+        if d in mech.dofs:
+            motion[:, mech.index(d)] = np.cross(w, r)
+    link = np.append(-(n @ motion), 1.0)  # spring stretch per coordinate
+    w = 2 * math.pi * f_hz
+    M = np.pad(mech.M, (0, 1))
+    M[-1, -1] = mass_kg
+    K = np.pad(mech.K, (0, 1)) + mass_kg * w**2 * np.outer(link, link)
+    C = np.pad(mech.C, (0, 1)) + mass_kg * w / q * np.outer(link, link)
+    body = replace(plant, mechanics=Mechanics((*mech.dofs, "ATTACHED"), M, C, K),
+                   sensing=np.pad(plant.sensing, ((0, 0), (0, 1))),
+                   actuation=np.pad(plant.actuation, ((0, 1), (0, 0))))
+    coupled = [d for d, x in zip(mech.dofs, n @ motion, strict=True) if abs(x) > 1e-12]
+    return body, {"f_hz": f_hz, "q": q, "mass_kg": mass_kg, "point_m": list(point_m),
+                  "coupled": coupled}
+
+
 _FIRST_SIZE = {"coil_imbalance": 1e-3, "osem_imbalance": 1e-3, "loop_delay": 1e-4,
                "actuator_pole": 1 / 300, "side_coupling": 1e-2, "wire_asymmetry": 1e-3,
-               "bounce_roll": 1e-3}
+               "bounce_roll": 1e-3, "resonance": 1e-4}
 MADE = tuple(_FIRST_SIZE)
 """Every effect the corpus can hide."""
 
 
 def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArray,
-            target: float = CONCEAL_SIGMA) -> tuple[Plant, dict, float, float]:
+            target: float = CONCEAL_SIGMA, shape: dict | None = None
+            ) -> tuple[Plant, dict, float, float]:
     """The effect scaled so that its largest change of a bin ``diagnose`` fits is `target`
     standard errors of `reference` (a measurement of the same kind, its bins as
     ``diagnose`` chooses them).
@@ -256,7 +298,8 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
     T0 = in1(base)
 
     def change(size: float) -> NDArray[np.float64]:
-        z = np.abs(in1(hidden(base, effect, size, direction, real.sus)[0]) - T0) / reference.sigma
+        z = np.abs(in1(hidden(base, effect, size, direction, real.sus, shape)[0]) - T0
+                   ) / reference.sigma
         return z[reference.mask]
 
     size = _FIRST_SIZE[effect]
@@ -270,7 +313,7 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
         rate = real.sus.sample_rate_hz
         size = max(round(size * rate), 1) / rate
     z = change(size)
-    plant, truth = hidden(base, effect, size, direction, real.sus)
+    plant, truth = hidden(base, effect, size, direction, real.sus, shape)
     return plant, truth, float(z.max()), float(np.sum(z**2))
 
 

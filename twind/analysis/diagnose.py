@@ -29,11 +29,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import NDArray
 from scipy import stats
 
 from twind.analysis import narrow
 from twind.analysis.fit import (
     FIT_PARAMS,
+    ClosedLoopModel,
     FitData,
     FitError,
     FitResult,
@@ -44,7 +47,18 @@ from twind.analysis.locate import Located, _null_moments, locate
 from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
-from twind.model.effects import CATALOGUE, NARROW, model_names
+from twind.model.effects import (
+    BODY_DOFS,
+    CATALOGUE,
+    FAMILIES,
+    NARROW,
+    REPEATABLE,
+    SEARCHED,
+    model_names,
+    own_values,
+    param_name,
+    parts,
+)
 
 ALPHA = 0.01
 """False-alarm probability of claiming an effect (over the whole catalogue): an effect is
@@ -66,7 +80,28 @@ class DiagnoseError(TwindError):
 
 @dataclass
 class EffectFit:
-    """The nominal parameters refitted with one catalogue effect."""
+    """One hypothesis fitted with the nominal parameters and the effects chosen before it.
+
+    Attributes
+    ----------
+    effect : str
+        The catalogue entry.
+    result : FitResult
+        The fit that holds it: with the effects chosen before it, or once all are chosen
+        the final joint fit (its parameters named ``effect.param`` in a combination).
+    lr, k, p_value, delta_bic
+        Its evidence over the model without it when it was tried: likelihood ratio, the
+        directions it adds, p-value (look-elsewhere and the hypotheses tried paid for)
+        and ``lr - k ln(n)``.
+    equivalent : list of str
+        Claimed rivals the data do not tell apart from it.
+    rival_of : str or None
+        For a rival listed beside a chosen effect: that effect.
+    partial : bool
+        Chosen, but the final model still leaves structure (in ``unexplained``).
+    p_given_others : float or None
+        With two or more chosen: its p-value against the final model without it.
+    """
 
     effect: str
     result: FitResult
@@ -75,18 +110,84 @@ class EffectFit:
     p_value: float
     delta_bic: float
     equivalent: list[str] = field(default_factory=list)
+    rival_of: str | None = None
+    partial: bool = False
+    p_given_others: float | None = None
+    whole: tuple[tuple[float, float], ...] = field(default=(), repr=False)
+    """Bands its fit took bin by bin, whatever their coherence (``bounce_roll``'s)."""
+    searched: list[float] = field(default_factory=list, repr=False)
+    """Its search's look-elsewhere paths (a mode searched for), one per search."""
+    step_result: FitResult | None = field(default=None, repr=False)
+    """Its fit when it was chosen (before later effects joined)."""
+    radius_m: float | None = field(default=None, repr=False)
+    """The optic's radius (a ``resonance``'s reading asks whether its point is on it)."""
+
+    def values(self) -> tuple[dict[str, float], dict[str, float | None]]:
+        """Its parameters and their sigmas (None: undetermined), by its own names."""
+        got = self.result.as_dict()
+        sig = dict(zip(self.result.names, self.result.sigma.tolist(), strict=True))
+        combo = self.result.effect or self.effect
+        values = own_values(combo, self.effect, got)
+        sigma = {n: None if math.isnan(x) else float(x)
+                 for n, x in own_values(combo, self.effect, sig).items()}
+        return values, sigma
 
     def to_json(self) -> dict:
         """One entry of ``effects`` in ``twind diagnose --json``."""
-        names = CATALOGUE[self.effect].params
-        got = dict(zip(self.result.names, zip(self.result.values, self.result.sigma,
-                                              strict=True), strict=True))
-        params, sigma = model_names(
-            self.effect, {n: float(got[n][0]) for n in names},
-            {n: None if math.isnan(got[n][1]) else float(got[n][1]) for n in names})
-        return {"effect": self.effect, "params": params, "sigma": sigma,
-                "delta_bic": self.delta_bic, "p_value": self.p_value,
-                "equivalent": self.equivalent}
+        values, sigma = self.values()
+        params, sigma = model_names(_base(self.effect), values, sigma)
+        out = {"effect": self.effect, "params": params, "sigma": sigma,
+               "delta_bic": self.delta_bic, "p_value": self.p_value,
+               "equivalent": self.equivalent, "rival_of": self.rival_of,
+               "partial": self.partial, "p_given_others": self.p_given_others}
+        family = next((f for f, members in FAMILIES.items() if self.effect in members), None)
+        if family:
+            out["family"] = family
+        if _base(self.effect) == "resonance":
+            out["reading"] = body_reading(*self.values(), self.radius_m)
+        return out
+
+
+def body_reading(values: dict[str, float], sigma: dict[str, float | None],
+                 radius_m: float | None = None) -> dict:
+    """A ``resonance``'s physical reading: a body of mass m2 (kg) pulling along the beam at
+    face point (y0, z0) (m) when its POS coupling leads, sideways when SIDE does; the DOFs
+    it couples (over 3 sigma, or, where a sigma is undetermined, at least a third of the
+    largest coupling, angles taken at the face's edge); sigmas to first order (``None``
+    where undetermined); ``on_face`` when the point lies within `radius_m` of the centre
+    (a point off the face is no body on it: another mode, read by its pattern)."""
+    g = {d: values[f"g_{d}"] for d in BODY_DOFS}
+    s = {d: sigma.get(f"g_{d}") for d in BODY_DOFS}
+    edge = radius_m or 0.0375
+    size = {d: abs(g[d]) / (edge if d in ("PIT", "YAW") else 1.0) for d in BODY_DOFS}
+    top = max(size.values()) or 1.0
+    coupled = [d for d in BODY_DOFS if (abs(g[d]) > 3 * s[d] if s[d] is not None
+                                        else size[d] >= top / 3)]
+    lead = "POS" if abs(g["POS"]) >= abs(g["SIDE"]) else "SIDE"
+    out: dict = {"coupled": coupled, "along": "beam" if lead == "POS" else "side",
+                 "mass_kg": g[lead] ** 2,
+                 "mass_kg_sigma": None if s[lead] is None else 2 * abs(g[lead]) * s[lead]}
+    if lead == "POS" and g["POS"] != 0:
+        for name, d in (("z0_m", "PIT"), ("y0_m", "YAW")):
+            out[name] = g[d] / g["POS"]
+            out[f"{name}_sigma"] = (None if s[d] is None or s["POS"] is None else
+                                    math.hypot(s[d], abs(out[name]) * s["POS"]) / abs(g["POS"]))
+        out["on_face"] = math.hypot(out["y0_m"], out["z0_m"]) <= edge
+    return out
+
+
+def _reading_line(r: dict) -> str:
+    """A ``resonance``'s reading in words."""
+    def pm(name: str, unit: float, fmt: str) -> str:
+        sig = r.get(f"{name}_sigma")
+        return format(r[name] * unit, fmt) + ("" if sig is None else
+                                              " +- " + format(sig * unit, fmt))
+
+    text = f"couples {'/'.join(r['coupled'])}; as a body: {pm('mass_kg', 1e3, '.2g')} g"
+    if "z0_m" in r:
+        text += (f" at y0 {pm('y0_m', 1e3, '.2g')} mm, z0 {pm('z0_m', 1e3, '.2g')} mm"
+                 + ("" if r["on_face"] else " (off the face: not a body on it)"))
+    return text + f", pulling along the {r['along']}"
 
 
 @dataclass
@@ -100,14 +201,33 @@ class Diagnosis:
     unexplained: list[Located]
     separations: dict[tuple[str, str], tuple[str, str, float]] = field(default_factory=dict)
     p_values: dict[str, float] = field(default_factory=dict)
-    """Every hypothesis fitted and its p-value, claimed or not: how near the data came to
-    each explanation."""
+    """Every hypothesis fitted at the first step and its p-value, claimed or not: how near
+    the data came to each explanation."""
+
+    @property
+    def chosen(self) -> list[EffectFit]:
+        """The effects of the final model, best first (without their rivals)."""
+        return [e for e in self.effects if e.rival_of is None]
 
     @property
     def consistent(self) -> bool:
         """True when the refitted nominal model explains the data: no band stands out and
-        no catalogue effect earns its parameters."""
+        no effect earns its parameters."""
         return not self.located and not self.effects
+
+    def summary(self) -> str:
+        """One line for a person: what explains the data and what remains."""
+        names = " + ".join(e.effect for e in self.chosen)
+        chi2 = f"chi2/nu {self.nominal.chi2_nu:.3f} -> {self.final.chi2_nu:.3f}"
+        rest = "; ".join(f"{x.element} near {math.sqrt(x.band_hz[0] * x.band_hz[1]):.3g} Hz"
+                         for x in self.unexplained[:3])
+        if self.consistent:
+            return f"consistent with the nominal model (chi2/nu {self.nominal.chi2_nu:.3f})"
+        if not self.chosen:
+            return f"no hypothesis explains the misfit; it lies in {rest}"
+        if rest:
+            return f"{names} explain(s) part of the misfit ({chi2}); a residual remains in {rest}"
+        return f"explained by {names} ({chi2}); nothing remains"
 
     def to_json(self) -> dict:
         """The object of the issue, exactly."""
@@ -120,11 +240,12 @@ class Diagnosis:
                 "effects": [e.to_json() for e in self.effects],
                 "unexplained": [{"element": x.element, "band_hz": list(x.band_hz)}
                                 for x in self.unexplained],
-                "nominal_params": nominal}
+                "nominal_params": nominal, "summary": self.summary()}
 
     def lines(self) -> list[str]:
         """A summary for a person."""
-        out = [f"{self.nominal.optic}: nominal model refitted, chi2/nu "
+        out = [self.summary(),
+               f"{self.nominal.optic}: nominal model refitted, chi2/nu "
                f"{self.nominal.chi2_nu:.3f}: "
                + ("consistent with the data" if self.consistent else
                   f"misses in {len(self.located)} band(s)")]
@@ -136,15 +257,22 @@ class Diagnosis:
                 f"{n} {{{', '.join(f'{k} {x:.3g}' for k, x in v.items())}}}"
                 if isinstance(v, dict) else f"{n} {v:.4g}"
                 for n, v in e.to_json()["params"].items())
-            out.append(f"  effect {e.effect}: delta BIC {e.delta_bic:.1f}, p {e.p_value:.2g}"
-                       f" ({params})" + (f"; not told apart from {', '.join(e.equivalent)}"
-                                         if e.equivalent else ""))
+            role = f"rival of {e.rival_of}" if e.rival_of else (
+                "effect" + (" (partial)" if e.partial else ""))
+            given = ("" if e.p_given_others is None else
+                     f", p {e.p_given_others:.2g} given the others")
+            out.append(f"  {role} {e.effect}: delta BIC {e.delta_bic:.1f}, p {e.p_value:.2g}"
+                       f"{given} ({params})" + (f"; not told apart from "
+                                                f"{', '.join(e.equivalent)}"
+                                                if e.equivalent else ""))
+            if "reading" in e.to_json():
+                out.append("    " + _reading_line(e.to_json()["reading"]))
         for (a, b), (dof, response, f) in self.separations.items():
             out.append(f"  to tell {a} from {b}: excite {dof} around {f:.3g} Hz and measure "
                        f"{response}/{dof} (where their predictions differ most against "
                        "the noise)")
         if not self.consistent and not self.effects:
-            out.append("  no catalogue effect explains it")
+            out.append("  no hypothesis explains it")
         shown = {e.effect for e in self.effects}
         rest = sorted((p, e) for e, p in self.p_values.items() if e not in shown and p < 1)[:3]
         if rest:
@@ -165,6 +293,14 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
              min_coherence: float = MIN_COHERENCE) -> Diagnosis:
     """Diagnose measured TFs of `cfg`'s optic against its nominal model.
 
+    Forward selection: every hypothesis (:data:`~twind.model.effects.CATALOGUE`, the
+    ``resonance`` family among them) is fitted with the nominal parameters and the effects
+    chosen so far; the one with the highest delta BIC among those claimed (p below
+    :data:`ALPHA`, Bonferroni over the hypotheses tried at that step) joins the model, up
+    to :data:`MAX_EFFECTS`. A null claims nothing at the first step with probability
+    1 - ALPHA, and nothing after. The residuals of the final model are searched band by
+    band again: what remains is ``unexplained`` and the chosen effects are partial.
+
     Parameters
     ----------
     tfs : TFSet or sequence of TFSet
@@ -184,32 +320,81 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     """
     nominal = fit(tfs, cfg, params, min_coherence)
     located = locate(tfs, cfg, nominal)
-    # every hypothesis is tried even when no band stands out: an effect spread thinly over
-    # many bands can be plain in its own fit and invisible band by band
-    candidates = [c for c in (_try(tfs, cfg, params, e, nominal) for e in CATALOGUE) if c]
-    claimed = sorted((c for c in candidates
-                      if c.p_value < ALPHA),
-                     key=lambda c: -c.delta_bic)
-    p_values = {c.effect: c.p_value for c in candidates}
-    if not claimed:
+    unit = _unit(nominal, tfs)
+    chosen: list[EffectFit] = []
+    rivals: list[EffectFit] = []
+    p_values: dict[str, float] = {}
+    current, whole = nominal, ()
+    for _ in range(MAX_EFFECTS):
+        # every hypothesis is tried even when no band stands out: an effect spread thinly
+        # over many bands can be plain in its own fit and invisible band by band
+        names = [c.effect for c in chosen]
+        left = _candidates(names)
+        tried = [c for c in ((_try_family if e in FAMILIES else _try)(
+            tfs, cfg, params, names, e, current, whole, unit, len(left)) for e in left) if c]
+        if not chosen:
+            p_values = {c.effect: c.p_value for c in tried}
+        claimed = sorted((c for c in tried if c.p_value < ALPHA), key=lambda c: -c.delta_bic)
+        if not claimed:
+            break
+        best = claimed[0]
+        best.equivalent = [c.effect for c in claimed[1:] if best.lr - c.lr < EQUIVALENT_LR]
+        chosen.append(best)
+        rivals += [replace(c, rival_of=best.effect) for c in claimed[1:]
+                   if c.effect in best.equivalent]
+        current, whole = best.result, best.whole
+    if not chosen:
         return Diagnosis(nominal, located, [], nominal, located, p_values=p_values)
-    best = claimed[0]
-    best.equivalent = [c.effect for c in claimed[1:] if best.lr - c.lr < EQUIVALENT_LR]
-    shown = [best] + [c for c in claimed[1:] if c.effect in best.equivalent]
-    separations = {(best.effect, c.effect): separating_measurement(cfg, best.result, c.result)
-                   for c in shown[1:]}
-    return Diagnosis(nominal, located, shown, best.result, locate(tfs, cfg, best.result),
-                     separations, p_values)
+    while True:  # an effect the others made redundant leaves the model
+        without = _given_others(tfs, cfg, params, chosen, current, whole, unit)
+        worst = max(chosen, key=lambda c: c.p_given_others or 0.0)
+        if len(chosen) < 2 or (worst.p_given_others or 0.0) < ALPHA:
+            break
+        chosen.remove(worst)
+        rivals = [r for r in rivals if r.rival_of != worst.effect]
+        current = without[worst.effect]
+    unexplained = locate(tfs, cfg, current)
+    for c in chosen:
+        c.step_result, c.result, c.partial = c.result, current, bool(unexplained)
+    separations = {(r.rival_of, r.effect): separating_measurement(cfg, _alone(chosen, r),
+                                                                   r.result)
+                   for r in rivals}
+    return Diagnosis(nominal, located, chosen + rivals, current, unexplained, separations,
+                     p_values)
+
+
+MAX_EFFECTS = 3
+"""Effects a diagnosis chooses at most."""
+
+
+def _candidates(chosen: Sequence[str]) -> list[str]:
+    """The hypotheses a step tries: every catalogue entry not yet chosen, each family
+    (:data:`~twind.model.effects.FAMILIES`) with a member left, and another mode in no
+    list (``resonance#2``) once one is."""
+    left = [e for e in CATALOGUE if e not in chosen]
+    left += [f for f, members in FAMILIES.items() if set(members) - set(chosen)]
+    for family in REPEATABLE:
+        taken = sum(_base(c) == family for c in chosen)
+        if taken:
+            left.append(f"{family}#{taken + 1}")
+    return left
+
+
+def _base(effect: str) -> str:
+    """The catalogue entry a repeated one (``resonance#2``) stands for."""
+    return effect.partition("#")[0]
+
+
+def _alone(chosen: list[EffectFit], rival: EffectFit) -> FitResult:
+    """The fit of the chosen effect `rival` stood against, as it was when chosen."""
+    return next(c for c in chosen if c.effect == rival.rival_of).step_result
 
 
 def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
                            ) -> tuple[str, str, float]:
     """The excitation (DOF, response, frequency) where two fitted hypotheses differ most
     relative to the IN1 noise: what to measure next to tell them apart."""
-    import numpy as np
-
     from twind import DOFS
-    from twind.analysis.fit import ClosedLoopModel
     from twind.excitation.coherence import in1_noise_asd
 
     f = np.logspace(-1, 2, 400)
@@ -220,52 +405,194 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
     return DOFS[j], DOFS[i], float(f[k])
 
 
-def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str], effect: str,
-         nominal: FitResult) -> EffectFit | None:
-    # from the refitted nominal parameters, holding those the data left free (a Q without
-    # its resonance): a hypothesis fit would chase them again to its evaluation limit
-    start = replace(cfg, sus=with_params(cfg.sus, nominal.identified()))
-    free = [p for p in params if p not in nominal.unidentifiable]
-    path = None  # a search's look-elsewhere measure
+def _try_family(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
+                chosen: Sequence[str], family: str, current: FitResult,
+                whole: tuple[tuple[float, float], ...], unit: float, tried: int
+                ) -> EffectFit | None:
+    """The best member of `family` (a channel filter: which channel), as :func:`_try`
+    fits one: the members ranked by the drop in chi^2 their first-order change alone
+    would make, the best :data:`FAMILY_FITS` fitted from the best of a grid of stages,
+    the choice paid for as a search over every member (Bonferroni)."""
+    members = [m for m in FAMILIES[family] if m not in chosen]
+    first = tfs if isinstance(tfs, TFSet) else tfs[0]
+    data = FitData.from_tfset(first, current.min_coherence, whole=whole).span()
+    ranked = sorted(members, key=lambda m: -_first_order_drop(data, cfg, current, chosen, m))
+    fits = [c for c in (_try(tfs, cfg, params, chosen, m, current, whole, unit, tried,
+                             _filter_start(data, cfg, current, chosen, m))
+                        for m in ranked[:FAMILY_FITS]) if c]
+    if not fits:
+        return None
+    best = max(fits, key=lambda c: c.lr)
+    best.p_value = min(1.0, best.p_value * len(members))
+    return best
+
+
+FAMILY_FITS = 2
+"""Members of a family fitted in full (the others ranked out at first order)."""
+_STAGES = [(pole, zero) for pole in (1.0, 3.0, 10.0, 30.0, 100.0, 300.0)
+           for zero in (math.inf, 0.5 * pole, 0.8 * pole, 1.25 * pole, 2 * pole)]
+"""A channel filter's starts: poles across and above the band, zeros none or near."""
+
+
+def _augmented(data: FitData, cfg: OpticConfig, current: FitResult, chosen: Sequence[str],
+               member: str) -> tuple[str, dict[str, float], object]:
+    """`member` added to the current model: the combination's name, the current values
+    under its names, and its whitened-residual function of the member's own values."""
+    combo = "+".join([*chosen, member])
+    base = {**{n: v for n, v in current.as_dict().items() if n in FIT_PARAMS},
+            **_renamed(current, combo)}
+    model = ClosedLoopModel.of(cfg, data, combo).for_data(data)
+
+    def residual(own: dict[str, float]) -> NDArray:
+        return data.whiten(model({**base, **{param_name(combo, member, n): v
+                                             for n, v in own.items()}}))
+    return combo, base, residual
+
+
+def _first_order_drop(data: FitData, cfg: OpticConfig, current: FitResult,
+                      chosen: Sequence[str], member: str) -> float:
+    """Drop in chi^2 a filter member's first-order change (a zero minus a pole, in 1/Hz)
+    would make alone on the current residuals."""
+    _, _, residual = _augmented(data, cfg, current, chosen, member)
+    r = residual({})
+    col = (residual({"inv_zero_hz": 1e-4}) - r) / 1e-4
+    return float((col @ r) ** 2 / max(col @ col, 1e-300))
+
+
+def _filter_start(data: FitData, cfg: OpticConfig, current: FitResult,
+                  chosen: Sequence[str], member: str) -> dict[str, float]:
+    """The stage of :data:`_STAGES` (and its mirror, pole and zero swapped) that fits the
+    current residuals best, as a filter member's start."""
+    _, _, residual = _augmented(data, cfg, current, chosen, member)
+    best, start = math.inf, {}
+    for pole, zero in _STAGES:
+        for a, b in ((pole, zero), (zero, pole)):
+            own = {"inv_pole_hz": 1 / a, "inv_zero_hz": 1 / b}
+            with np.errstate(over="ignore", invalid="ignore"):
+                r = residual(own)
+            chi2 = float(r @ r) if np.all(np.isfinite(r)) else math.inf
+            if chi2 < best:
+                best, start = chi2, own
+    return start
+
+
+def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
+         chosen: Sequence[str], effect: str, current: FitResult,
+         whole: tuple[tuple[float, float], ...], unit: float, tried: int,
+         own_start: dict[str, float] | None = None) -> EffectFit | None:
+    """Hypothesis `effect` fitted with the nominal parameters and the `chosen` effects
+    (all refitted), against `current` (the model without it); ``None`` when its fit fails
+    or adds no direction the data determine. Its p-value is Bonferroni'd over the `tried`
+    hypotheses of this step; `own_start` starts its own parameters."""
+    # from the current fit's nominal parameters, holding those the data left free (a Q
+    # without its resonance): a hypothesis fit would chase them again to its limit
+    start = replace(cfg, sus=with_params(cfg.sus, {n: v for n, v in current.identified().items()
+                                                   if n in FIT_PARAMS}))
+    free = [p for p in params if p in current.names and p not in current.unidentifiable]
+    combo = "+".join([*chosen, effect])
+    held = _renamed(current, combo)
+    held.update({param_name(combo, effect, n): v for n, v in (own_start or {}).items()})
+    paths: list[float] = []
     try:
-        if effect in NARROW:
-            nominal, result, path = _try_narrow(tfs, start, free, nominal)
-        else:
-            result = fit(tfs, start, free, nominal.min_coherence, effect=effect)
+        reference = current
+        if effect == "bounce_roll":
+            first = tfs if isinstance(tfs, TFSet) else tfs[0]
+            res = FitData.from_tfset(first, current.min_coherence).resolution_hz
+            whole = tuple(narrow.bands(start, res))
+            reference = fit(tfs, start, free, current.min_coherence, effect=current.effect,
+                            effect_start=current.as_dict(), whole=whole)
+        if _base(effect) in NARROW:
+            found, paths = _search(tfs, start, free, reference, effect, whole, unit)
+            held.update({param_name(combo, effect, n): v for n, v in found.items()})
+        result = fit(tfs, start, free, current.min_coherence, effect=combo,
+                     effect_start=held, whole=whole)
     except FitError:
         return None
     # directions the effect adds that the data determine (a coil imbalance's common mode
     # is the coil strength's, its butterfly mode moves nothing: two of four gains count)
-    k = result.rank - nominal.rank
+    k = result.rank - reference.rank
     if k <= 0:
         return None
-    lr = max(nominal.chi2 - result.chi2, 0.0) / _unit(nominal, tfs)
-    n = 2 * nominal.bins
-    if path is None:
-        p = float(stats.chi2.sf(lr, k))
-    else:  # the searched frequencies are paid for by the path, not as parameters
-        searched = sum(math.isfinite(s) for n_, s in zip(result.names, result.sigma,
-                                                         strict=True) if n_ in NARROW[effect])
-        p = narrow.p_value(lr, k - searched, path)
-    p = min(1.0, p * len(CATALOGUE))
-    return EffectFit(effect, result, lr, k, p, lr - k * math.log(max(n, 1)))
+    lr = max(reference.chi2 - result.chi2, 0.0) / unit
+    n = 2 * reference.bins
+    p = _p_value(lr, k, paths, _searched(result, combo, effect))
+    return EffectFit(effect, result, lr, k, min(1.0, p * tried),
+                     lr - k * math.log(max(n, 1)), whole=whole, searched=paths,
+                     radius_m=cfg.sus.radius_m)
 
 
-def _try_narrow(tfs: TFSet | Sequence[TFSet], start: OpticConfig, free: list[str],
-                nominal: FitResult) -> tuple[FitResult, FitResult, float]:
-    """``bounce_roll``: the modes' bands join the data, every bin of them whatever its
-    coherence, the nominal model is refitted on the same bins to compare against, and the
-    fit starts where :func:`~twind.analysis.narrow.search` found the modes (searched on the
-    first measurement). Returns the nominal fit, the effect's and the search's path."""
+def _p_value(lr: float, k: int, paths: Sequence[float], searched: int) -> float:
+    """A likelihood ratio's p-value: chi^2 with `k` directions, or, for a mode searched
+    for, Davies' bound over each search (the `searched` parameters it set are paid for by
+    the paths, not counted)."""
+    if not paths:
+        return float(stats.chi2.sf(lr, k))
+    return sum(narrow.p_value(lr, k - searched, path) for path in paths)
+
+
+def _searched(result: FitResult, combo: str, effect: str) -> int:
+    """How many of `effect`'s searched parameters `result` determined."""
+    base = _base(effect)
+    names = {param_name(combo, effect, n) for n in (*NARROW.get(base, ()),
+                                                    *SEARCHED.get(base, ()))}
+    return sum(math.isfinite(s) for n, s in zip(result.names, result.sigma, strict=True)
+               if n in names)
+
+
+def _search(tfs: TFSet | Sequence[TFSet], start: OpticConfig, free: list[str],
+            reference: FitResult, effect: str, whole: tuple[tuple[float, float], ...],
+            unit: float) -> tuple[dict[str, float], list[float]]:
+    """Where `effect`'s mode starts, searched on the first measurement in the residuals of
+    `reference` (:mod:`~twind.analysis.narrow`), and the searches' paths."""
     first = tfs if isinstance(tfs, TFSet) else tfs[0]
-    res = FitData.from_tfset(first, nominal.min_coherence).resolution_hz
-    whole = narrow.bands(start, res)
-    nominal = fit(tfs, start, free, nominal.min_coherence, whole=whole)
-    data = FitData.from_tfset(first, nominal.min_coherence, whole=whole).span()
-    found, path = narrow.search(data, start, nominal.as_dict(), free, _unit(nominal, tfs))
-    result = fit(tfs, start, free, nominal.min_coherence, effect="bounce_roll",
-                 effect_start=found, whole=whole)
-    return nominal, result, path
+    data = FitData.from_tfset(first, reference.min_coherence, whole=whole).span()
+    values = reference.as_dict()
+    if effect == "bounce_roll":
+        found, path = narrow.search(data, start, values, free, unit, reference.effect)
+        return found, [path]
+    found, paths, _ = narrow.search_resonance(data, start, values, free, unit,
+                                              reference.effect)
+    return found, paths
+
+
+def _renamed(result: FitResult, combo: str) -> dict[str, float]:
+    """`result`'s effect parameters under the names the combination `combo` gives them."""
+    if not result.effect:
+        return {}
+    values = result.as_dict()
+    return {param_name(combo, entry, n): v for entry in parts(result.effect)
+            for n, v in own_values(result.effect, entry, values).items()}
+
+
+def _given_others(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
+                  chosen: list[EffectFit], final: FitResult,
+                  whole: tuple[tuple[float, float], ...], unit: float
+                  ) -> dict[str, FitResult]:
+    """Each chosen effect's p-value against the final model without it (two or more), and
+    the fits without each."""
+    if len(chosen) < 2:
+        for c in chosen:
+            c.p_given_others = None
+        return {}
+    start = replace(cfg, sus=with_params(cfg.sus, {n: v for n, v in final.identified().items()
+                                                   if n in FIT_PARAMS}))
+    free = [p for p in params if p in final.names and p not in final.unidentifiable]
+    fits = {}
+    for c in chosen:
+        rest = "+".join(o.effect for o in chosen if o is not c)
+        c.p_given_others = None
+        try:
+            without = fit(tfs, start, free, final.min_coherence, effect=rest,
+                          effect_start=_renamed(final, rest), whole=whole)
+        except FitError:
+            continue
+        fits[c.effect] = without
+        k = final.rank - without.rank
+        lr = max(without.chi2 - final.chi2, 0.0) / unit
+        c.p_given_others = (min(1.0, _p_value(lr, k, c.searched,
+                                              _searched(final, final.effect, c.effect)))
+                            if k > 0 else 1.0)
+    return fits
 
 
 def _unit(nominal: FitResult, tfs: TFSet | Sequence[TFSet]) -> float:
@@ -315,9 +642,6 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
 
 def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -> None:
     """Per element: measured, nominal and augmented |IN1/EXC| (dB) and residuals / sigma."""
-    import numpy as np
-
-    from twind.analysis.fit import ClosedLoopModel, FitData
     from twind.viz.spectra import write_spectra_rrd
 
     data = FitData.from_tfset(tfs)
@@ -354,8 +678,7 @@ def push(diagnosis: Diagnosis, connect: Sequence[str], ifo: str = "C1") -> str:
     effect = None
     if diagnosis.effects:
         best = diagnosis.effects[0]
-        effect = {"id": best.effect, "values": {n: v for n, v in final.as_dict().items()
-                                                if n in CATALOGUE[best.effect].params}}
+        effect = {"id": best.effect, "values": best.values()[0]}
     client = TwinClient(list(connect), ifo=ifo)
     try:
         client.params(final.optic, effect=effect, **changes, **({"Q": q} if q else {}))

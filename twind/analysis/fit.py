@@ -47,7 +47,14 @@ from twind.analysis.tf import Kernel, TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.loop.plant import Plant
-from twind.model.effects import CATALOGUE, MODE_SEARCH, mode_bands, with_effect
+from twind.model.effects import (
+    MODE_SEARCH,
+    EffectError,
+    effect_params,
+    effect_scale,
+    mode_bands,
+    with_effect,
+)
 from twind.model.params import SOSParams
 
 FIT_PARAMS = ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct", "osem_lever_m",
@@ -323,6 +330,27 @@ class ClosedLoopModel:
         if self.kernel is None and self.resolution_hz > 0 and {"VERT", "ROLL"} & set(
                 plant.mechanics.dofs):
             T = self._with_narrow(plant, T)
+        if self.kernel is None and self.resolution_hz > 0:
+            for body in (d for d in plant.mechanics.dofs if d.startswith("BODY")):
+                T = self._with_body(plant, body, T)
+        return T
+
+    def _with_body(self, plant: Plant, body: str, T: NDArray[np.complex128]
+                   ) -> NDArray[np.complex128]:
+        """A ``resonance`` `body` narrower than two bins, averaged over the Hann power
+        kernel within :data:`NARROW_REACH_BINS` of it (its coordinate has unit mass)."""
+        mech = plant.mechanics
+        i = mech.index(body)
+        f0, width = math.sqrt(mech.K[i, i]) / (2 * math.pi), mech.C[i, i] / (2 * math.pi)
+        near = np.flatnonzero(np.abs(self.f - f0) < NARROW_REACH_BINS * self.resolution_hz)
+        if width >= 2 * self.resolution_hz or not near.size:
+            return T
+        d, w = hann_kernel(self.resolution_hz, width)
+        at = (self.f[near, None] + self.resolution_hz * d).ravel()
+        K = self.cfg.loop().controller(at)[:, :, None] * np.eye(len(DOFS))
+        fine = _closed_loop(plant.response(at), K).reshape(near.size, d.size, *T.shape[1:])
+        T = T.copy()
+        T[near] = np.einsum("k,fkij->fij", w, fine)
         return T
 
     def _averaged(self, T: NDArray[np.complex128]) -> NDArray[np.complex128]:
@@ -462,7 +490,7 @@ class FitResult:
         cannot determine: an imbalance's pitch-like part of four face gains has a sigma, no
         single gain has.
         """
-        scale = CATALOGUE[self.effect].scale if self.effect else {}
+        scale = effect_scale(self.effect) if self.effect else {}
         W = np.array([[c.get(n, 0.0) * scale.get(n, 1.0) for n in self.names] for c in combos])
         cov = W @ self.determined_covariance @ W.T
         if self.null.size:
@@ -549,10 +577,10 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     """
     names = check_names(params)
     if effect is not None:
-        if effect not in CATALOGUE:
-            msg = f"unknown effect {effect!r}; the catalogue has {', '.join(CATALOGUE)}"
-            raise FitError(msg)
-        names += list(CATALOGUE[effect].params)
+        try:
+            names += list(effect_params(effect))
+        except EffectError as e:
+            raise FitError(str(e)) from None
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
     datas = [FitData.from_tfset(t, min_coherence, band, whole).span() for t in sets]
     models = [ClosedLoopModel.of(cfg, d, effect).for_data(d) for d in datas]
@@ -705,7 +733,7 @@ class _Coords:
                  effect_start: Mapping[str, float]) -> None:
         self.names = names
         self.log = np.array([n in FIT_PARAMS for n in names])
-        scale = CATALOGUE[effect].scale if effect else {}
+        scale = effect_scale(effect) if effect else {}
         self.start = np.array([param_value(sus, n) if n in FIT_PARAMS
                                else effect_start.get(n, 0.0) for n in names])
         self.scale = np.array([1.0 if n in FIT_PARAMS else scale[n] for n in names])

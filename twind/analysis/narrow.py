@@ -1,4 +1,4 @@
-"""Where a narrow mode lies: the search that starts a ``bounce_roll`` fit.
+"""Where a mode lies: the searches that start a ``bounce_roll`` or a ``resonance`` fit.
 
 A mode narrower than a bin (Q 1000) moves only the bins next to it, and at zero coupling its
 frequency moves nothing, so a fit from zero never finds it. The search scans each mode's
@@ -11,6 +11,12 @@ in its frequency: there every trial's column is a combination of a few shapes, a
 search works in short coordinates (:class:`_Reduced`) that keep every inner product it
 takes. The best frequency of each mode, with its couplings, is where the nonlinear fit
 starts.
+
+A ``resonance`` (a mode in no list) may lie anywhere in the measured band, with any Q and
+any coupling over POS/PIT/YAW/SIDE (:func:`search_resonance`). The same first-order columns
+are built for each trial frequency over every bin, the symmetric coupling matrix's ten
+entries fitted linearly with the nominal directions projected out; the trial is judged, and
+the fit started, by the best coupling a body can make (rank one, positive) along them.
 
 The evidence is searched over many frequencies: its p-value carries that look-elsewhere
 cost (:func:`p_value`).
@@ -38,7 +44,7 @@ from twind.analysis.fit import (
 )
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
-from twind.model.effects import MODE_SEARCH, mode_bands, with_effect
+from twind.model.effects import BODY_DOFS, MODE_SEARCH, mode_bands, with_effect
 from twind.model.params import SOSParams
 
 _REACH_BINS = 3  # the Hann power kernel's reach (99.99 % of it)
@@ -63,8 +69,10 @@ def _cells(cfg: OpticConfig, param: str, resolution_hz: float) -> float:
 
 
 def search(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
-           free: Sequence[str] = (), unit: float = 1.0) -> tuple[dict[str, float], float]:
-    """Start values of ``bounce_roll`` for `data`, around the nominal model at `values`.
+           free: Sequence[str] = (), unit: float = 1.0, effect: str | None = None
+           ) -> tuple[dict[str, float], float]:
+    """Start values of ``bounce_roll`` for `data`, around the nominal model at `values`
+    (with `effect`, already found, at its values there).
 
     Parameters
     ----------
@@ -78,6 +86,8 @@ def search(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
     unit : float
         The drop in chi^2 one fitted parameter makes in pure noise (the residuals' scale,
         tails and bin correlation, as ``diagnose`` weighs its likelihood ratios).
+    effect : str, optional
+        Effects already in the model (a catalogue entry or a combination).
 
     Returns
     -------
@@ -87,11 +97,10 @@ def search(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
         How far the modes' signatures turn as their frequencies sweep the search ranges
         (radians summed over trials): Davies' look-elsewhere measure (:func:`p_value`).
     """
-    model = ClosedLoopModel.of(cfg, data).for_data(data)
+    model = ClosedLoopModel.of(cfg, data, effect).for_data(data)
     r = data.whiten(model(values))
     Q = _nominal_directions(data, model, values, free)
-    sus = with_params(cfg.sus, {k: v for k, v in values.items() if k in FIT_PARAMS})
-    plant = Plant.from_params(sus, replace(cfg, sus=sus).mechanics())
+    sus, plant = _plant(cfg, values, effect)
     nominal = cfg.sus.uncoupled_frequencies_hz()
     signatures = {}
     for param, (dof, lo, hi) in MODE_SEARCH.items():
@@ -128,13 +137,24 @@ def search(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
     return start, path
 
 
+def _plant(cfg: OpticConfig, values: Mapping[str, float], effect: str | None
+           ) -> tuple[SOSParams, Plant]:
+    """The suspension and the plant of the model at `values` (with `effect`)."""
+    sus = with_params(cfg.sus, {k: v for k, v in values.items() if k in FIT_PARAMS})
+    plant = Plant.from_params(sus, replace(cfg, sus=sus).mechanics())
+    if effect:
+        plant = with_effect(plant, sus, effect,
+                            {k: v for k, v in values.items() if k not in FIT_PARAMS})
+    return sus, plant
+
+
 def p_value(lr: float, dof: int, path: float) -> float:
     """Davies' (1987) bound on the chance that noise alone gives likelihood ratio `lr` at
     the best of a search: ``P(chi2_dof > lr) + path lr^((dof-1)/2) e^(-lr/2) /
     (2^(dof/2) Gamma(dof/2))``, with `path` the search's :func:`search` path. A mode seen
     only through its compliance below resonance hardly turns as its frequency sweeps, and
     is charged little for the search; one seen at its peak is charged for every width."""
-    dof = max(dof, 1)
+    dof, lr = max(dof, 1), max(lr, 0.0)
     upcross = path * math.exp((dof - 1) / 2 * math.log(max(lr, 1e-300)) - lr / 2
                               - dof / 2 * math.log(2) - math.lgamma(dof / 2))
     return float(min(1.0, stats.chi2.sf(lr, dof) + upcross))
@@ -318,9 +338,11 @@ def _loop_at(cfg: OpticConfig, plant: Plant, at: NDArray[np.float64]
 def _first_order(loop: tuple[NDArray, NDArray, NDArray, NDArray], c: NDArray[np.float64],
                  rows: list[int], cols: list[int]) -> NDArray[np.complex128]:
     """``B`` of ``dT = B h``: the closed loop's first-order response to a plant term ``c h``
-    (c the coupling pattern in the DOF basis, h the mode's response)."""
+    (c the coupling pattern in the DOF basis, (4, 4) or one per point, h the mode's
+    response)."""
     S, K, drive, s = loop
-    B = (S @ (c[None] * drive[:, None, None]) @ K @ S)[:, rows][:, :, cols]
+    c = c if c.ndim == 3 else c[None]  # a pattern that changes with frequency, or not
+    B = (S @ (c * drive[:, None, None]) @ K @ S)[:, rows][:, :, cols]
     return B.reshape(*s.shape, len(rows), len(cols))
 
 
@@ -351,3 +373,205 @@ def _rank_one(x: NDArray[np.float64]) -> tuple[float, float]:
     lam, vec = np.linalg.eigh(C)
     k = int(np.argmax(np.abs(lam)))
     return float(lam[k]), float(math.atan2(vec[1, k], vec[0, k]) % math.pi)
+
+
+# ------------------------------------------------------------------ a mode anywhere
+SEARCH_Q = (8.0, 40.0)
+"""The quality factors a ``resonance`` is searched with (the fit then frees its Q): a
+trial's shape correlates well with a mode's of Q within a factor of ~2.5 of it."""
+
+
+def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
+                     free: Sequence[str] = (), unit: float = 1.0, effect: str | None = None
+                     ) -> tuple[dict[str, float], list[float], float]:
+    """Start values of a ``resonance`` for `data`, anywhere in its band, around the nominal
+    model at `values` (`free`, `unit` and `effect` as in :func:`search`).
+
+    Returns
+    -------
+    start : dict
+        ``f_hz``, ``q`` and the couplings ``g_POS`` ... ``g_SIDE`` (the dominant rank-one
+        part of the best symmetric coupling).
+    paths : list of float
+        Each Q's look-elsewhere path (:func:`p_value`, one search per Q).
+    drop : float
+        The best trial's drop in chi^2, in units of `unit`.
+    """
+    model = ClosedLoopModel.of(cfg, data, effect).for_data(data)
+    r = data.whiten(model(values))
+    Q = _nominal_directions(data, model, values, free)
+    plant = _plant(cfg, values, effect)[1]
+    trials = _Trials(data, cfg, plant, r, Q)
+    idx = [plant.mechanics.index(d) for d in BODY_DOFS]
+    inertia = np.sqrt(np.diag(plant.mechanics.M)[idx])
+    best = (-np.inf, 0.0, 0.0, np.zeros(len(_PAIRS)))
+    paths = []
+    for q in SEARCH_Q:
+        path = 0.0
+        for f0, drop, x, angle in trials.sweep(q):
+            path += angle
+            # a body heavier than a tenth of the optic is no small attachment: the
+            # first-order columns no longer hold, and no such thing hangs on a face
+            if drop > best[0] and _relative_mass(x, inertia) < MAX_RELATIVE_MASS:
+                best = (drop, f0, q, x)
+        paths.append(path)
+    drop, f0, q, x = best
+    lam, g = _dominant(x)
+    start = {"f_hz": f0, "q": q, **{f"g_{d}": float(v) for d, v in zip(
+        BODY_DOFS, math.sqrt(abs(lam)) * g, strict=True)}}
+    return start, paths, float(drop / unit)
+
+
+_PAIRS = [(i, j) for i in range(len(BODY_DOFS)) for j in range(i, len(BODY_DOFS))]
+MAX_RELATIVE_MASS = 0.1
+"""The heaviest body a search starts from, as a fraction of the optic's inertia in the DOF
+it pulls hardest (its coupling's largest eigenvalue, mass-normalised)."""
+
+
+def _relative_mass(x: NDArray[np.float64], inertia: NDArray[np.float64]) -> float:
+    """Largest eigenvalue (absolute) of the coupling `x` normalised by the optic's inertia
+    (`inertia`: square roots of its mass and moments over BODY_DOFS)."""
+    C = np.zeros((len(BODY_DOFS),) * 2)
+    for (i, j), v in zip(_PAIRS, x, strict=True):
+        C[i, j] = C[j, i] = v
+    return float(np.abs(np.linalg.eigvalsh(C / np.outer(inertia, inertia))).max())
+
+
+def _dominant(x: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+    """The dominant eigenpair of the symmetric coupling whose upper entries are `x`
+    (:data:`_PAIRS` order): a body's ``g g^T`` has one, positive."""
+    C = np.zeros((len(BODY_DOFS),) * 2)
+    for (i, j), v in zip(_PAIRS, x, strict=True):
+        C[i, j] = C[j, i] = v
+    lam, vec = np.linalg.eigh(C)
+    k = int(np.argmax(np.abs(lam)))
+    return float(lam[k]), vec[:, k]
+
+
+def _body(s: NDArray[np.complex128], f0: float, q: float) -> NDArray[np.complex128]:
+    """What a unit-mass body at `f0`, `q` adds to the optic's dynamic stiffness per unit
+    ``g g^T``: ``a s^2 / (s^2 + a)``, ``a = w^2 + s w / q`` (its mass below resonance, its
+    spring above)."""
+    w = 2 * np.pi * f0
+    a = w**2 + s * w / q
+    return a * s**2 / (s**2 + a)
+
+
+class _Trials:
+    """The first-order columns of a ``resonance`` at every trial frequency.
+
+    The body's response is a scalar per bin, so its whitened column is a weighted sum of
+    the whitened loop responses around each coupling entry, computed once at every used
+    bin (two-point rule) and, for a trial narrower than two bins, on the Hann kernel's
+    points of the bins near it: a trial costs a product over the entries, and every bin
+    counts (below its resonance a body adds its mass, above it its spring)."""
+
+    def __init__(self, data: FitData, cfg: OpticConfig, plant: Plant,
+                 r: NDArray[np.float64], Q: NDArray[np.float64]) -> None:
+        self.data, self.cfg, self.plant, self.r, self.Q = data, cfg, plant, r, Q
+        self.bins = np.flatnonzero(data.mask.any(axis=(1, 2)))
+        self.f = data.frequency_hz[self.bins]
+        self.res = data.resolution_hz
+        self.rows = [DOFS.index(x) for x in data.responses]
+        self.cols = [DOFS.index(x) for x in data.excited]
+        # each used entry's bin, and where each bin's entries start (bin-major order)
+        counts = data.mask[self.bins].sum(axis=(1, 2))
+        self.entry_bin = np.repeat(np.arange(self.bins.size), counts)
+        self.start = np.concatenate([[0], np.cumsum(counts)])
+        self.Qr = Q.T @ r
+        self.d2, self.w2 = _two_point(self.res)
+        B2, self.s2 = self._first_order(self.f[:, None] + self.res * self.d2)
+        self.Z = self._whitened(B2, self.bins)  # (points, patterns, entries)
+        self._fine: dict[int, NDArray] = {}
+        # the finest kernel (1/16 bin) serves every trial narrower than two bins
+        self.d_fine, self.w_fine = hann_kernel(self.res, 0.0) if self.res > 0 else (None, None)
+
+    def _whitened(self, B: NDArray, at: NDArray[np.int64]) -> NDArray[np.complex128]:
+        """Whitened change per unit body response of `B` (bins, points, patterns, nr, ne)
+        at data bins `at`: (points, patterns, entries)."""
+        return self.data.whitened_change(np.moveaxis(B, (1, 2), (0, 1)), at)
+
+    def _first_order(self, at: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+        """``B`` at points `at` (bins, points): (bins, points, patterns, responses, excited)."""
+        loop = _loop_at(self.cfg, self.plant, at)
+        s = loop[3].ravel()
+        H = self.plant.mechanics.admittance(s)
+        idx = [self.plant.mechanics.index(d) for d in BODY_DOFS]
+        left = (self.plant.input_matrix @ self.plant.sensing @ H)[:, :, idx]
+        right = (H @ self.plant.actuation @ self.plant.output_matrix)[:, idx, :]
+        B = []
+        for i, j in _PAIRS:
+            c = np.einsum("pa,pb->pab", left[:, :, i], right[:, j, :])
+            if i != j:
+                c = c + np.einsum("pa,pb->pab", left[:, :, j], right[:, i, :])
+            B.append(_first_order(loop, -c, self.rows, self.cols))
+        return np.stack(B, axis=2), loop[3]
+
+    def _fine_at(self, b: int) -> NDArray[np.complex128]:
+        """The whitened loop responses on the finest Hann kernel's points of used bin `b`:
+        (points, patterns, its entries)."""
+        if b not in self._fine:
+            B = self._first_order(self.f[b] + self.res * self.d_fine[None])[0]
+            self._fine[b] = self._whitened(B, self.bins[b : b + 1])
+        return self._fine[b]
+
+    def columns(self, f0: float, q: float) -> NDArray[np.float64]:
+        """A trial's whitened columns, real then imaginary parts: (patterns, 2 x entries)."""
+        h = _body(self.s2, f0, q) * self.w2  # (bins, points)
+        z = np.einsum("kpe,ek->pe", self.Z, h[self.entry_bin])
+        if self.res > 0 and f0 / q < 2 * self.res:  # narrower than two bins: the kernel
+            lo, hi = np.searchsorted(self.f, [f0 - NARROW_REACH_BINS * self.res,
+                                              f0 + NARROW_REACH_BINS * self.res])
+            for b in range(int(lo), int(hi)):
+                sf = 2j * np.pi * (self.f[b] + self.res * self.d_fine)
+                z[:, self.start[b] : self.start[b + 1]] = np.einsum(
+                    "k,kpe->pe", self.w_fine * _body(sf, f0, q), self._fine_at(b))
+        return np.concatenate([z.real, z.imag], axis=-1)
+
+    def sweep(self, q: float):  # noqa: ANN201 - a generator of tuples
+        """Every trial frequency at quality factor `q`, in steps of a quarter of a bin or
+        of the mode's width: ``(f0, drop, couplings, angle turned since the last)``."""
+        f0, top = max(self.f[0], 1e-3), self.f[-1]
+        last = None
+        while f0 <= top:
+            C = self.columns(f0, q)
+            CQ = C @ self.Q
+            A = C @ C.T - CQ @ CQ.T
+            b = C @ self.r - CQ @ self.Qr
+            norm = np.sqrt(np.maximum(np.diag(A), 0.0))
+            # an entry these data do not see (SIDE, not excited) stays zero
+            norm = np.where(norm > 1e-9 * norm.max(initial=0.0), norm, np.inf)
+            x = np.linalg.lstsq(A / np.outer(norm, norm), b / norm, rcond=1e-10)[0] / norm
+            x, drop = _body_part(x, A, b)
+            angle = 0.0 if last is None else _turn(last, (C[0], CQ[0]))
+            last = (C[0], CQ[0])
+            yield f0, drop, x, angle
+            f0 += 0.25 * max(self.res, f0 / q)
+
+
+def _body_part(x: NDArray[np.float64], A: NDArray[np.float64], b: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], float]:
+    """The best coupling a body can make (``g g^T``: rank one, positive) along the
+    dominant positive part of the linear solution `x`, and the drop in chi^2 it makes
+    (normal equations `A`, `b`): the ten free entries would fit noise a body cannot."""
+    C = np.zeros((len(BODY_DOFS),) * 2)
+    for (i, j), v in zip(_PAIRS, x, strict=True):
+        C[i, j] = C[j, i] = v
+    lam, vec = np.linalg.eigh(C)
+    if lam[-1] <= 0:
+        return np.zeros_like(x), 0.0
+    y = np.array([lam[-1] * vec[i, -1] * vec[j, -1] for i, j in _PAIRS])
+    y = np.where(np.isfinite(y), y, 0.0)
+    by, yAy = float(y @ b), float(y @ A @ y)
+    if by <= 0 or yAy <= 0:
+        return np.zeros_like(x), 0.0
+    return y * by / yAy, by**2 / yAy
+
+
+def _turn(a: tuple, b: tuple) -> float:
+    """Angle (rad) between two trials' first columns with the nominal directions projected
+    out, each given as (column, its nominal components)."""
+    (ca, qa), (cb, qb) = a, b
+    dot = ca @ cb - qa @ qb
+    na, nb = ca @ ca - qa @ qa, cb @ cb - qb @ qb
+    return float(np.arccos(np.clip(abs(dot) / math.sqrt(max(na * nb, 1e-300)), 0, 1)))

@@ -36,6 +36,11 @@ class Plant:
         Pure delay in the drive path.
     drive_pole_hz : float
         A real pole in every coil-driver chain (``inf``: none; MODEL.md's ``actuator_pole``).
+    channel_filters : tuple of (str, int, float, float)
+        Stages on single channels: ``("coil" or "osem", channel index, pole Hz, zero Hz)``
+        multiply that coil's drive (that OSEM's reading) by ``(1 + s/2 pi zero) /
+        (1 + s/2 pi pole)`` (``inf``: no zero): a de-whitening or whitening stage that
+        differs on one channel.
     """
 
     mechanics: Mechanics
@@ -45,6 +50,7 @@ class Plant:
     output_matrix: NDArray[np.float64]
     delay_s: float
     drive_pole_hz: float = math.inf
+    channel_filters: tuple[tuple[str, int, float, float], ...] = ()
 
     @classmethod
     def from_params(cls, p: SOSParams, mech: Mechanics) -> Plant:
@@ -56,22 +62,62 @@ class Plant:
         """``IN1/OUT`` at frequencies `f_hz`, shape (len(f), 4, 4)."""
         s = 2j * np.pi * np.asarray(f_hz, dtype=float)
         H = self.mechanics.admittance(s)
-        P = self.input_matrix @ self.sensing @ H @ self.actuation @ self.output_matrix
+        sens, act = self._filtered(s)
+        P = self.input_matrix @ sens @ H @ act @ self.output_matrix
         drive = np.exp(-s * self.delay_s) / (1 + s / (2 * np.pi * self.drive_pole_hz))
         return P * drive[:, None, None]
 
+    def _filtered(self, s: NDArray[np.complex128]) -> tuple[NDArray, NDArray]:
+        """Sensing and actuation at `s` with the :attr:`channel_filters` in, shapes
+        (len(s), 5, n) and (len(s), n, 5) (the matrices themselves without filters)."""
+        if not self.channel_filters:
+            return self.sensing, self.actuation
+        sens = np.broadcast_to(self.sensing, (s.size, *self.sensing.shape)).astype(complex)
+        act = np.broadcast_to(self.actuation, (s.size, *self.actuation.shape)).astype(complex)
+        for kind, k, pole, zero in self.channel_filters:
+            F = (1 + s / (2 * np.pi * zero)) / (1 + s / (2 * np.pi * pole))
+            if kind == "coil":
+                act[:, :, k] *= F[:, None]
+            else:
+                sens[:, k, :] *= F[:, None]
+        return sens, act
+
     def osem_state_space(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Continuous ``(A, B_coil, B_sp, C)``: coil counts (5) and suspension point (3) in,
-        OSEM readings (m, 5) out, state ``[q, q']`` (then the coil drivers', with a drive
-        pole). The loop delay is not included."""
-        A, B = self.mechanics.state_space()
-        n = self.mechanics.n
-        C = np.hstack([self.sensing, np.zeros((5, n))])
-        B_coil, B_sp = B @ self.actuation, B @ self.mechanics.suspension_point_forces()
+        OSEM readings (m, 5) out, state ``[q, q']`` (then one per channel filter, then the
+        coil drivers', with a drive pole). The loop delay is not included."""
+        A, B_coil, B_sp, C = self._with_channel_filters()
         if math.isinf(self.drive_pole_hz):
             return A, B_coil, B_sp, C
         # five coil-driver states, each a first-order low-pass ahead of its coil
         w = 2 * np.pi * self.drive_pole_hz
-        A = np.block([[A, B_coil], [np.zeros((5, 2 * n)), -w * np.eye(5)]])
-        return (A, np.vstack([np.zeros((2 * n, 5)), w * np.eye(5)]),
+        m = A.shape[0]
+        A = np.block([[A, B_coil], [np.zeros((5, m)), -w * np.eye(5)]])
+        return (A, np.vstack([np.zeros((m, 5)), w * np.eye(5)]),
                 np.vstack([B_sp, np.zeros((5, B_sp.shape[1]))]), np.hstack([C, np.zeros((5, 5))]))
+
+    def _with_channel_filters(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """The mechanics' state space with one state per channel filter: ``F = (p/z) (1 +
+        (z - p) / (s + p))`` (p, z in rad/s), its state ``w' = -p w + u`` driven by the
+        coil's count (the OSEM's reading)."""
+        A, B = self.mechanics.state_space()
+        n = self.mechanics.n
+        C = np.hstack([self.sensing, np.zeros((5, n))])
+        B_coil, B_sp = B @ self.actuation, B @ self.mechanics.suspension_point_forces()
+        for kind, k, pole, zero in self.channel_filters:
+            p, z = 2 * np.pi * pole, 2 * np.pi * zero
+            direct, through = p / z, p * (1 - p / z)  # p/z (z - p), finite as z -> inf
+            m = A.shape[0]
+            A = np.pad(A, ((0, 1), (0, 1)))
+            A[m, m] = -p
+            B_coil, B_sp, C = np.pad(B_coil, ((0, 1), (0, 0))), np.pad(B_sp, ((0, 1), (0, 0))), \
+                np.pad(C, ((0, 0), (0, 1)))
+            if kind == "coil":
+                A[:m, m] = through * B_coil[:m, k]
+                B_coil[m, k] = 1.0
+                B_coil[:m, k] *= direct
+            else:
+                A[m, :m] = C[k, :m]
+                C[k, m] = through
+                C[k, :m] *= direct
+        return A, B_coil, B_sp, C

@@ -14,6 +14,20 @@ a likelihood-ratio test needs).  Parameters carry MODEL.md's names, flattened fo
 | wire_asymmetry   | centre of mass off the wire plane by d: K_xphi = K_phix = -m g d / l | delta_m (m)     |
 | bounce_roll      | VERT and ROLL modes read by the face OSEMs, driven by the face coils | vertical, roll, f_vertical_hz, f_roll_hz, roll_angle |
 
+| resonance        | a body on a spring at a point of the optic (a cable, a standoff): a mode at f, Q, coupled along g | f_hz, q, g_POS .. g_SIDE |
+| channel_filter   | one coil driver or OSEM readback x (1 + s/2 pi z) / (1 + s/2 pi p) | inv_pole_hz, inv_zero_hz |
+
+``resonance`` is the family for a mode in no list: a body of mass m2 held by a spring (rate
+m2 w^2, quality factor q) to a point of the optic, pulling along a direction ``d`` over
+POS/PIT/YAW/SIDE (a face point (y0, z0) pulled along the beam has ``d = (1, z0, y0, 0)``).
+Its coordinate, scaled to unit mass, adds ``w^2 g g^T`` (and ``w / q`` times it) to the
+optic's stiffness (damping) with ``g = sqrt(m2) d``; at ``g = 0`` it moves nothing, so
+the model nests the nominal one. Its frequency is searched over the whole measured band
+(``twind.analysis.narrow``).
+
+Effects combine: ``"coil_imbalance+loop_delay"`` applies both, its parameters prefixed
+with their effect (``coil_imbalance.gain_UL``, :func:`effect_params`).
+
 ``bounce_roll`` is what OSEM axes tilted against the optic (a static pitch or yaw of the
 optic, a head mounted askew) do: a head tilted by (a towards SIDE, b towards VERT) at face
 point (y, z) reads ``b VERT + (b y - a z) ROLL`` besides POS/PIT/YAW, and its coil, coaxial,
@@ -38,7 +52,7 @@ import numpy as np
 from twind.errors import TwindError
 from twind.loop.plant import Plant
 from twind.model.mechanics import Mechanics
-from twind.model.osem import FACE_POSITION
+from twind.model.osem import FACE_POSITION, OSEMS
 from twind.model.params import SOSParams
 
 FACES = tuple(FACE_POSITION)  # UL, UR, LL, LR: the first four OSEM columns/rows
@@ -150,6 +164,34 @@ def _bounce_roll(plant: Plant, sus: SOSParams, v: Mapping[str, float]) -> Plant:
     return replace(plant, mechanics=mech, sensing=sensing, actuation=actuation)
 
 
+BODY_DOFS = ("POS", "PIT", "YAW", "SIDE")
+"""The optic's coordinates a ``resonance`` body pulls on."""
+MIN_Q = 1.0
+"""A ``resonance``'s quality factor is at least this: below it there is no mode to name."""
+
+
+def _resonance(plant: Plant, sus: SOSParams, v: Mapping[str, float]) -> Plant:
+    mech = plant.mechanics
+    g = np.zeros(mech.n)
+    for d in BODY_DOFS:
+        g[mech.index(d)] = v.get(f"g_{d}", 0.0)
+    f, q = v.get("f_hz", 0.0), max(abs(v.get("q", 0.0)), MIN_Q)
+    if not g.any() or f <= 0:
+        return plant
+    w = 2 * math.pi * f
+    # the body's coordinate scaled to unit mass: spring w^2 between it and g . q_optic
+    link = np.append(g, -1.0)
+    M = np.pad(mech.M, (0, 1))
+    M[-1, -1] = 1.0
+    K = np.pad(mech.K, (0, 1)) + w**2 * np.outer(link, link)
+    C = np.pad(mech.C, (0, 1)) + w / q * np.outer(link, link)
+    name = "BODY" + (f"#{sum(d.startswith('BODY') for d in mech.dofs) + 1}"
+                     if "BODY" in mech.dofs else "")
+    return replace(plant, mechanics=Mechanics((*mech.dofs, name), M, C, K),
+                   sensing=np.pad(plant.sensing, ((0, 0), (0, 1))),
+                   actuation=np.pad(plant.actuation, ((0, 1), (0, 0))))
+
+
 def _with_modes(mech: Mechanics, sus: SOSParams, f_hz: Mapping[str, float]) -> Mechanics:
     """`mech` with uncoupled VERT (mass m) and ROLL (I_roll) coordinates at `f_hz`, Q from
     `sus`; coordinates it already has are retuned."""
@@ -186,14 +228,104 @@ CATALOGUE: dict[str, Effect] = {e.id: e for e in (
            # compliance below resonance) where it started
            _bounce_roll, {"vertical": 1.0, "roll": 1.0, "f_vertical_hz": 1.0,
                           "f_roll_hz": 1.0, "roll_angle": 1.0}),
+    Effect("resonance", ("f_hz", "q", *(f"g_{d}" for d in BODY_DOFS)),
+           "a body on a spring at a point of the optic: a mode at f_hz, q, pulling along g",
+           _resonance, {"f_hz": 1.0, "q": 10.0, "g_POS": 0.01, "g_PIT": 1e-4, "g_YAW": 1e-4,
+                        "g_SIDE": 0.01}),
 )}
-NARROW = {"bounce_roll": ("f_vertical_hz", "f_roll_hz")}
-"""Effects whose modes are narrower than a spectral bin, and their frequency parameters."""
+def _channel_filter(kind: str, k: int) -> Callable[[Plant, SOSParams, Mapping[str, float]],
+                                                    Plant]:
+    def apply(plant: Plant, sus: SOSParams, v: Mapping[str, float]) -> Plant:
+        # parametrised by 1/f, so that zero is "no pole, no zero": the model nests the
+        # nominal one (a fit may take either through zero: its size is what counts)
+        inv_p, inv_z = abs(v.get("inv_pole_hz", 0.0)), abs(v.get("inv_zero_hz", 0.0))
+        if inv_p == inv_z:
+            return plant
+        stage = (kind, k, 1 / inv_p if inv_p else math.inf, 1 / inv_z if inv_z else math.inf)
+        return replace(plant, channel_filters=(*plant.channel_filters, stage))
+    return apply
+
+
+CHANNEL_FILTERS: dict[str, Effect] = {e.id: e for e in (
+    Effect(f"{kind}_filter_{name}", ("inv_pole_hz", "inv_zero_hz"),
+           f"the {name} {kind} {'driver' if kind == 'coil' else 'readback'} has its own "
+           "pole/zero pair: (1 + s/2 pi zero) / (1 + s/2 pi pole)",
+           _channel_filter(kind, k), {"inv_pole_hz": 1e-2, "inv_zero_hz": 1e-2})
+    for kind in ("coil", "osem") for k, name in enumerate(OSEMS))}
+"""One coil driver or one OSEM readback with a stage the others lack: the
+``channel_filter`` family, one entry per channel (``coil_filter_UL`` ...
+``osem_filter_SIDE``), whose channel a diagnosis searches."""
+FAMILIES = {"channel_filter": tuple(CHANNEL_FILTERS)}
+"""Hypotheses made of several entries, the data choosing among them (paid for as a search)."""
+
+NARROW = {"bounce_roll": ("f_vertical_hz", "f_roll_hz"), "resonance": ("f_hz",)}
+"""Effects whose modes can be narrower than a spectral bin, and their frequency parameters:
+a fit starts them where a search put them."""
+SEARCHED = {"resonance": ("f_hz", "q")}
+"""Effects whose mode is searched for over the whole band, and the parameters the search
+sets beside the couplings: they are paid for in the p-value, not counted as parameters."""
+
+
+REPEATABLE = ("resonance",)
+"""Entries a combination may hold more than once, as ``resonance#2``, ``resonance#3``."""
+
+
+def entry(name: str) -> Effect:
+    """The catalogue entry `name` stands for (``resonance#2``: a second ``resonance``)."""
+    base, _, k = name.partition("#")
+    if name in CHANNEL_FILTERS:
+        return CHANNEL_FILTERS[name]
+    if base not in CATALOGUE or (k and (base not in REPEATABLE or not k.isdigit())):
+        msg = (f"unknown effect {name!r}; the catalogue has {', '.join(CATALOGUE)} and "
+               f"{', '.join(CHANNEL_FILTERS)}")
+        raise EffectError(msg)
+    return CATALOGUE[base]
+
+
+def parts(effect: str) -> list[str]:
+    """The catalogue entries of `effect` (``"a+b"``: both), checked."""
+    names = effect.split("+")
+    for name in names:
+        entry(name)
+    if len(set(names)) < len(names):
+        msg = f"{effect!r} names an effect twice"
+        raise EffectError(msg)
+    return names
+
+
+def effect_params(effect: str) -> tuple[str, ...]:
+    """Parameter names of `effect`: the catalogue's, or ``entry.param`` for a combination."""
+    names = parts(effect)
+    if len(names) == 1:
+        return entry(effect).params
+    return tuple(f"{e}.{p}" for e in names for p in entry(e).params)
+
+
+def effect_scale(effect: str) -> dict[str, float]:
+    """Typical size of each of :func:`effect_params`."""
+    names = parts(effect)
+    if len(names) == 1:
+        return entry(effect).scale
+    return {f"{e}.{p}": x for e in names for p, x in entry(e).scale.items()}
+
+
+def param_name(effect: str, entry: str, param: str) -> str:
+    """The name `effect` (catalogue `entry` itself or a combination holding it) gives the
+    entry's parameter `param`."""
+    return param if effect == entry else f"{entry}.{param}"
+
+
+def own_values(effect: str, name: str, values: Mapping[str, float]) -> dict[str, float]:
+    """The values of catalogue entry `name`'s parameters, by its own names, among those of
+    `effect` (a combination holding it, or the entry itself)."""
+    return {p: values[param_name(effect, name, p)] for p in entry(name).params
+            if param_name(effect, name, p) in values}
 
 
 def with_effect(plant: Plant, sus: SOSParams, effect: str, values: Mapping[str, float]
                 ) -> Plant:
-    """`plant` with catalogue `effect` at parameter `values` (missing ones are zero).
+    """`plant` with catalogue `effect` (or a combination ``"a+b"``) at parameter `values`
+    (missing ones are zero).
 
     Parameters
     ----------
@@ -210,15 +342,14 @@ def with_effect(plant: Plant, sus: SOSParams, effect: str, values: Mapping[str, 
     -------
     Plant
     """
-    if effect not in CATALOGUE:
-        msg = f"unknown effect {effect!r}; the catalogue has {', '.join(CATALOGUE)}"
-        raise EffectError(msg)
-    entry = CATALOGUE[effect]
-    unknown = sorted(set(values) - set(entry.params))
+    names = effect_params(effect)
+    unknown = sorted(set(values) - set(names))
     if unknown:
-        msg = f"{effect} takes {', '.join(entry.params)}, not {', '.join(unknown)}"
+        msg = f"{effect} takes {', '.join(names)}, not {', '.join(unknown)}"
         raise EffectError(msg)
-    return entry.apply(plant, sus, values)
+    for name in parts(effect):
+        plant = entry(name).apply(plant, sus, own_values(effect, name, values))
+    return plant
 
 
 def model_names(effect: str, values: Mapping[str, float], sigma: Mapping[str, float | None]
@@ -229,6 +360,13 @@ def model_names(effect: str, values: Mapping[str, float], sigma: Mapping[str, fl
     if effect in ("coil_imbalance", "osem_imbalance"):
         return ({"gains": {f: values[f"gain_{f}"] for f in FACES}},
                 {"gains": {f: sigma[f"gain_{f}"] for f in FACES}})
+    if effect in CHANNEL_FILTERS:
+        out, err = {}, {}
+        for key, name in (("pole_hz", "inv_pole_hz"), ("zero_hz", "inv_zero_hz")):
+            inv, s = abs(values[name]), sigma[name]
+            out[key] = 1 / inv if inv > 0 else math.inf
+            err[key] = None if s is None or inv <= 0 else s / inv**2
+        return out, err
     if effect == "actuator_pole":
         inv, s = values["inv_f_hz"], sigma["inv_f_hz"]
         f = 1 / inv if inv > 0 else math.inf
