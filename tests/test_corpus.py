@@ -18,6 +18,7 @@ from twind.analysis.corpus import (
     conceal,
     hidden,
     key_error,
+    make_cases,
     measure,
     raised_clamp,
     score,
@@ -218,6 +219,36 @@ def test_the_summary_leaves_out_what_the_corpus_did_not_hold(etmx) -> None:  # n
     lines = summary([null])
     assert ("seconds per case: diagnosis median 1, max 1 (target < 60); with the measurement "
             "median 2, max 2") in lines
-    assert not any(line.startswith("effects named") for line in lines)
+    assert not any(line.startswith("catalogue effects named") for line in lines)
+    assert not any(line.startswith(("modes in no list", "two effects")) for line in lines)
     assert "nulls with an effect claimed: 0/1 (target 0)" in lines
     assert "chi2/nu: nulls' mean 1.30, max 1.30" in lines
+
+
+def test_the_corpus_hides_what_the_catalogue_cannot_say(etmx, reference: FitData  # noqa: ANN001
+                                                         ) -> None:
+    """A body on the face, one channel's own stage and a pair, each concealed to the same
+    largest bin (a pair: each alone), built by hand in the plant the engine runs; the
+    summary reports each kind apart."""
+    cases = make_cases(etmx, reference, per_effect=1, nulls=0,
+                       effects=("resonance", "channel_filter", "coil_imbalance+loop_delay"))
+    body, stage, pair = cases
+    base = Plant.from_params(etmx.sus, etmx.mechanics())
+    for case in cases:
+        assert case.largest_sigma == pytest.approx(CONCEAL_SIGMA, rel=0.2)
+    assert body.plant.mechanics.dofs[-1] == "ATTACHED" and 0.3 <= body.truth["f_hz"] <= 20
+    assert "POS" in body.truth["coupled"] and 5 <= body.truth["q"] <= 100
+    (kind, k, pole, zero), = stage.plant.channel_filters
+    assert stage.truth["channel"].startswith(kind) and k < 4 and zero != pole
+    assert set(pair.truth) == {"coil_imbalance", "loop_delay"}
+    assert not np.array_equal(pair.plant.actuation, base.actuation)
+    assert pair.plant.delay_s == pytest.approx(base.delay_s + pair.truth["loop_delay"]["extra_s"])
+    scores = [Score(c, named, [], 0.1, math.nan, 1.3, 1.2, 2.0, located=located)
+              for c, named, located in ((body, False, True), (stage, True, True),
+                                        (pair, True, True))]
+    assert [s.kind for s in scores] == ["resonance", "channel_filter", "pair"]
+    lines = summary(scores)
+    assert any(line.startswith("modes in no list (resonance): 0/1 = 0 %") for line in lines)
+    assert "  located (a band holding f +- 15 %, or modelled): 1/1; passed off as catalogue " \
+           "effects with nothing unexplained: 0/1 (target 0)" in lines
+    assert any(line.startswith("two effects at once, both named: 1/1") for line in lines)

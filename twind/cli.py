@@ -407,14 +407,14 @@ def _bench_information(args: argparse.Namespace) -> int:
 
 def _bench_diagnose(args: argparse.Namespace) -> int:
     """twind diagnose on the proof corpus: drifted optics with concealed effects."""
-    from twind.analysis.corpus import EFFECTS, EXCITED, MADE, run_corpus
+    from twind.analysis.corpus import BEYOND, EFFECTS, EXCITED, MADE, run_corpus
 
-    effects = args.effects.split(",") if args.effects else list(EFFECTS)
+    effects = args.effects.split(",") if args.effects else [*EFFECTS, *BEYOND]
     excited = args.excite.split(",") if args.excite else list(EXCITED)
     if set(excited) - set(DOFS):
         msg = f"--excite takes DOFs among {', '.join(DOFS)}, not {args.excite}"
         raise TwindError(msg)
-    unknown = [e for e in effects if e not in MADE]
+    unknown = [e for e in effects if set(e.split("+")) - set(MADE)]
     if unknown:
         msg = f"the corpus cannot hide {', '.join(unknown)}; it makes {', '.join(MADE)}"
         raise TwindError(msg)
@@ -422,7 +422,8 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
     for route in ("xml", "mcap") if args.route == "both" else (args.route,):
         print(f"--- route: {route}", flush=True)
         run_corpus(cfg, route, args.per_effect, args.nulls, effects=effects,
-                   say=lambda line: print(line, flush=True), excited=excited, bw=args.bw)
+                   say=lambda line: print(line, flush=True), excited=excited, bw=args.bw,
+                   averages=args.averages, rms=args.rms)
     return 0
 
 
@@ -611,9 +612,15 @@ def build_parser() -> argparse.ArgumentParser:
                        help="diagnose: the optic of --config whose drifts make the corpus")
     bench.add_argument("--per-effect", type=int, default=3, help="diagnose: cases per effect")
     bench.add_argument("--nulls", type=int, default=3, help="diagnose: drift-only cases")
-    bench.add_argument("--effects", help="diagnose: comma-separated effects to hide (default "
-                                         "the corpus's: imbalances, delay, driver pole, "
-                                         "wire asymmetry)")
+    bench.add_argument("--effects", help="diagnose: comma-separated kinds to hide: catalogue "
+                                         "effects, resonance (a body on the face), "
+                                         "channel_filter (one channel's stage), pairs a+b "
+                                         "(default the catalogue's six, those three kinds and "
+                                         "three pairs)")
+    bench.add_argument("--averages", type=int, default=10,
+                       help="diagnose: averages of the corpus measurement")
+    bench.add_argument("--rms", type=float, default=3.0,
+                       help="diagnose: RMS of its excitation (counts; default 3)")
     bench.add_argument("--excite", help="diagnose: comma-separated DOFs excited in turn "
                                         "(default POS,PIT,YAW; add SIDE for side_coupling)")
     bench.add_argument("--bw", type=float, help="pull: Welch resolution (Hz, default 0.02; "

@@ -60,6 +60,11 @@ EFFECTS = ("coil_imbalance", "osem_imbalance", "loop_delay", "actuator_pole", "w
 """The catalogue effects the corpus hides by default. ``side_coupling`` on request, with SIDE
 among the excited DOFs: a POS/PIT/YAW measurement barely moves SIDE, so no physical
 coupling reaches 3 sigma in it."""
+BEYOND = ("resonance", "channel_filter", "coil_imbalance+loop_delay",
+          "osem_imbalance+actuator_pole", "wire_asymmetry+coil_imbalance")
+"""What the catalogue alone cannot say, hidden by default beside it: a body on the face
+(:func:`attached_body`), one channel's own stage (:func:`one_stage`) and pairs of
+catalogue effects, each concealed alone and then put in together."""
 KEY_TOLERANCE = 0.35
 AVERAGES, RMS = 10, 3.0
 EXCITED = ("POS", "PIT", "YAW")
@@ -122,9 +127,13 @@ def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64
     ``wire_asymmetry`` is one wire loop's clamp raised by `size` (m) in the geometric
     rigid-body model of `sus` (the suspension's parameters), not MODEL.md's formula.
     ``resonance`` is a body of mass `size` (kg) attached as `shape` says (``f_hz``, ``q``,
-    ``point_m``, ``axis``: :func:`attached_body`)."""
+    ``point_m``, ``axis``: :func:`attached_body`); ``channel_filter`` one channel's stage
+    with its zero `size` (a fraction) above its pole (``kind``, ``channel``, ``pole_hz``:
+    :func:`one_stage`)."""
     if effect == "resonance":
         return attached_body(plant, sus, size, **(shape or {}))
+    if effect == "channel_filter":
+        return one_stage(plant, size, **(shape or {}))
     if effect == "coil_imbalance":
         gains = size * direction  # MODEL.md's g_i: F_i (1 + g_i)
         act = plant.actuation.copy()
@@ -273,9 +282,23 @@ def attached_body(plant: Plant, sus: SOSParams, mass_kg: float, f_hz: float, q: 
                   "coupled": coupled}
 
 
+def one_stage(plant: Plant, separation: float, kind: str, channel: int, pole_hz: float
+              ) -> tuple[Plant, dict]:
+    """`plant` with one coil driver's (``kind`` "coil") or OSEM readback's ("osem") own
+    stage: a pole at `pole_hz` and a zero `separation` (a fraction, may be negative) above
+    it, put into the plant's channel filters, which the engine integrates as states."""
+    from twind.model.osem import OSEMS
+
+    zero = pole_hz * (1 + separation)
+    stage = (kind, channel, pole_hz, zero)
+    return (replace(plant, channel_filters=(*plant.channel_filters, stage)),
+            {"channel": f"{kind}_filter_{OSEMS[channel]}", "pole_hz": pole_hz,
+             "zero_hz": zero})
+
+
 _FIRST_SIZE = {"coil_imbalance": 1e-3, "osem_imbalance": 1e-3, "loop_delay": 1e-4,
                "actuator_pole": 1 / 300, "side_coupling": 1e-2, "wire_asymmetry": 1e-3,
-               "bounce_roll": 1e-3, "resonance": 1e-4}
+               "bounce_roll": 1e-3, "resonance": 1e-4, "channel_filter": 0.1}
 MADE = tuple(_FIRST_SIZE)
 """Every effect the corpus can hide."""
 
@@ -314,6 +337,7 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
         size = max(round(size * rate), 1) / rate
     z = change(size)
     plant, truth = hidden(base, effect, size, direction, real.sus, shape)
+    truth["_size"] = size  # how to hide it again beside another effect (pairs)
     return plant, truth, float(z.max()), float(np.sum(z**2))
 
 
@@ -324,13 +348,14 @@ def _indices(data: FitData) -> tuple[list[int], list[int]]:
 
 
 def reference_data(cfg: OpticConfig, seed: int, excited: Sequence[str] = EXCITED,
-                   route: str = "xml", bw: float | None = None) -> FitData:
+                   route: str = "xml", bw: float | None = None, averages: int = AVERAGES,
+                   rms: float = RMS) -> FitData:
     """A corpus measurement of the nominal optic on `route`, its bins as ``diagnose``
     chooses them: the errors the effects are concealed against."""
     from twind.analysis.diagnose import MIN_COHERENCE
     from twind.simulation.measurement import measure_tfs
 
-    tfs = measure_tfs(cfg, excited, bw=bw or ROUTE_BW[route], averages=AVERAGES, rms=RMS,
+    tfs = measure_tfs(cfg, excited, bw=bw or ROUTE_BW[route], averages=averages, rms=rms,
                       seed=seed)
     band = (0.0, STOP_HZ) if route == "xml" else None
     return FitData.from_tfset(tfs, MIN_COHERENCE, band).span()
@@ -338,7 +363,9 @@ def reference_data(cfg: OpticConfig, seed: int, excited: Sequence[str] = EXCITED
 
 def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls: int = 3,
                seed: int = 11, effects: Sequence[str] = EFFECTS) -> list[Case]:
-    """The corpus: `nulls` drifted optics and `per_effect` of each effect, concealed."""
+    """The corpus: `nulls` drifted optics and `per_effect` of each kind of `effects`
+    (a catalogue effect, ``resonance``, ``channel_filter`` or a pair ``"a+b"``), each
+    effect concealed."""
     rng = np.random.default_rng(seed)
     cases = []
     for k in range(nulls):
@@ -348,12 +375,38 @@ def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls:
     for effect in effects:
         for k in range(per_effect):
             real = drifted(cfg, rng)
-            direction = rng.standard_normal(4)
-            direction /= np.abs(direction).max()
-            plant, truth, largest, present = conceal(real, effect, reference, direction)
+            parts = effect.split("+")
+            draws = [_draw(e, rng) for e in parts]
+            hid = [conceal(real, e, reference, *d) for e, d in zip(parts, draws, strict=True)]
+            sizes = [h[1].pop("_size") for h in hid]
+            if len(parts) == 1:
+                plant, truth, largest, present = hid[0]
+            else:  # each concealed alone, then both put into one plant
+                plant = Plant.from_params(real.sus, real.mechanics())
+                for e, size, (direction, _, shape) in zip(parts, sizes, draws, strict=True):
+                    plant = hidden(plant, e, size, direction, real.sus, shape)[0]
+                truth = {e: h[1] for e, h in zip(parts, hid, strict=True)}
+                largest = max(h[2] for h in hid)
+                present = sum(h[3] for h in hid)
             cases.append(Case(f"{effect} #{k + 1}", effect, real, plant, truth, largest,
                               present))
     return cases
+
+
+def _draw(effect: str, rng: np.random.Generator) -> tuple[NDArray, float, dict | None]:
+    """A random direction (face gains), the concealment target and the shape of a case."""
+    direction = rng.standard_normal(4)
+    direction /= np.abs(direction).max()
+    shape = None
+    if effect == "resonance":  # a body anywhere on the face, 0.3-20 Hz, Q 5-100
+        shape = {"f_hz": float(np.exp(rng.uniform(math.log(0.3), math.log(20.0)))),
+                 "q": float(np.exp(rng.uniform(math.log(5.0), math.log(100.0)))),
+                 "point_m": (float(rng.uniform(-0.025, 0.025)),
+                             float(rng.uniform(-0.025, 0.025)))}
+    elif effect == "channel_filter":  # one face channel (SIDE is barely excited)
+        shape = {"kind": str(rng.choice(["coil", "osem"])), "channel": int(rng.integers(4)),
+                 "pole_hz": float(np.exp(rng.uniform(math.log(3.0), math.log(50.0))))}
+    return direction, CONCEAL_SIGMA, shape
 
 
 # ------------------------------------------------------------------------------ scoring
@@ -371,6 +424,18 @@ class Score:
     seconds: float  # measurement and diagnosis
     p_value: float = math.nan  # the hidden effect's; a null's smallest (its nearest claim)
     diagnosis_seconds: float = math.nan  # the diagnosis alone (what a blind set costs)
+    located: bool = False  # a resonance: a band holding f +- 15 % located, or modelled
+    forced: bool = False  # a resonance passed off as catalogue effects, nothing unexplained
+
+    @property
+    def kind(self) -> str:
+        """null, single (a catalogue effect), resonance, channel_filter or pair."""
+        effect = self.case.effect
+        if effect is None:
+            return "null"
+        if "+" in effect:
+            return "pair"
+        return effect if effect in ("resonance", "channel_filter") else "single"
 
 
 def key_error(effect: str, truth: dict, fitted: dict) -> float:
@@ -389,17 +454,19 @@ def key_error(effect: str, truth: dict, fitted: dict) -> float:
 def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResult
     """The key parameter's error in units of the fit's own sigma: RMS over the determined
     components (pitch- and yaw-like gains), 1 on average when the sigmas are honest."""
+    pre = f"{effect}." if result.effect and result.effect != effect else ""  # joint fits
+    got = result.as_dict()
     if effect in ("coil_imbalance", "osem_imbalance"):
-        combos = [{f"gain_{f}": w for f, w in zip(FACES, row, strict=True)} for row in _SEEN]
-        got = result.as_dict()
-        d = _SEEN @ np.array([got[f"gain_{f}"] - truth["gains"][f] for f in FACES])
+        combos = [{f"{pre}gain_{f}": w for f, w in zip(FACES, row, strict=True)}
+                  for row in _SEEN]
+        d = _SEEN @ np.array([got[f"{pre}gain_{f}"] - truth["gains"][f] for f in FACES])
     else:  # a driver pole is fitted as 1/f
         name = {"loop_delay": "extra_s", "actuator_pole": "inv_f_hz",
                 "side_coupling": "sensing", "wire_asymmetry": "delta_m",
                 "bounce_roll": "vertical"}[effect]
         value = 1 / truth["f_hz"] if effect == "actuator_pole" else truth[name]
-        combos = [{name: 1.0}]
-        d = np.array([result.as_dict()[name] - value])
+        combos = [{pre + name: 1.0}]
+        d = np.array([got[pre + name] - value])
     cov = result.combination_covariance(combos)
     if not np.all(np.isfinite(cov)):
         return math.nan
@@ -409,31 +476,81 @@ def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResul
 def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
           diagnosis_seconds: float = math.nan) -> Score:
     """Score one diagnosis (None: it failed) against its case; `seconds` with the
-    measurement, `diagnosis_seconds` without."""
+    measurement, `diagnosis_seconds` without.
+
+    A catalogue effect is named when it is claimed (chosen, or a rival of the chosen);
+    a pair when both are, its key error the worse of the two; a channel filter when its
+    channel is, its key error the worse corner's; a resonance when a ``resonance`` is
+    chosen within 15 % of its frequency, coupling no DOF the body leaves alone and POS
+    among them, its key error the frequency's."""
     if diagnosis is None:
         return Score(case, False, ["(failed)"], math.nan, math.nan, math.nan, math.nan,
                      seconds, diagnosis_seconds=diagnosis_seconds)
     out = diagnosis.to_json()
     claimed = [e["effect"] for e in out["effects"]]
-    named = not claimed if case.effect is None else case.effect in claimed
-    err = z = math.nan
+    entries = {e.effect: e for e in diagnosis.effects}
     tried = diagnosis.p_values
-    p = (tried.get(case.effect, math.nan) if case.effect else
-         min(tried.values(), default=math.nan))
-    if named and case.effect is not None:
-        fitted = next(e for e in diagnosis.effects if e.effect == case.effect)
-        err = key_error(case.effect, case.truth, fitted.to_json()["params"])
-        z = key_z(case.effect, case.truth, fitted.result)
+    effect, err, z, located, forced = case.effect, math.nan, math.nan, False, False
+    p = min(tried.values(), default=math.nan) if effect is None else tried.get(
+        effect, tried.get(case.truth.get("channel", ""), math.nan))
+    if effect is None:
+        named = not claimed
+    elif effect == "resonance":
+        named, err, located = _resonance(case.truth, diagnosis)
+        forced = not named and bool(diagnosis.chosen) and not diagnosis.unexplained
+    elif effect == "channel_filter":
+        named = case.truth["channel"] in claimed
+        if named:
+            err = _stage_error(case.truth, entries[case.truth["channel"]].to_json()["params"])
+    elif "+" in effect:
+        parts = effect.split("+")
+        named = all(e in claimed for e in parts)
+        if named:
+            err = max(key_error(e, case.truth[e], entries[e].to_json()["params"])
+                      for e in parts)
+    else:
+        named = effect in claimed
+        if named:
+            err = key_error(effect, case.truth, entries[effect].to_json()["params"])
+            z = key_z(effect, case.truth, entries[effect].result)
     return Score(case, named, claimed, err, z, out["chi2_nu_nominal"],
-                 out["chi2_nu_final"], seconds, p, diagnosis_seconds)
+                 out["chi2_nu_final"], seconds, p, diagnosis_seconds, located, forced)
+
+
+def _stage_error(truth: dict, fitted: dict, f_hz: float = STOP_HZ) -> float:
+    """A channel stage's key error: how far the fitted stage's change at the top of the
+    band is from the true one's, relative to it (a pair of close corners, as a concealed
+    stage has, fixes its change, not each corner)."""
+    def change(p: dict) -> complex:
+        s = 2j * math.pi * f_hz
+        return (1 + s / (2 * math.pi * p["zero_hz"])) / (1 + s / (2 * math.pi * p["pole_hz"])) - 1
+
+    return abs(change(fitted) - change(truth)) / abs(change(truth))
+
+
+def _resonance(truth: dict, diagnosis) -> tuple[bool, float, bool]:  # noqa: ANN001
+    """(modelled, relative frequency error, located) of a hidden body."""
+    f = truth["f_hz"]
+    bands = [x.band_hz for x in (*diagnosis.located, *diagnosis.unexplained)]
+    located = any(lo <= 1.15 * f and hi >= 0.85 * f for lo, hi in bands)
+    fits = [e.to_json() for e in diagnosis.chosen if e.effect.startswith("resonance")]
+    if not fits:
+        return False, math.nan, located
+    best = min(fits, key=lambda e: abs(e["params"]["f_hz"] - f))
+    err = abs(best["params"]["f_hz"] - f) / f
+    coupled = set(best["reading"]["coupled"])
+    modelled = err <= 0.15 and "POS" in coupled and coupled <= set(truth["coupled"])
+    return modelled, err, located or modelled
 
 
 # ------------------------------------------------------------------------------ routes
 def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - TFSet
-            excited: Sequence[str] = EXCITED, bw: float | None = None):
+            excited: Sequence[str] = EXCITED, bw: float | None = None,
+            averages: int = AVERAGES, rms: float = RMS):
     """The case's measurement as users have it: ``"xml"`` (a diaggui set written from the
     twin's TFs, up to :data:`STOP_HZ`) or ``"mcap"`` (a session recorded from the twin's
-    engine), each DOF of `excited` in turn, at resolution `bw` (default the route's)."""
+    engine), each DOF of `excited` in turn, at resolution `bw` (default the route's), with
+    `averages` and an excitation of `rms`."""
     from twind.analysis.diaggui import write_measurement_set
     from twind.analysis.tf import from_diaggui, from_session
     from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
@@ -444,11 +561,11 @@ def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - 
     bw = bw or ROUTE_BW[route]
     here = Path(tempfile.mkdtemp(dir=workdir))
     if route == "xml":
-        tfs = measure_tfs(case.real, excited, bw=bw, averages=AVERAGES, rms=RMS, seed=seed,
+        tfs = measure_tfs(case.real, excited, bw=bw, averages=averages, rms=rms, seed=seed,
                           plant=case.plant)
         return from_diaggui(write_measurement_set(tfs, here, stop_hz=STOP_HZ))
     path = record_measurement(case.real, here / "session.mcap", excited, bw=bw,
-                              averages=AVERAGES, rms=RMS, seed=seed, plant=case.plant)
+                              averages=averages, rms=rms, seed=seed, plant=case.plant)
     try:
         return from_session([path], bw=bw, settle_s=SETTLE_S)
     finally:
@@ -458,9 +575,11 @@ def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - 
 def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls: int = 3,
                seed: int = 11, effects: Sequence[str] = EFFECTS,
                say: Callable[[str], None] = print, excited: Sequence[str] = EXCITED,
-               bw: float | None = None) -> list[Score]:
-    """Build the corpus, measure (at resolution `bw`, default :data:`ROUTE_BW`'s) and
-    diagnose every case (each DOF of `excited` in turn), print a line each and the rates.
+               bw: float | None = None, averages: int = AVERAGES, rms: float = RMS
+               ) -> list[Score]:
+    """Build the corpus, measure (at resolution `bw`, default :data:`ROUTE_BW`'s, with
+    `averages` and excitation `rms`) and diagnose every case (each DOF of `excited` in
+    turn), print a line each and the rates, each kind apart.
 
     Returns
     -------
@@ -469,14 +588,14 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
     from twind.analysis.diagnose import diagnose
 
     bw = bw or ROUTE_BW[route]
-    say(f"resolution {bw:g} Hz, {AVERAGES} averages")
-    cases = make_cases(cfg, reference_data(cfg, seed, excited, route, bw), per_effect, nulls,
-                       seed, effects)
+    say(f"resolution {bw:g} Hz, {averages} averages, excitation RMS {rms:g}")
+    cases = make_cases(cfg, reference_data(cfg, seed, excited, route, bw, averages, rms),
+                       per_effect, nulls, seed, effects)
     scores = []
     with tempfile.TemporaryDirectory(prefix="twind-corpus-") as tmp:
         for k, case in enumerate(cases):
             t0 = time.perf_counter()
-            tfs = measure(case, route, Path(tmp), seed + 100 + k, excited, bw)
+            tfs = measure(case, route, Path(tmp), seed + 100 + k, excited, bw, averages, rms)
             t1 = time.perf_counter()
             try:
                 d = diagnose(tfs, cfg)
@@ -496,6 +615,11 @@ def _line(s: Score) -> str:
     c = s.case
     hidden_ = (f"largest bin {c.largest_sigma:.1f} sigma, present {c.present:6.0f}"
                if c.effect else "drift only" + " " * 27)
+    if c.effect == "resonance":
+        hidden_ += f" (body {c.truth['f_hz']:.3g} Hz, Q {c.truth['q']:.2g})"
+    elif c.effect == "channel_filter":
+        hidden_ += (f" ({c.truth['channel']} {c.truth['pole_hz']:.3g}/"
+                    f"{c.truth['zero_hz']:.3g} Hz)")
     key = "" if math.isnan(s.key_error) else (f"  key param {100 * s.key_error:5.1f} % "
                                                f"({s.key_z:.1f} sigma)")
     verdict = ", ".join(s.claimed) or "consistent"
@@ -507,15 +631,31 @@ def _line(s: Score) -> str:
 def summary(scores: Sequence[Score]) -> list[str]:
     """The issue's targets, as measured on `scores` (a corpus without effect cases or without
     nulls leaves their lines out)."""
-    effects = [s for s in scores if s.case.effect]
+    out = []
+    for kind, label, target in (("resonance", "modes in no list (resonance)", 80),
+                                ("channel_filter", "one channel's own stage (channel_filter)",
+                                 90),
+                                ("pair", "two effects at once, both named", 80)):
+        some = [s for s in scores if s.kind == kind]
+        if some:
+            named = [s for s in some if s.named]
+            keyed = [s for s in named if s.key_error <= KEY_TOLERANCE]
+            out.append(f"{label}: {len(named)}/{len(some)} = {100 * len(named) / len(some):.0f}"
+                       f" % (target >= {target} %), key parameters within "
+                       f"{100 * KEY_TOLERANCE:.0f} %: {len(keyed)}/{len(some)}")
+            if kind == "resonance":
+                out.append(f"  located (a band holding f +- 15 %, or modelled): "
+                           f"{sum(s.located for s in some)}/{len(some)}; passed off as "
+                           f"catalogue effects with nothing unexplained: "
+                           f"{sum(s.forced for s in some)}/{len(some)} (target 0)")
+    effects = [s for s in scores if s.kind == "single"]
     nulls = [s for s in scores if not s.case.effect]
     named = [s for s in effects if s.named]
     keyed = [s for s in named if s.key_error <= KEY_TOLERANCE]
     secs = np.array([s.seconds for s in scores])
-    out = []
     if effects:
         z = np.array([s.key_z for s in named if math.isfinite(s.key_z)] or [np.nan])
-        out += [f"effects named (or equivalent): {len(named)}/{len(effects)} "
+        out += [f"catalogue effects named (or equivalent): {len(named)}/{len(effects)} "
                 f"= {100 * len(named) / len(effects):.0f} % (target >= 90 %)",
                 f"  with the key parameter within {100 * KEY_TOLERANCE:.0f} %: {len(keyed)}/"
                 f"{len(effects)} = {100 * len(keyed) / len(effects):.0f} %",

@@ -153,7 +153,7 @@ def body_reading(values: dict[str, float], sigma: dict[str, float | None],
     """A ``resonance``'s physical reading: a body of mass m2 (kg) pulling along the beam at
     face point (y0, z0) (m) when its POS coupling leads, sideways when SIDE does; the DOFs
     it couples (over 3 sigma, or, where a sigma is undetermined, at least a third of the
-    largest coupling, angles taken at the face's edge); sigmas to first order (``None``
+    largest coupling, angles taken at the face's edge; the leading one if none); sigmas to first order (``None``
     where undetermined); ``on_face`` when the point lies within `radius_m` of the centre
     (a point off the face is no body on it: another mode, read by its pattern)."""
     g = {d: values[f"g_{d}"] for d in BODY_DOFS}
@@ -161,9 +161,9 @@ def body_reading(values: dict[str, float], sigma: dict[str, float | None],
     edge = radius_m or 0.0375
     size = {d: abs(g[d]) / (edge if d in ("PIT", "YAW") else 1.0) for d in BODY_DOFS}
     top = max(size.values()) or 1.0
-    coupled = [d for d in BODY_DOFS if (abs(g[d]) > 3 * s[d] if s[d] is not None
-                                        else size[d] >= top / 3)]
     lead = "POS" if abs(g["POS"]) >= abs(g["SIDE"]) else "SIDE"
+    coupled = [d for d in BODY_DOFS if (abs(g[d]) > 3 * s[d] if s[d] is not None
+                                        else size[d] >= top / 3)] or [lead]
     out: dict = {"coupled": coupled, "along": "beam" if lead == "POS" else "side",
                  "mass_kg": g[lead] ** 2,
                  "mass_kg_sigma": None if s[lead] is None else 2 * abs(g[lead]) * s[lead]}
@@ -203,6 +203,8 @@ class Diagnosis:
     p_values: dict[str, float] = field(default_factory=dict)
     """Every hypothesis fitted at the first step and its p-value, claimed or not: how near
     the data came to each explanation."""
+    first_step: list[EffectFit] = field(default_factory=list, repr=False)
+    """Every hypothesis fitted at the first step (its search's paths among them)."""
 
     @property
     def chosen(self) -> list[EffectFit]:
@@ -290,7 +292,8 @@ MIN_COHERENCE = 0.0
 
 def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
              params: Sequence[str] = FIT_PARAMS,
-             min_coherence: float = MIN_COHERENCE) -> Diagnosis:
+             min_coherence: float = MIN_COHERENCE, max_effects: int | None = None
+             ) -> Diagnosis:
     """Diagnose measured TFs of `cfg`'s optic against its nominal model.
 
     Forward selection: every hypothesis (:data:`~twind.model.effects.CATALOGUE`, the
@@ -313,6 +316,8 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
         that couples one DOF into another lifts that element out of the noise only where
         it is large; spread thinly, it is plain only in the many incoherent bins together,
         whose errors are the noise's.
+    max_effects : int, optional
+        Effects chosen at most (default :data:`MAX_EFFECTS`).
 
     Returns
     -------
@@ -324,16 +329,23 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     chosen: list[EffectFit] = []
     rivals: list[EffectFit] = []
     p_values: dict[str, float] = {}
+    first_step: list[EffectFit] = []
     current, whole = nominal, ()
-    for _ in range(MAX_EFFECTS):
+    for _ in range(MAX_EFFECTS if max_effects is None else max_effects):
         # every hypothesis is tried even when no band stands out: an effect spread thinly
         # over many bands can be plain in its own fit and invisible band by band
         names = [c.effect for c in chosen]
         left = _candidates(names)
-        tried = [c for c in ((_try_family if e in FAMILIES else _try)(
-            tfs, cfg, params, names, e, current, whole, unit, len(left)) for e in left) if c]
+        tried = []
+        for e in left:
+            if e in FAMILIES:
+                tried += _try_family(tfs, cfg, params, names, e, current, whole, unit,
+                                     len(left))
+            else:
+                tried += filter(None, [_try(tfs, cfg, params, names, e, current, whole, unit,
+                                            len(left))])
         if not chosen:
-            p_values = {c.effect: c.p_value for c in tried}
+            p_values, first_step = {c.effect: c.p_value for c in tried}, tried
         claimed = sorted((c for c in tried if c.p_value < ALPHA), key=lambda c: -c.delta_bic)
         if not claimed:
             break
@@ -344,7 +356,8 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
                    if c.effect in best.equivalent]
         current, whole = best.result, best.whole
     if not chosen:
-        return Diagnosis(nominal, located, [], nominal, located, p_values=p_values)
+        return Diagnosis(nominal, located, [], nominal, located, p_values=p_values,
+                         first_step=first_step)
     while True:  # an effect the others made redundant leaves the model
         without = _given_others(tfs, cfg, params, chosen, current, whole, unit)
         worst = max(chosen, key=lambda c: c.p_given_others or 0.0)
@@ -360,7 +373,7 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
                                                                    r.result)
                    for r in rivals}
     return Diagnosis(nominal, located, chosen + rivals, current, unexplained, separations,
-                     p_values)
+                     p_values, first_step)
 
 
 MAX_EFFECTS = 3
@@ -408,11 +421,12 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
 def _try_family(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
                 chosen: Sequence[str], family: str, current: FitResult,
                 whole: tuple[tuple[float, float], ...], unit: float, tried: int
-                ) -> EffectFit | None:
-    """The best member of `family` (a channel filter: which channel), as :func:`_try`
-    fits one: the members ranked by the drop in chi^2 their first-order change alone
-    would make, the best :data:`FAMILY_FITS` fitted from the best of a grid of stages,
-    the choice paid for as a search over every member (Bonferroni)."""
+                ) -> list[EffectFit]:
+    """The likeliest members of `family` (a channel filter: which channel), each as
+    :func:`_try` fits one: the members ranked by the drop in chi^2 their first-order
+    change alone would make, the best :data:`FAMILY_FITS` fitted from the best of a grid
+    of stages (rivals of one another), the choice paid for as a search over every member
+    (Bonferroni)."""
     members = [m for m in FAMILIES[family] if m not in chosen]
     first = tfs if isinstance(tfs, TFSet) else tfs[0]
     data = FitData.from_tfset(first, current.min_coherence, whole=whole).span()
@@ -420,14 +434,12 @@ def _try_family(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence
     fits = [c for c in (_try(tfs, cfg, params, chosen, m, current, whole, unit, tried,
                              _filter_start(data, cfg, current, chosen, m))
                         for m in ranked[:FAMILY_FITS]) if c]
-    if not fits:
-        return None
-    best = max(fits, key=lambda c: c.lr)
-    best.p_value = min(1.0, best.p_value * len(members))
-    return best
+    for c in fits:
+        c.p_value = min(1.0, c.p_value * len(members))
+    return fits
 
 
-FAMILY_FITS = 2
+FAMILY_FITS = 3
 """Members of a family fitted in full (the others ranked out at first order)."""
 _STAGES = [(pole, zero) for pole in (1.0, 3.0, 10.0, 30.0, 100.0, 300.0)
            for zero in (math.inf, 0.5 * pole, 0.8 * pole, 1.25 * pole, 2 * pole)]

@@ -360,6 +360,8 @@ def model_names(effect: str, values: Mapping[str, float], sigma: Mapping[str, fl
     if effect in ("coil_imbalance", "osem_imbalance"):
         return ({"gains": {f: values[f"gain_{f}"] for f in FACES}},
                 {"gains": {f: sigma[f"gain_{f}"] for f in FACES}})
+    if effect == "resonance":  # a quality factor as the plant takes it
+        return ({**values, "q": max(abs(values["q"]), MIN_Q)}, dict(sigma))
     if effect in CHANNEL_FILTERS:
         out, err = {}, {}
         for key, name in (("pole_hz", "inv_pole_hz"), ("zero_hz", "inv_zero_hz")):
