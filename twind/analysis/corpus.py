@@ -426,6 +426,7 @@ class Score:
     diagnosis_seconds: float = math.nan  # the diagnosis alone (what a blind set costs)
     located: bool = False  # a resonance: a band holding f +- 15 % located, or modelled
     forced: bool = False  # a resonance passed off as catalogue effects, nothing unexplained
+    truth_p: float = math.nan  # a resonance: its p-value from a fit started at the truth
 
     @property
     def kind(self) -> str:
@@ -517,6 +518,16 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
                  out["chi2_nu_final"], seconds, p, diagnosis_seconds, located, forced)
 
 
+def body_start(truth: dict) -> dict[str, float]:
+    """A hidden body (:func:`attached_body`, pulling along the beam) in the catalogue
+    ``resonance``'s parameters: ``g = sqrt(m2) (1, z0, y0, 0)``."""
+    y, z = truth["point_m"]
+    g = math.sqrt(truth["mass_kg"]) * np.array([1.0, z, y, 0.0])
+    return {"f_hz": truth["f_hz"], "q": truth["q"],
+            **{f"g_{d}": float(x) for d, x in zip(("POS", "PIT", "YAW", "SIDE"), g,
+                                                 strict=True)}}
+
+
 def _stage_error(truth: dict, fitted: dict, f_hz: float = STOP_HZ) -> float:
     """A channel stage's key error: how far the fitted stage's change at the top of the
     band is from the true one's, relative to it (a pair of close corners, as a concealed
@@ -585,7 +596,7 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
     -------
     list of Score
     """
-    from twind.analysis.diagnose import diagnose
+    from twind.analysis.diagnose import diagnose, evidence
 
     bw = bw or ROUTE_BW[route]
     say(f"resolution {bw:g} Hz, {averages} averages, excitation RMS {rms:g}")
@@ -604,6 +615,8 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
                 d = None
             t2 = time.perf_counter()
             s = score(case, d, t2 - t0, t2 - t1)
+            if d is not None and case.effect == "resonance":
+                s.truth_p = evidence(tfs, cfg, d, "resonance", body_start(case.truth))
             scores.append(s)
             say(_line(s))
     for line in summary(scores):
@@ -616,7 +629,8 @@ def _line(s: Score) -> str:
     hidden_ = (f"largest bin {c.largest_sigma:.1f} sigma, present {c.present:6.0f}"
                if c.effect else "drift only" + " " * 27)
     if c.effect == "resonance":
-        hidden_ += f" (body {c.truth['f_hz']:.3g} Hz, Q {c.truth['q']:.2g})"
+        hidden_ += (f" (body {c.truth['f_hz']:.3g} Hz, Q {c.truth['q']:.2g}; from the truth "
+                    f"p {s.truth_p:.1g})")
     elif c.effect == "channel_filter":
         hidden_ += (f" ({c.truth['channel']} {c.truth['pole_hz']:.3g}/"
                     f"{c.truth['zero_hz']:.3g} Hz)")
@@ -644,6 +658,10 @@ def summary(scores: Sequence[Score]) -> list[str]:
                        f" % (target >= {target} %), key parameters within "
                        f"{100 * KEY_TOLERANCE:.0f} %: {len(keyed)}/{len(some)}")
             if kind == "resonance":
+                held = [s for s in some if s.truth_p < 0.01]
+                out.append(f"  with evidence enough from a fit started at the truth (p < 0.01, "
+                           f"the search's cost paid): {len(held)}/{len(some)}, of which "
+                           f"modelled {sum(s.named for s in held)}")
                 out.append(f"  located (a band holding f +- 15 %, or modelled): "
                            f"{sum(s.located for s in some)}/{len(some)}; passed off as "
                            f"catalogue effects with nothing unexplained: "

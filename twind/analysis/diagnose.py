@@ -533,6 +533,30 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
                      radius_m=cfg.sus.radius_m)
 
 
+def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosis,
+             effect: str, start: dict[str, float]) -> float:
+    """The p-value `effect` would be given at the first step from a fit started at `start`
+    (its search's look-elsewhere cost and the hypotheses tried paid as ``diagnose`` pays
+    them): what the data hold for it, whatever the search finds. For a benchmark that knows
+    the truth; 1 when the fit fails."""
+    nominal = diagnosis.nominal
+    first = next((c for c in diagnosis.first_step if c.effect == effect), None)
+    paths = first.searched if first else []
+    cfg = replace(cfg, sus=with_params(cfg.sus, {n: v for n, v in nominal.identified().items()
+                                                 if n in FIT_PARAMS}))
+    free = [p for p in nominal.names if p in FIT_PARAMS and p not in nominal.unidentifiable]
+    try:
+        result = fit(tfs, cfg, free, nominal.min_coherence, effect=effect, effect_start=start)
+    except FitError:
+        return 1.0
+    k = result.rank - nominal.rank
+    if k <= 0:
+        return 1.0
+    lr = max(nominal.chi2 - result.chi2, 0.0) / _unit(nominal, tfs)
+    p = _p_value(lr, k, paths, _searched(result, effect, effect))
+    return min(1.0, p * max(len(diagnosis.first_step), 1))
+
+
 def _p_value(lr: float, k: int, paths: Sequence[float], searched: int) -> float:
     """A likelihood ratio's p-value: chi^2 with `k` directions, or, for a mode searched
     for, Davies' bound over each search (the `searched` parameters it set are paid for by
