@@ -109,3 +109,13 @@ def test_the_search_is_charged_for_where_it_looked() -> None:
     assert p_value(9.0, 1, 0.0) == pytest.approx(0.0027, rel=0.01)
     assert p_value(9.0, 1, 0.0) < p_value(9.0, 1, 5.0) < p_value(9.0, 1, 50.0) <= 1.0
     assert p_value(30.0, 2, 50.0) < 1e-4
+
+
+def test_with_no_physical_coupling_a_mode_starts_at_its_nominal_frequency() -> None:
+    from twind.analysis.narrow import _choice
+
+    drop = np.array([5.0, 9.0, 7.0])
+    x = np.full((3, 1), 2.0)  # every trial's coupling above 1: none is physical
+    assert _choice(drop, x, at_nominal=2) == 2
+    x[1] = 0.5
+    assert _choice(drop, x, at_nominal=2) == 1  # the one physical trial

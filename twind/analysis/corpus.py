@@ -8,6 +8,10 @@ matrices, the loop delay, the coil-driver pole, the SIDE column of the face OSEM
 asymmetry is one loop's clamp raised in the geometric rigid-body model (:func:`raised_clamp`);
 bounce and roll are the geometric body's VERT and ROLL seen by face heads whose axes tilt
 against the optic, in 3-D kinematics (:func:`tilted_heads`).
+Beyond the catalogue (:data:`BEYOND`): a small body on a spring at a face point, a new
+coordinate of the mechanics in 3-D kinematics (:func:`attached_body`); one coil driver's or
+OSEM readback's own pole/zero stage, integrated by the engine as a state
+(:func:`one_stage`); and pairs of catalogue effects in one plant.
 None of it goes through :mod:`twind.model.effects`, whose models the diagnosis fits to
 explain it.
 The twin's time-domain engine measures the optic, noise through the loop, and the

@@ -4,16 +4,20 @@ explains the miss, and how much better the augmented model fits.
 1. The nominal parameters are refitted (:func:`~twind.analysis.fit.fit`); the residuals are
    searched band by band with the false alarms of the whole search controlled
    (:func:`~twind.analysis.locate.locate`).
-2. Every catalogue effect (:data:`~twind.model.effects.CATALOGUE`) is fitted
-   together with the nominal parameters.  Its evidence is the drop in residual power,
-   normalised by the residuals' own noise level (robust scale, F-distributed tails, bin
-   correlation, as ``locate`` uses): a likelihood ratio with ``k`` parameters, its p-value
-   (Bonferroni over the catalogue) and ``delta_bic = LR - k ln(N)``.
-   Consistent: nothing located and no effect claimed.
-3. The best effect (highest delta BIC) is reported with its parameters; claimed effects that
-   fit the data about as well (likelihood ratio within :data:`EQUIVALENT_LR` of it, whatever
-   their number of parameters) are named as not told apart by these data.  What the best
-   augmented model still misses is reported as unexplained, where it lies.
+2. Effects are chosen one by one (forward selection): every hypothesis (the catalogue,
+   :data:`~twind.model.effects.CATALOGUE`, with ``resonance``, a mode anywhere in the
+   band, and the ``channel_filter`` family, one channel's own stage) is fitted together
+   with the nominal parameters and the effects already chosen. Its evidence is the drop in
+   residual power, normalised by the residuals' own noise level (robust scale,
+   F-distributed tails, bin correlation, as ``locate`` uses): a likelihood ratio with
+   ``k`` parameters, its p-value (searches paid for, Bonferroni over the hypotheses of the
+   step) and ``delta_bic = LR - k ln(N)``. The claimed one with the highest delta BIC
+   joins; claimed ones that fit about as well (likelihood ratio within
+   :data:`EQUIVALENT_LR`) are its rivals, not told apart by these data. An effect the
+   later ones made redundant (its p-value given the others at least :data:`ALPHA`) leaves.
+3. What the final model still misses is searched band by band again: ``unexplained``, and
+   the chosen effects are partial. Consistent: nothing located and nothing claimed.
+   The method: ``docs/diagnose.md``.
 
 ``bounce_roll`` is fitted on more bins: its modes' bands, every bin whatever its coherence
 (the BounceRoll notches leave little there), and from where a search over the modes'

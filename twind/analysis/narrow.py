@@ -187,6 +187,8 @@ def _choice(drop: NDArray[np.float64], x: NDArray[np.float64], at_nominal: int) 
     mode seen only through its compliance below resonance leaves its frequency free)."""
     drop = np.where(np.abs(x).max(axis=1) < 1.0, drop, -np.inf)
     best = int(np.argmax(drop))
+    if not np.isfinite(drop[best]):  # no trial with physical couplings
+        return at_nominal
     return at_nominal if drop[best] - drop[at_nominal] < _FLAT else best
 
 
@@ -431,19 +433,22 @@ it pulls hardest (its coupling's largest eigenvalue, mass-normalised)."""
 def _relative_mass(x: NDArray[np.float64], inertia: NDArray[np.float64]) -> float:
     """Largest eigenvalue (absolute) of the coupling `x` normalised by the optic's inertia
     (`inertia`: square roots of its mass and moments over BODY_DOFS)."""
+    C = _coupling(x)
+    return float(np.abs(np.linalg.eigvalsh(C / np.outer(inertia, inertia))).max())
+
+
+def _coupling(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The symmetric coupling over BODY_DOFS whose upper entries are `x` (:data:`_PAIRS`)."""
     C = np.zeros((len(BODY_DOFS),) * 2)
     for (i, j), v in zip(_PAIRS, x, strict=True):
         C[i, j] = C[j, i] = v
-    return float(np.abs(np.linalg.eigvalsh(C / np.outer(inertia, inertia))).max())
+    return C
 
 
 def _dominant(x: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
     """The dominant eigenpair of the symmetric coupling whose upper entries are `x`
     (:data:`_PAIRS` order): a body's ``g g^T`` has one, positive."""
-    C = np.zeros((len(BODY_DOFS),) * 2)
-    for (i, j), v in zip(_PAIRS, x, strict=True):
-        C[i, j] = C[j, i] = v
-    lam, vec = np.linalg.eigh(C)
+    lam, vec = np.linalg.eigh(_coupling(x))
     k = int(np.argmax(np.abs(lam)))
     return float(lam[k]), vec[:, k]
 
@@ -554,10 +559,7 @@ def _body_part(x: NDArray[np.float64], A: NDArray[np.float64], b: NDArray[np.flo
     """The best coupling a body can make (``g g^T``: rank one, positive) along the
     dominant positive part of the linear solution `x`, and the drop in chi^2 it makes
     (normal equations `A`, `b`): the ten free entries would fit noise a body cannot."""
-    C = np.zeros((len(BODY_DOFS),) * 2)
-    for (i, j), v in zip(_PAIRS, x, strict=True):
-        C[i, j] = C[j, i] = v
-    lam, vec = np.linalg.eigh(C)
+    lam, vec = np.linalg.eigh(_coupling(x))
     if lam[-1] <= 0:
         return np.zeros_like(x), 0.0
     y = np.array([lam[-1] * vec[i, -1] * vec[j, -1] for i, j in _PAIRS])
