@@ -485,9 +485,10 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
 
     A catalogue effect is named when it is claimed (chosen, or a rival of the chosen);
     a pair when both are, its key error the worse of the two; a channel filter when its
-    channel is, its key error the worse corner's; a resonance when a ``resonance`` is
-    chosen within 15 % of its frequency, coupling no DOF the body leaves alone and POS
-    among them, its key error the frequency's."""
+    channel is, its key error its stage's change at the top of the band; a resonance when a
+    ``resonance`` is claimed within 15 % of its frequency, coupling no DOF the body leaves
+    alone and POS among them, its key error the frequency's ("passed off" when no
+    resonance is claimed, catalogue effects are and nothing is left unexplained)."""
     if diagnosis is None:
         return Score(case, False, ["(failed)"], math.nan, math.nan, math.nan, math.nan,
                      seconds, diagnosis_seconds=diagnosis_seconds)
@@ -502,7 +503,8 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
         named = not claimed
     elif effect == "resonance":
         named, err, located = _resonance(case.truth, diagnosis)
-        forced = not named and bool(diagnosis.chosen) and not diagnosis.unexplained
+        forced = (not any(e.effect.startswith("resonance") for e in diagnosis.effects)
+                  and bool(diagnosis.chosen) and not diagnosis.unexplained)
     elif effect == "channel_filter":
         named = case.truth["channel"] in claimed
         if named:
@@ -548,7 +550,8 @@ def _resonance(truth: dict, diagnosis) -> tuple[bool, float, bool]:  # noqa: ANN
     f = truth["f_hz"]
     bands = [x.band_hz for x in (*diagnosis.located, *diagnosis.unexplained)]
     located = any(lo <= 1.15 * f and hi >= 0.85 * f for lo, hi in bands)
-    fits = [e.to_json() for e in diagnosis.chosen if e.effect.startswith("resonance")]
+    # chosen, or a rival the data do not tell from the chosen effect (as for the catalogue)
+    fits = [e.to_json() for e in diagnosis.effects if e.effect.startswith("resonance")]
     if not fits:
         return False, math.nan, located
     best = min(fits, key=lambda e: abs(e["params"]["f_hz"] - f))

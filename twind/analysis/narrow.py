@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy import optimize, stats
 
 from twind import DOFS
 from twind.analysis.fit import (
@@ -418,6 +418,9 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
                 best = (drop, f0, q, x)
         paths.append(path)
     drop, f0, q, x = best
+    C = trials.columns(f0, q)  # the best trial's direction, refined off the grid
+    CQ = C @ Q
+    x = _refined(C @ C.T - CQ @ CQ.T, C @ r - CQ @ trials.Qr, x)
     lam, g = _dominant(x)
     start = {"f_hz": f0, "q": q, **{f"g_{d}": float(v) for d, v in zip(
         BODY_DOFS, math.sqrt(abs(lam)) * g, strict=True)}}
@@ -474,6 +477,7 @@ class _Trials:
     def __init__(self, data: FitData, cfg: OpticConfig, plant: Plant,
                  r: NDArray[np.float64], Q: NDArray[np.float64]) -> None:
         self.data, self.cfg, self.plant, self.r, self.Q = data, cfg, plant, r, Q
+        self.lever_m = cfg.sus.radius_m  # a face point's PIT/YAW lever at the edge
         self.bins = np.flatnonzero(data.mask.any(axis=(1, 2)))
         self.f = data.frequency_hz[self.bins]
         self.res = data.resolution_hz
@@ -543,31 +547,64 @@ class _Trials:
             CQ = C @ self.Q
             A = C @ C.T - CQ @ CQ.T
             b = C @ self.r - CQ @ self.Qr
-            norm = np.sqrt(np.maximum(np.diag(A), 0.0))
-            # an entry these data do not see (SIDE, not excited) stays zero
-            norm = np.where(norm > 1e-9 * norm.max(initial=0.0), norm, np.inf)
-            x = np.linalg.lstsq(A / np.outer(norm, norm), b / norm, rcond=1e-10)[0] / norm
-            x, drop = _body_part(x, A, b)
+            x, drop = _body_part(A, b, self.lever_m)
             angle = 0.0 if last is None else _turn(last, (C[0], CQ[0]))
             last = (C[0], CQ[0])
             yield f0, drop, x, angle
             f0 += 0.25 * max(self.res, f0 / q)
 
 
-def _body_part(x: NDArray[np.float64], A: NDArray[np.float64], b: NDArray[np.float64]
+def _body_part(A: NDArray[np.float64], b: NDArray[np.float64], lever_m: float
                ) -> tuple[NDArray[np.float64], float]:
-    """The best coupling a body can make (``g g^T``: rank one, positive) along the
-    dominant positive part of the linear solution `x`, and the drop in chi^2 it makes
-    (normal equations `A`, `b`): the ten free entries would fit noise a body cannot."""
+    """The best coupling a body can make (``g g^T``: rank one, positive) and the drop in
+    chi^2 it makes (normal equations `A`, `b` of the ten entries), over the directions of
+    :data:`_DIRECTIONS`, PIT and YAW in units of `lever_m` (a point at the face's edge
+    pulls at 45 degrees): ten free entries would fit noise no body can."""
+    g = _DIRECTIONS * np.array([1.0, lever_m, lever_m, 1.0])
+    Y = np.stack([g[:, i] * g[:, j] for i, j in _PAIRS], axis=1)
+    A, b = np.nan_to_num(A), np.nan_to_num(b)
+    yb, yAy = Y @ b, np.einsum("dk,kl,dl->d", Y, A, Y)
+    drop = np.where((yb > 0) & (yAy > 0), yb**2 / np.where(yAy > 0, yAy, 1.0), 0.0)
+    k = int(np.argmax(drop))
+    if drop[k] <= 0:
+        return np.zeros(len(_PAIRS)), 0.0
+    return Y[k] * yb[k] / yAy[k], float(drop[k])
+
+
+def _refined(A: NDArray[np.float64], b: NDArray[np.float64], x: NDArray[np.float64]
+             ) -> NDArray[np.float64]:
+    """The body coupling ``g g^T`` (upper entries) of most drop in chi^2, from `x`'s."""
     lam, vec = np.linalg.eigh(_coupling(x))
     if lam[-1] <= 0:
-        return np.zeros_like(x), 0.0
-    y = np.array([lam[-1] * vec[i, -1] * vec[j, -1] for i, j in _PAIRS])
-    y = np.where(np.isfinite(y), y, 0.0)
-    by, yAy = float(y @ b), float(y @ A @ y)
-    if by <= 0 or yAy <= 0:
-        return np.zeros_like(x), 0.0
-    return y * by / yAy, by**2 / yAy
+        return x
+
+    def coupling(g: NDArray[np.float64]) -> tuple[NDArray[np.float64], float, float]:
+        y = np.array([g[i] * g[j] for i, j in _PAIRS])
+        return y, float(y @ b), float(y @ A @ y)
+
+    def loss(g: NDArray[np.float64]) -> float:
+        _, yb, yAy = coupling(g)
+        return -yb**2 / yAy if yb > 0 and yAy > 0 else 0.0
+
+    g0 = math.sqrt(lam[-1]) * vec[:, -1]
+    got = optimize.minimize(loss, g0, method="Nelder-Mead",
+                            options={"xatol": 1e-6 * np.abs(g0).max(), "fatol": 1e-3})
+    y, yb, yAy = coupling(got.x)
+    return y * yb / yAy if got.fun < loss(g0) else x
+
+
+def _hemisphere(n: int, seed: int = 0) -> NDArray[np.float64]:
+    """`n` directions spread over half the unit sphere of POS/PIT/YAW/SIDE (a body's
+    ``g`` and ``-g`` are one), the axes and their pairs among them."""
+    pts = np.random.default_rng(seed).standard_normal((n, len(BODY_DOFS)))
+    eye = np.eye(len(BODY_DOFS))
+    pts = np.vstack([eye, [eye[i] + s * eye[j] for i in range(4) for j in range(i + 1, 4)
+                           for s in (1, -1)], pts])
+    pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+    return pts
+
+
+_DIRECTIONS = _hemisphere(3000)
 
 
 def _turn(a: tuple, b: tuple) -> float:
