@@ -156,8 +156,8 @@ def body_reading(values: dict[str, float], sigma: dict[str, float | None],
                  radius_m: float | None = None) -> dict:
     """A ``resonance``'s physical reading: a body of mass m2 (kg) pulling along the beam at
     face point (y0, z0) (m) when its POS coupling leads, sideways when SIDE does; the DOFs
-    it couples (over 3 sigma, or, where a sigma is undetermined, at least a third of the
-    largest coupling, angles taken at the face's edge; the leading one if none); sigmas to first order (``None``
+    it couples (at least a third of the largest coupling, angles taken at the face's
+    edge); sigmas to first order (``None``
     where undetermined); ``on_face`` when the point lies within `radius_m` of the centre
     (a point off the face is no body on it: another mode, read by its pattern)."""
     g = {d: values[f"g_{d}"] for d in BODY_DOFS}
@@ -166,8 +166,9 @@ def body_reading(values: dict[str, float], sigma: dict[str, float | None],
     size = {d: abs(g[d]) / (edge if d in ("PIT", "YAW") else 1.0) for d in BODY_DOFS}
     top = max(size.values()) or 1.0
     lead = "POS" if abs(g["POS"]) >= abs(g["SIDE"]) else "SIDE"
-    coupled = [d for d in BODY_DOFS if (abs(g[d]) > 3 * s[d] if s[d] is not None
-                                        else size[d] >= top / 3)] or [lead]
+    # the products g_i g_j are what the data fix, not each g_i (a body's sign and its
+    # mass against its lever trade off): a DOF is coupled by its share of the largest
+    coupled = [d for d in BODY_DOFS if size[d] >= top / 3]
     out: dict = {"coupled": coupled, "along": "beam" if lead == "POS" else "side",
                  "mass_kg": g[lead] ** 2,
                  "mass_kg_sigma": None if s[lead] is None else 2 * abs(g[lead]) * s[lead]}
