@@ -431,6 +431,7 @@ class Score:
     located: bool = False  # a resonance: a band holding f +- 15 % located, or modelled
     forced: bool = False  # a resonance passed off as catalogue effects, nothing unexplained
     truth_p: float = math.nan  # a resonance: its p-value from a fit started at the truth
+    coupled: list[str] = field(default_factory=list)  # a resonance: the claimed one's DOFs
 
     @property
     def kind(self) -> str:
@@ -496,13 +497,14 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
     claimed = [e["effect"] for e in out["effects"]]
     entries = {e.effect: e for e in diagnosis.effects}
     tried = diagnosis.p_values
-    effect, err, z, located, forced = case.effect, math.nan, math.nan, False, False
+    effect, err, z, located, forced, coupled = (case.effect, math.nan, math.nan, False,
+                                                 False, [])
     p = min(tried.values(), default=math.nan) if effect is None else tried.get(
         effect, tried.get(case.truth.get("channel", ""), math.nan))
     if effect is None:
         named = not claimed
     elif effect == "resonance":
-        named, err, located = _resonance(case.truth, diagnosis)
+        named, err, located, coupled = _resonance(case.truth, diagnosis)
         forced = (not any(e.effect.startswith("resonance") for e in diagnosis.effects)
                   and bool(diagnosis.chosen) and not diagnosis.unexplained)
     elif effect == "channel_filter":
@@ -521,7 +523,8 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
             err = key_error(effect, case.truth, entries[effect].to_json()["params"])
             z = key_z(effect, case.truth, entries[effect].result)
     return Score(case, named, claimed, err, z, out["chi2_nu_nominal"],
-                 out["chi2_nu_final"], seconds, p, diagnosis_seconds, located, forced)
+                 out["chi2_nu_final"], seconds, p, diagnosis_seconds, located, forced,
+                 coupled=coupled)
 
 
 def body_start(truth: dict) -> dict[str, float]:
@@ -545,20 +548,21 @@ def _stage_error(truth: dict, fitted: dict, f_hz: float = STOP_HZ) -> float:
     return abs(change(fitted) - change(truth)) / abs(change(truth))
 
 
-def _resonance(truth: dict, diagnosis) -> tuple[bool, float, bool]:  # noqa: ANN001
-    """(modelled, relative frequency error, located) of a hidden body."""
+def _resonance(truth: dict, diagnosis) -> tuple[bool, float, bool, list[str]]:  # noqa: ANN001
+    """(modelled, relative frequency error, located, DOFs the nearest claimed resonance
+    couples) of a hidden body."""
     f = truth["f_hz"]
     bands = [x.band_hz for x in (*diagnosis.located, *diagnosis.unexplained)]
     located = any(lo <= 1.15 * f and hi >= 0.85 * f for lo, hi in bands)
     # chosen, or a rival the data do not tell from the chosen effect (as for the catalogue)
     fits = [e.to_json() for e in diagnosis.effects if e.effect.startswith("resonance")]
     if not fits:
-        return False, math.nan, located
+        return False, math.nan, located, []
     best = min(fits, key=lambda e: abs(e["params"]["f_hz"] - f))
     err = abs(best["params"]["f_hz"] - f) / f
-    coupled = set(best["reading"]["coupled"])
-    modelled = err <= 0.15 and "POS" in coupled and coupled <= set(truth["coupled"])
-    return modelled, err, located or modelled
+    coupled = best["reading"]["coupled"]
+    modelled = err <= 0.15 and "POS" in coupled and set(coupled) <= set(truth["coupled"])
+    return modelled, err, located or modelled, coupled
 
 
 # ------------------------------------------------------------------------------ routes
@@ -644,6 +648,8 @@ def _line(s: Score) -> str:
     key = "" if math.isnan(s.key_error) else (f"  key param {100 * s.key_error:5.1f} % "
                                                f"({s.key_z:.1f} sigma)")
     verdict = ", ".join(s.claimed) or "consistent"
+    if s.coupled:
+        verdict += f" (resonance coupling {'/'.join(s.coupled)})"
     return (f"{c.name:18s} {hidden_}  chi2/nu {s.chi2_nu_nominal:6.2f} -> "
             f"{s.chi2_nu_final:5.2f}  {'ok ' if s.named else 'MISS'} {verdict}{key}"
             f"  p {s.p_value:.1g}  [{s.seconds:.0f} s, diagnosis {s.diagnosis_seconds:.0f} s]")
@@ -669,6 +675,8 @@ def summary(scores: Sequence[Score]) -> list[str]:
                 out.append(f"  with evidence enough from a fit started at the truth (p < 0.01, "
                            f"the search's cost paid): {len(held)}/{len(some)}, of which "
                            f"modelled {sum(s.named for s in held)}")
+                out.append(f"  claimed within 15 % of its frequency, whatever DOFs it couples: "
+                           f"{sum(s.key_error <= 0.15 for s in some)}/{len(some)}")
                 out.append(f"  located (a band holding f +- 15 %, or modelled): "
                            f"{sum(s.located for s in some)}/{len(some)}; passed off as "
                            f"catalogue effects with nothing unexplained: "

@@ -58,6 +58,7 @@ from twind.model.effects import (
     NARROW,
     REPEATABLE,
     SEARCHED,
+    entry,
     model_names,
     own_values,
     param_name,
@@ -134,6 +135,9 @@ class EffectFit:
         values = own_values(combo, self.effect, got)
         sigma = {n: None if math.isnan(x) else float(x)
                  for n, x in own_values(combo, self.effect, sig).items()}
+        for n in entry(self.effect).params:  # held at zero (unfitted), not determined
+            values.setdefault(n, 0.0)
+            sigma.setdefault(n, None)
         return values, sigma
 
     def to_json(self) -> dict:
@@ -522,7 +526,7 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
             found, paths = _search(tfs, start, free, reference, effect, whole, unit)
             held.update({param_name(combo, effect, n): v for n, v in found.items()})
         result = fit(tfs, start, free, current.min_coherence, effect=combo,
-                     effect_start=held, whole=whole)
+                     effect_start=held, whole=whole, unfitted=_unseen(tfs, combo))
     except FitError:
         return None
     # directions the effect adds that the data determine (a coil imbalance's common mode
@@ -551,7 +555,8 @@ def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosi
                                                  if n in FIT_PARAMS}))
     free = [p for p in nominal.names if p in FIT_PARAMS and p not in nominal.unidentifiable]
     try:
-        result = fit(tfs, cfg, free, nominal.min_coherence, effect=effect, effect_start=start)
+        result = fit(tfs, cfg, free, nominal.min_coherence, effect=effect, effect_start=start,
+                     unfitted=_unseen(tfs, effect))
     except FitError:
         return 1.0
     k = result.rank - nominal.rank
@@ -560,6 +565,16 @@ def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosi
     lr = max(nominal.chi2 - result.chi2, 0.0) / _unit(nominal, tfs)
     p = _p_value(lr, k, paths, _searched(result, effect, effect))
     return min(1.0, p * max(len(diagnosis.first_step), 1))
+
+
+def _unseen(tfs: TFSet | Sequence[TFSet], combo: str) -> list[str]:
+    """The couplings of `combo`'s resonances to DOFs no measurement excites: a body's pull
+    on them reaches the data only through products with the others, too weakly to tell
+    from a drift of the nominal model, so they are held at zero."""
+    sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
+    excited = {d for t in sets for d in FitData.from_tfset(t).excited}
+    return [param_name(combo, e, f"g_{d}") for e in parts(combo)
+            if _base(e) == "resonance" for d in BODY_DOFS if d not in excited]
 
 
 def _p_value(lr: float, k: int, paths: Sequence[float], searched: int) -> float:
@@ -624,7 +639,8 @@ def _given_others(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequen
         c.p_given_others = None
         try:
             without = fit(tfs, start, free, final.min_coherence, effect=rest,
-                          effect_start=_renamed(final, rest), whole=whole)
+                          effect_start=_renamed(final, rest), whole=whole,
+                          unfitted=_unseen(tfs, rest))
         except FitError:
             continue
         fits[c.effect] = without

@@ -546,7 +546,8 @@ class FitResult:
 def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = FIT_PARAMS,
         min_coherence: float = MIN_COHERENCE, band: tuple[float, float] | None = None,
         effect: str | None = None, effect_start: Mapping[str, float] | None = None,
-        whole: Sequence[tuple[float, float]] = ()) -> FitResult:
+        whole: Sequence[tuple[float, float]] = (), unfitted: Sequence[str] = ()
+        ) -> FitResult:
     """Fit `params` of `cfg`'s optic to the measured transfer functions `tfs`.
 
     Parameters
@@ -570,6 +571,8 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         moves nothing at zero coupling, from :func:`twind.analysis.narrow.search`).
     whole : sequence of (float, float)
         Bands (Hz) fitted bin by bin whatever their coherence (:meth:`FitData.from_tfset`).
+    unfitted : sequence of str
+        Effect parameters held at zero (a coupling to a DOF the measurement does not excite).
 
     Returns
     -------
@@ -578,7 +581,7 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     names = check_names(params)
     if effect is not None:
         try:
-            names += list(effect_params(effect))
+            names += [n for n in effect_params(effect) if n not in unfitted]
         except EffectError as e:
             raise FitError(str(e)) from None
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)

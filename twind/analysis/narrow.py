@@ -420,7 +420,7 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
     drop, f0, q, x = best
     C = trials.columns(f0, q)  # the best trial's direction, refined off the grid
     CQ = C @ Q
-    x = _refined(C @ C.T - CQ @ CQ.T, C @ r - CQ @ trials.Qr, x)
+    x = _refined(C @ C.T - CQ @ CQ.T, C @ r - CQ @ trials.Qr, x, trials.seen)
     lam, g = _dominant(x)
     start = {"f_hz": f0, "q": q, **{f"g_{d}": float(v) for d, v in zip(
         BODY_DOFS, math.sqrt(abs(lam)) * g, strict=True)}}
@@ -478,6 +478,7 @@ class _Trials:
                  r: NDArray[np.float64], Q: NDArray[np.float64]) -> None:
         self.data, self.cfg, self.plant, self.r, self.Q = data, cfg, plant, r, Q
         self.lever_m = cfg.sus.radius_m  # a face point's PIT/YAW lever at the edge
+        self.seen = np.array([float(d in data.excited) for d in BODY_DOFS])
         self.bins = np.flatnonzero(data.mask.any(axis=(1, 2)))
         self.f = data.frequency_hz[self.bins]
         self.res = data.resolution_hz
@@ -547,20 +548,21 @@ class _Trials:
             CQ = C @ self.Q
             A = C @ C.T - CQ @ CQ.T
             b = C @ self.r - CQ @ self.Qr
-            x, drop = _body_part(A, b, self.lever_m)
+            x, drop = _body_part(A, b, self.lever_m, self.seen)
             angle = 0.0 if last is None else _turn(last, (C[0], CQ[0]))
             last = (C[0], CQ[0])
             yield f0, drop, x, angle
             f0 += 0.25 * max(self.res, f0 / q)
 
 
-def _body_part(A: NDArray[np.float64], b: NDArray[np.float64], lever_m: float
-               ) -> tuple[NDArray[np.float64], float]:
+def _body_part(A: NDArray[np.float64], b: NDArray[np.float64], lever_m: float,
+               seen: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
     """The best coupling a body can make (``g g^T``: rank one, positive) and the drop in
     chi^2 it makes (normal equations `A`, `b` of the ten entries), over the directions of
     :data:`_DIRECTIONS`, PIT and YAW in units of `lever_m` (a point at the face's edge
-    pulls at 45 degrees): ten free entries would fit noise no body can."""
-    g = _DIRECTIONS * np.array([1.0, lever_m, lever_m, 1.0])
+    pulls at 45 degrees), those of BODY_DOFS the data do not excite zero (`seen`, 1 or 0):
+    ten free entries would fit noise no body can."""
+    g = _DIRECTIONS * np.array([1.0, lever_m, lever_m, 1.0]) * seen
     Y = np.stack([g[:, i] * g[:, j] for i, j in _PAIRS], axis=1)
     A, b = np.nan_to_num(A), np.nan_to_num(b)
     yb, yAy = Y @ b, np.einsum("dk,kl,dl->d", Y, A, Y)
@@ -571,14 +573,16 @@ def _body_part(A: NDArray[np.float64], b: NDArray[np.float64], lever_m: float
     return Y[k] * yb[k] / yAy[k], float(drop[k])
 
 
-def _refined(A: NDArray[np.float64], b: NDArray[np.float64], x: NDArray[np.float64]
-             ) -> NDArray[np.float64]:
-    """The body coupling ``g g^T`` (upper entries) of most drop in chi^2, from `x`'s."""
+def _refined(A: NDArray[np.float64], b: NDArray[np.float64], x: NDArray[np.float64],
+             seen: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The body coupling ``g g^T`` (upper entries) of most drop in chi^2, from `x`'s, its
+    components on the DOFs not `seen` held at zero."""
     lam, vec = np.linalg.eigh(_coupling(x))
     if lam[-1] <= 0:
         return x
 
     def coupling(g: NDArray[np.float64]) -> tuple[NDArray[np.float64], float, float]:
+        g = g * seen
         y = np.array([g[i] * g[j] for i, j in _PAIRS])
         return y, float(y @ b), float(y @ A @ y)
 
