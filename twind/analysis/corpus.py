@@ -52,6 +52,7 @@ from twind.analysis.fit import (
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
 from twind.model.mechanics import Mechanics
+from twind.model.osem import OSEMS
 from twind.model.params import SOSParams
 
 CONCEAL_SIGMA = 3.0
@@ -291,8 +292,6 @@ def one_stage(plant: Plant, separation: float, kind: str, channel: int, pole_hz:
     """`plant` with one coil driver's (``kind`` "coil") or OSEM readback's ("osem") own
     stage: a pole at `pole_hz` and a zero `separation` (a fraction, may be negative) above
     it, put into the plant's channel filters, which the engine integrates as states."""
-    from twind.model.osem import OSEMS
-
     zero = pole_hz * (1 + separation)
     stage = (kind, channel, pole_hz, zero)
     return (replace(plant, channel_filters=(*plant.channel_filters, stage)),

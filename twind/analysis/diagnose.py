@@ -29,7 +29,7 @@ The claims are scored on a corpus of concealed effects by ``twind bench --suite 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -456,9 +456,9 @@ _STAGES = [(pole, zero) for pole in (1.0, 3.0, 10.0, 30.0, 100.0, 300.0)
 
 
 def _augmented(data: FitData, cfg: OpticConfig, current: FitResult, chosen: Sequence[str],
-               member: str) -> tuple[str, dict[str, float], object]:
-    """`member` added to the current model: the combination's name, the current values
-    under its names, and its whitened-residual function of the member's own values."""
+               member: str) -> Callable[[dict[str, float]], NDArray]:
+    """`member` added to the current model at its values: the whitened residuals as a
+    function of the member's own parameters."""
     combo = "+".join([*chosen, member])
     base = {**{n: v for n, v in current.as_dict().items() if n in FIT_PARAMS},
             **_renamed(current, combo)}
@@ -467,14 +467,14 @@ def _augmented(data: FitData, cfg: OpticConfig, current: FitResult, chosen: Sequ
     def residual(own: dict[str, float]) -> NDArray:
         return data.whiten(model({**base, **{param_name(combo, member, n): v
                                              for n, v in own.items()}}))
-    return combo, base, residual
+    return residual
 
 
 def _first_order_drop(data: FitData, cfg: OpticConfig, current: FitResult,
                       chosen: Sequence[str], member: str) -> float:
     """Drop in chi^2 a filter member's first-order change (a zero minus a pole, in 1/Hz)
     would make alone on the current residuals."""
-    _, _, residual = _augmented(data, cfg, current, chosen, member)
+    residual = _augmented(data, cfg, current, chosen, member)
     r = residual({})
     col = (residual({"inv_zero_hz": 1e-4}) - r) / 1e-4
     return float((col @ r) ** 2 / max(col @ col, 1e-300))
@@ -484,7 +484,7 @@ def _filter_start(data: FitData, cfg: OpticConfig, current: FitResult,
                   chosen: Sequence[str], member: str) -> dict[str, float]:
     """The stage of :data:`_STAGES` (and its mirror, pole and zero swapped) that fits the
     current residuals best, as a filter member's start."""
-    _, _, residual = _augmented(data, cfg, current, chosen, member)
+    residual = _augmented(data, cfg, current, chosen, member)
     best, start = math.inf, {}
     for pole, zero in _STAGES:
         for a, b in ((pole, zero), (zero, pole)):
