@@ -407,7 +407,7 @@ def _bench_information(args: argparse.Namespace) -> int:
 
 def _bench_diagnose(args: argparse.Namespace) -> int:
     """twind diagnose on the proof corpus: drifted optics with concealed effects."""
-    from twind.analysis.corpus import BEYOND, EFFECTS, EXCITED, MADE, run_corpus
+    from twind.analysis.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus
 
     effects = args.effects.split(",") if args.effects else [*EFFECTS, *BEYOND]
     excited = args.excite.split(",") if args.excite else list(EXCITED)
@@ -423,7 +423,7 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
         print(f"--- route: {route}", flush=True)
         run_corpus(cfg, route, args.per_effect, args.nulls, effects=effects,
                    say=lambda line: print(line, flush=True), excited=excited, bw=args.bw,
-                   averages=args.averages, rms=args.rms)
+                   averages=args.averages or AVERAGES, rms=args.rms or RMS)
     return 0
 
 
@@ -617,9 +617,9 @@ def build_parser() -> argparse.ArgumentParser:
                                          "channel_filter (one channel's stage), pairs a+b "
                                          "(default the catalogue's six, those three kinds and "
                                          "three pairs)")
-    bench.add_argument("--averages", type=int, default=10,
-                       help="diagnose: averages of the corpus measurement")
-    bench.add_argument("--rms", type=float, default=3.0,
+    bench.add_argument("--averages", type=int,
+                       help="diagnose: averages of the corpus measurement (default 10)")
+    bench.add_argument("--rms", type=float,
                        help="diagnose: RMS of its excitation (counts; default 3)")
     bench.add_argument("--excite", help="diagnose: comma-separated DOFs excited in turn "
                                         "(default POS,PIT,YAW; add SIDE for side_coupling)")

@@ -380,13 +380,14 @@ def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls:
             real = drifted(cfg, rng)
             parts = effect.split("+")
             draws = [_draw(e, rng) for e in parts]
-            hid = [conceal(real, e, reference, *d) for e, d in zip(parts, draws, strict=True)]
+            hid = [conceal(real, e, reference, direction, shape=shape)
+                   for e, (direction, shape) in zip(parts, draws, strict=True)]
             sizes = [h[1].pop("_size") for h in hid]
             if len(parts) == 1:
                 plant, truth, largest, present = hid[0]
             else:  # each concealed alone, then both put into one plant
                 plant = Plant.from_params(real.sus, real.mechanics())
-                for e, size, (direction, _, shape) in zip(parts, sizes, draws, strict=True):
+                for e, size, (direction, shape) in zip(parts, sizes, draws, strict=True):
                     plant = hidden(plant, e, size, direction, real.sus, shape)[0]
                 truth = {e: h[1] for e, h in zip(parts, hid, strict=True)}
                 largest = max(h[2] for h in hid)
@@ -396,8 +397,8 @@ def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls:
     return cases
 
 
-def _draw(effect: str, rng: np.random.Generator) -> tuple[NDArray, float, dict | None]:
-    """A random direction (face gains), the concealment target and the shape of a case."""
+def _draw(effect: str, rng: np.random.Generator) -> tuple[NDArray, dict | None]:
+    """A random direction (face gains) and the shape of a case."""
     direction = rng.standard_normal(4)
     direction /= np.abs(direction).max()
     shape = None
@@ -409,7 +410,7 @@ def _draw(effect: str, rng: np.random.Generator) -> tuple[NDArray, float, dict |
     elif effect == "channel_filter":  # one face channel (SIDE is barely excited)
         shape = {"kind": str(rng.choice(["coil", "osem"])), "channel": int(rng.integers(4)),
                  "pole_hz": float(np.exp(rng.uniform(math.log(3.0), math.log(50.0))))}
-    return direction, CONCEAL_SIGMA, shape
+    return direction, shape
 
 
 # ------------------------------------------------------------------------------ scoring

@@ -142,8 +142,8 @@ class EffectFit:
 
     def to_json(self) -> dict:
         """One entry of ``effects`` in ``twind diagnose --json``."""
-        values, sigma = self.values()
-        params, sigma = model_names(_base(self.effect), values, sigma)
+        values, sigmas = self.values()
+        params, sigma = model_names(_base(self.effect), values, sigmas)
         out = {"effect": self.effect, "params": params, "sigma": sigma,
                "delta_bic": self.delta_bic, "p_value": self.p_value,
                "equivalent": self.equivalent, "rival_of": self.rival_of,
@@ -152,7 +152,7 @@ class EffectFit:
         if family:
             out["family"] = family
         if _base(self.effect) == "resonance":
-            out["reading"] = body_reading(*self.values(), self.radius_m)
+            out["reading"] = body_reading(values, sigmas, self.radius_m)
         return out
 
 
@@ -161,9 +161,9 @@ def body_reading(values: dict[str, float], sigma: dict[str, float | None],
     """A ``resonance``'s physical reading: a body of mass m2 (kg) pulling along the beam at
     face point (y0, z0) (m) when its POS coupling leads, sideways when SIDE does; the DOFs
     it couples (at least a third of the largest coupling, angles taken at the face's
-    edge); sigmas to first order (``None``
-    where undetermined); ``on_face`` when the point lies within `radius_m` of the centre
-    (a point off the face is no body on it: another mode, read by its pattern)."""
+    edge); sigmas to first order (``None`` where undetermined); ``on_face`` when the point
+    lies within `radius_m` of the centre (a point off the face is no body on it: another
+    mode, read by its pattern)."""
     g = {d: values[f"g_{d}"] for d in BODY_DOFS}
     s = {d: sigma.get(f"g_{d}") for d in BODY_DOFS}
     edge = radius_m or 0.0375
@@ -209,11 +209,14 @@ class Diagnosis:
     final: FitResult
     unexplained: list[Located]
     separations: dict[tuple[str, str], tuple[str, str, float]] = field(default_factory=dict)
-    p_values: dict[str, float] = field(default_factory=dict)
-    """Every hypothesis fitted at the first step and its p-value, claimed or not: how near
-    the data came to each explanation."""
     first_step: list[EffectFit] = field(default_factory=list, repr=False)
     """Every hypothesis fitted at the first step (its search's paths among them)."""
+
+    @property
+    def p_values(self) -> dict[str, float]:
+        """Every hypothesis fitted at the first step and its p-value, claimed or not: how
+        near the data came to each explanation."""
+        return {c.effect: c.p_value for c in self.first_step}
 
     @property
     def chosen(self) -> list[EffectFit]:
@@ -264,10 +267,11 @@ class Diagnosis:
             out.append(f"  {x.element:9s} {x.band_hz[0]:7.3g}-{x.band_hz[1]:<7.3g} Hz  "
                        f"{x.significance:5.1f} sigma, residual power x{x.excess:.2f}")
         for e in self.effects:
+            entry_json = e.to_json()
             params = ", ".join(
                 f"{n} {{{', '.join(f'{k} {x:.3g}' for k, x in v.items())}}}"
                 if isinstance(v, dict) else f"{n} {v:.4g}"
-                for n, v in e.to_json()["params"].items())
+                for n, v in entry_json["params"].items())
             role = f"rival of {e.rival_of}" if e.rival_of else (
                 "effect" + (" (partial)" if e.partial else ""))
             given = ("" if e.p_given_others is None else
@@ -276,8 +280,8 @@ class Diagnosis:
                        f"{given} ({params})" + (f"; not told apart from "
                                                 f"{', '.join(e.equivalent)}"
                                                 if e.equivalent else ""))
-            if "reading" in e.to_json():
-                out.append("    " + _reading_line(e.to_json()["reading"]))
+            if "reading" in entry_json:
+                out.append("    " + _reading_line(entry_json["reading"]))
         for (a, b), (dof, response, f) in self.separations.items():
             out.append(f"  to tell {a} from {b}: excite {dof} around {f:.3g} Hz and measure "
                        f"{response}/{dof} (where their predictions differ most against "
@@ -335,26 +339,35 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     nominal = fit(tfs, cfg, params, min_coherence)
     located = locate(tfs, cfg, nominal)
     unit = _unit(nominal, tfs)
+    chosen, rivals, first_step = _select(tfs, cfg, params, nominal, unit,
+                                         MAX_EFFECTS if max_effects is None else max_effects)
+    if not chosen:
+        return Diagnosis(nominal, located, [], nominal, located, first_step=first_step)
+    final = _prune(tfs, cfg, params, chosen, unit)
+    rivals = [r for r in rivals if any(c.effect == r.rival_of for c in chosen)]
+    unexplained = locate(tfs, cfg, final)
+    for c in chosen:
+        c.step_result, c.result, c.partial = c.result, final, bool(unexplained)
+    separations = {(r.rival_of, r.effect): separating_measurement(cfg, _alone(chosen, r),
+                                                                   r.result)
+                   for r in rivals}
+    return Diagnosis(nominal, located, chosen + rivals, final, unexplained, separations,
+                     first_step)
+
+
+def _select(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
+            nominal: FitResult, unit: float, most: int
+            ) -> tuple[list[EffectFit], list[EffectFit], list[EffectFit]]:
+    """Forward selection from the refitted `nominal` model, up to `most` effects: the
+    chosen ones (best first), the rivals of each, and every hypothesis of the first step."""
     chosen: list[EffectFit] = []
     rivals: list[EffectFit] = []
-    p_values: dict[str, float] = {}
     first_step: list[EffectFit] = []
     current, whole = nominal, ()
-    for _ in range(MAX_EFFECTS if max_effects is None else max_effects):
-        # every hypothesis is tried even when no band stands out: an effect spread thinly
-        # over many bands can be plain in its own fit and invisible band by band
-        names = [c.effect for c in chosen]
-        left = _candidates(names)
-        tried = []
-        for e in left:
-            if e in FAMILIES:
-                tried += _try_family(tfs, cfg, params, names, e, current, whole, unit,
-                                     len(left))
-            else:
-                tried += filter(None, [_try(tfs, cfg, params, names, e, current, whole, unit,
-                                            len(left))])
+    for _ in range(most):
+        tried = _step(tfs, cfg, params, [c.effect for c in chosen], current, whole, unit)
         if not chosen:
-            p_values, first_step = {c.effect: c.p_value for c in tried}, tried
+            first_step = tried
         claimed = sorted((c for c in tried if c.p_value < ALPHA), key=lambda c: -c.delta_bic)
         if not claimed:
             break
@@ -364,25 +377,39 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
         rivals += [replace(c, rival_of=best.effect) for c in claimed[1:]
                    if c.effect in best.equivalent]
         current, whole = best.result, best.whole
-    if not chosen:
-        return Diagnosis(nominal, located, [], nominal, located, p_values=p_values,
-                         first_step=first_step)
-    while True:  # an effect the others made redundant leaves the model
+    return chosen, rivals, first_step
+
+
+def _step(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
+          chosen: list[str], current: FitResult, whole: tuple[tuple[float, float], ...],
+          unit: float) -> list[EffectFit]:
+    """Every hypothesis not yet `chosen`, each fitted with them (:func:`_candidates`).
+    Each is tried even when no band stands out: an effect spread thinly over many bands
+    can be plain in its own fit and invisible band by band."""
+    left = _candidates(chosen)
+    tried = []
+    for e in left:
+        if e in FAMILIES:
+            tried += _try_family(tfs, cfg, params, chosen, e, current, whole, unit, len(left))
+        else:
+            tried += filter(None, [_try(tfs, cfg, params, chosen, e, current, whole, unit,
+                                        len(left))])
+    return tried
+
+
+def _prune(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
+           chosen: list[EffectFit], unit: float) -> FitResult:
+    """Backward: each chosen effect's p-value given the others; the one the others made
+    most redundant leaves `chosen` while its p-value is at least :data:`ALPHA`. Returns
+    the final joint fit."""
+    current, whole = chosen[-1].result, chosen[-1].whole
+    while True:
         without = _given_others(tfs, cfg, params, chosen, current, whole, unit)
         worst = max(chosen, key=lambda c: c.p_given_others or 0.0)
         if len(chosen) < 2 or (worst.p_given_others or 0.0) < ALPHA:
-            break
+            return current
         chosen.remove(worst)
-        rivals = [r for r in rivals if r.rival_of != worst.effect]
         current = without[worst.effect]
-    unexplained = locate(tfs, cfg, current)
-    for c in chosen:
-        c.step_result, c.result, c.partial = c.result, current, bool(unexplained)
-    separations = {(r.rival_of, r.effect): separating_measurement(cfg, _alone(chosen, r),
-                                                                   r.result)
-                   for r in rivals}
-    return Diagnosis(nominal, located, chosen + rivals, current, unexplained, separations,
-                     p_values, first_step)
 
 
 MAX_EFFECTS = 3
@@ -437,7 +464,7 @@ def _try_family(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence
     of stages (rivals of one another), the choice paid for as a search over every member
     (Bonferroni)."""
     members = [m for m in FAMILIES[family] if m not in chosen]
-    first = tfs if isinstance(tfs, TFSet) else tfs[0]
+    first = _sets(tfs)[0]
     data = FitData.from_tfset(first, current.min_coherence, whole=whole).span()
     ranked = sorted(members, key=lambda m: -_first_order_drop(data, cfg, current, chosen, m))
     fits = [c for c in (_try(tfs, cfg, params, chosen, m, current, whole, unit, tried,
@@ -505,11 +532,7 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
     (all refitted), against `current` (the model without it); ``None`` when its fit fails
     or adds no direction the data determine. Its p-value is Bonferroni'd over the `tried`
     hypotheses of this step; `own_start` starts its own parameters."""
-    # from the current fit's nominal parameters, holding those the data left free (a Q
-    # without its resonance): a hypothesis fit would chase them again to its limit
-    start = replace(cfg, sus=with_params(cfg.sus, {n: v for n, v in current.identified().items()
-                                                   if n in FIT_PARAMS}))
-    free = [p for p in params if p in current.names and p not in current.unidentifiable]
+    start, free = _refitted(cfg, current, params)
     combo = "+".join([*chosen, effect])
     held = _renamed(current, combo)
     held.update({param_name(combo, effect, n): v for n, v in (own_start or {}).items()})
@@ -517,7 +540,7 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
     try:
         reference = current
         if effect == "bounce_roll":
-            first = tfs if isinstance(tfs, TFSet) else tfs[0]
+            first = _sets(tfs)[0]
             res = FitData.from_tfset(first, current.min_coherence).resolution_hz
             whole = tuple(narrow.bands(start, res))
             reference = fit(tfs, start, free, current.min_coherence, effect=current.effect,
@@ -551,9 +574,7 @@ def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosi
     nominal = diagnosis.nominal
     first = next((c for c in diagnosis.first_step if c.effect == effect), None)
     paths = first.searched if first else []
-    cfg = replace(cfg, sus=with_params(cfg.sus, {n: v for n, v in nominal.identified().items()
-                                                 if n in FIT_PARAMS}))
-    free = [p for p in nominal.names if p in FIT_PARAMS and p not in nominal.unidentifiable]
+    cfg, free = _refitted(cfg, nominal)
     try:
         result = fit(tfs, cfg, free, nominal.min_coherence, effect=effect, effect_start=start,
                      unfitted=_unseen(tfs, effect))
@@ -567,12 +588,21 @@ def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosi
     return min(1.0, p * max(len(diagnosis.first_step), 1))
 
 
+def _refitted(cfg: OpticConfig, result: FitResult, params: Sequence[str] = FIT_PARAMS
+              ) -> tuple[OpticConfig, list[str]]:
+    """`cfg` at `result`'s identified nominal parameters, and those of `params` to free:
+    the ones the data left undetermined (a Q without its resonance) are held, which a
+    hypothesis fit would otherwise chase again to its evaluation limit."""
+    start = replace(cfg, sus=with_params(cfg.sus, {n: v for n, v in result.identified().items()
+                                                   if n in FIT_PARAMS}))
+    return start, [p for p in params if p in result.names and p not in result.unidentifiable]
+
+
 def _unseen(tfs: TFSet | Sequence[TFSet], combo: str) -> list[str]:
     """The couplings of `combo`'s resonances to DOFs no measurement excites: a body's pull
     on them reaches the data only through products with the others, too weakly to tell
     from a drift of the nominal model, so they are held at zero."""
-    sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
-    excited = {d for t in sets for d in FitData.from_tfset(t).excited}
+    excited = {d for t in _sets(tfs) for d in t.excited}
     return [param_name(combo, e, f"g_{d}") for e in parts(combo)
             if _base(e) == "resonance" for d in BODY_DOFS if d not in excited]
 
@@ -600,15 +630,13 @@ def _search(tfs: TFSet | Sequence[TFSet], start: OpticConfig, free: list[str],
             unit: float) -> tuple[dict[str, float], list[float]]:
     """Where `effect`'s mode starts, searched on the first measurement in the residuals of
     `reference` (:mod:`~twind.analysis.narrow`), and the searches' paths."""
-    first = tfs if isinstance(tfs, TFSet) else tfs[0]
+    first = _sets(tfs)[0]
     data = FitData.from_tfset(first, reference.min_coherence, whole=whole).span()
     values = reference.as_dict()
     if effect == "bounce_roll":
         found, path = narrow.search(data, start, values, free, unit, reference.effect)
         return found, [path]
-    found, paths, _ = narrow.search_resonance(data, start, values, free, unit,
-                                              reference.effect)
-    return found, paths
+    return narrow.search_resonance(data, start, values, free, reference.effect)
 
 
 def _renamed(result: FitResult, combo: str) -> dict[str, float]:
@@ -630,9 +658,7 @@ def _given_others(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequen
         for c in chosen:
             c.p_given_others = None
         return {}
-    start = replace(cfg, sus=with_params(cfg.sus, {n: v for n, v in final.identified().items()
-                                                   if n in FIT_PARAMS}))
-    free = [p for p in params if p in final.names and p not in final.unidentifiable]
+    start, free = _refitted(cfg, final, params)
     fits = {}
     for c in chosen:
         rest = "+".join(o.effect for o in chosen if o is not c)
@@ -662,8 +688,12 @@ def _unit(nominal: FitResult, tfs: TFSet | Sequence[TFSet]) -> float:
 
 
 def _averages(tfs: TFSet | Sequence[TFSet]) -> int:
-    sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
-    return min(t.averages for t in sets)
+    return min(t.averages for t in _sets(tfs))
+
+
+def _sets(tfs: TFSet | Sequence[TFSet]) -> list[TFSet]:
+    """The measurements, one or several."""
+    return [tfs] if isinstance(tfs, TFSet) else list(tfs)
 
 
 def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path) -> Path:

@@ -14,9 +14,10 @@ starts.
 
 A ``resonance`` (a mode in no list) may lie anywhere in the measured band, with any Q and
 any coupling over POS/PIT/YAW/SIDE (:func:`search_resonance`). The same first-order columns
-are built for each trial frequency over every bin, the symmetric coupling matrix's ten
-entries fitted linearly with the nominal directions projected out; the trial is judged, and
-the fit started, by the best coupling a body can make (rank one, positive) along them.
+are built for each trial frequency over every bin, one per entry of the symmetric coupling
+matrix, with the nominal directions projected out; the trial is judged by the best
+coupling a body can make (``g g^T``: rank one, positive) over a grid of directions, and the
+best trial's, refined, starts the fit.
 
 The evidence is searched over many frequencies: its p-value carries that look-elsewhere
 cost (:func:`p_value`).
@@ -384,10 +385,10 @@ trial's shape correlates well with a mode's of Q within a factor of ~2.5 of it."
 
 
 def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
-                     free: Sequence[str] = (), unit: float = 1.0, effect: str | None = None
-                     ) -> tuple[dict[str, float], list[float], float]:
+                     free: Sequence[str] = (), effect: str | None = None
+                     ) -> tuple[dict[str, float], list[float]]:
     """Start values of a ``resonance`` for `data`, anywhere in its band, around the nominal
-    model at `values` (`free`, `unit` and `effect` as in :func:`search`).
+    model at `values` (`free` and `effect` as in :func:`search`).
 
     Returns
     -------
@@ -396,8 +397,6 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
         part of the best symmetric coupling).
     paths : list of float
         Each Q's look-elsewhere path (:func:`p_value`, one search per Q).
-    drop : float
-        The best trial's drop in chi^2, in units of `unit`.
     """
     model = ClosedLoopModel.of(cfg, data, effect).for_data(data)
     r = data.whiten(model(values))
@@ -424,7 +423,7 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
     lam, g = _dominant(x)
     start = {"f_hz": f0, "q": q, **{f"g_{d}": float(v) for d, v in zip(
         BODY_DOFS, math.sqrt(abs(lam)) * g, strict=True)}}
-    return start, paths, float(drop / unit)
+    return start, paths
 
 
 _PAIRS = [(i, j) for i in range(len(BODY_DOFS)) for j in range(i, len(BODY_DOFS))]

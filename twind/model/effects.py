@@ -13,7 +13,6 @@ a likelihood-ratio test needs).  Parameters carry MODEL.md's names, flattened fo
 | side_coupling    | face OSEMs also read ks y; face coils also push ka F_i along y | sensing, actuation    |
 | wire_asymmetry   | centre of mass off the wire plane by d: K_xphi = K_phix = -m g d / l | delta_m (m)     |
 | bounce_roll      | VERT and ROLL modes read by the face OSEMs, driven by the face coils | vertical, roll, f_vertical_hz, f_roll_hz, roll_angle |
-
 | resonance        | a body on a spring at a point of the optic (a cable, a standoff): a mode at f, Q, coupled along g | f_hz, q, g_POS .. g_SIDE |
 | channel_filter   | one coil driver or OSEM readback x (1 + s/2 pi z) / (1 + s/2 pi p) | inv_pole_hz, inv_zero_hz |
 
@@ -233,6 +232,8 @@ CATALOGUE: dict[str, Effect] = {e.id: e for e in (
            _resonance, {"f_hz": 1.0, "q": 10.0, "g_POS": 0.01, "g_PIT": 1e-4, "g_YAW": 1e-4,
                         "g_SIDE": 0.01}),
 )}
+
+
 def _channel_filter(kind: str, k: int) -> Callable[[Plant, SOSParams, Mapping[str, float]],
                                                     Plant]:
     def apply(plant: Plant, sus: SOSParams, v: Mapping[str, float]) -> Plant:
@@ -264,8 +265,6 @@ a fit starts them where a search put them."""
 SEARCHED = {"resonance": ("f_hz", "q")}
 """Effects whose mode is searched for over the whole band, and the parameters the search
 sets beside the couplings: they are paid for in the p-value, not counted as parameters."""
-
-
 REPEATABLE = ("resonance",)
 """Entries a combination may hold more than once, as ``resonance#2``, ``resonance#3``."""
 
@@ -309,10 +308,10 @@ def effect_scale(effect: str) -> dict[str, float]:
     return {f"{e}.{p}": x for e in names for p, x in entry(e).scale.items()}
 
 
-def param_name(effect: str, entry: str, param: str) -> str:
-    """The name `effect` (catalogue `entry` itself or a combination holding it) gives the
-    entry's parameter `param`."""
-    return param if effect == entry else f"{entry}.{param}"
+def param_name(effect: str, name: str, param: str) -> str:
+    """The name `effect` (catalogue entry `name` itself or a combination holding it) gives
+    the entry's parameter `param`."""
+    return param if effect == name else f"{name}.{param}"
 
 
 def own_values(effect: str, name: str, values: Mapping[str, float]) -> dict[str, float]:
