@@ -566,11 +566,12 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
 
 
 def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosis,
-             effect: str, start: dict[str, float]) -> float:
+             effect: str, start: dict[str, float]) -> tuple[float, float]:
     """The p-value `effect` would be given at the first step from a fit started at `start`
     (its search's look-elsewhere cost and the hypotheses tried paid as ``diagnose`` pays
-    them): what the data hold for it, whatever the search finds. For a benchmark that knows
-    the truth; 1 when the fit fails."""
+    them), and that fit's likelihood ratio over the nominal model: what the data hold for
+    it, whatever the search finds. For a benchmark that knows the truth; (1, 0) when the
+    fit fails."""
     nominal = diagnosis.nominal
     first = next((c for c in diagnosis.first_step if c.effect == effect), None)
     paths = first.searched if first else []
@@ -579,13 +580,13 @@ def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosi
         result = fit(tfs, cfg, free, nominal.min_coherence, effect=effect, effect_start=start,
                      unfitted=_unseen(tfs, effect))
     except FitError:
-        return 1.0
+        return 1.0, 0.0
     k = result.rank - nominal.rank
-    if k <= 0:
-        return 1.0
     lr = max(nominal.chi2 - result.chi2, 0.0) / _unit(nominal, tfs)
+    if k <= 0:
+        return 1.0, lr
     p = _p_value(lr, k, paths, _searched(result, effect, effect))
-    return min(1.0, p * max(len(diagnosis.first_step), 1))
+    return min(1.0, p * max(len(diagnosis.first_step), 1)), lr
 
 
 def _refitted(cfg: OpticConfig, result: FitResult, params: Sequence[str] = FIT_PARAMS
