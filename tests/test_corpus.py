@@ -23,6 +23,7 @@ from twind.analysis.corpus import (
     raised_clamp,
     score,
     summary,
+    stage_error,
     tilted_heads,
 )
 from twind.analysis.diagnose import MIN_COHERENCE
@@ -140,6 +141,17 @@ def test_the_key_parameter_ignores_what_the_measurement_cannot_see() -> None:
     off = {"gains": {f: 2 * g for f, g in truth["gains"].items()}}
     assert key_error("osem_imbalance", truth, off) == pytest.approx(1.0)
     assert key_error("actuator_pole", {"f_hz": 200.0}, {"f_hz": 250.0}) == pytest.approx(0.25)
+
+
+def test_a_channel_stage_is_keyed_by_the_slope_the_data_fix() -> None:
+    """Close corners in the band and a stage far above it with the same low-frequency delay
+    agree; twice the delay is 100 % off."""
+    truth = {"pole_hz": 4.0, "zero_hz": 4.01}
+    slope = 1 / 4.0 - 1 / 4.01
+    above = {"pole_hz": 300.0, "zero_hz": 1 / (1 / 300.0 - slope)}
+    assert stage_error(truth, above) == pytest.approx(0.0, abs=1e-9)
+    twice = {"pole_hz": 300.0, "zero_hz": 1 / (1 / 300.0 - 2 * slope)}
+    assert stage_error(truth, twice) == pytest.approx(1.0)
 
 
 def test_effect_parameters_are_reported_in_model_md_names() -> None:

@@ -28,7 +28,8 @@ def plant(sus: SOSParams) -> Plant:
 @pytest.mark.parametrize("effect", list(CATALOGUE))
 def test_every_effect_nests_the_nominal_model(effect: str, plant: Plant, sus: SOSParams) -> None:
     zero = with_effect(plant, sus, effect, dict.fromkeys(CATALOGUE[effect].params, 0.0))
-    np.testing.assert_array_equal(zero.response(F), plant.response(F))
+    P = plant.response(F)  # decoupled extra coordinates change the modal sum by round-off
+    np.testing.assert_allclose(zero.response(F), P, rtol=1e-12, atol=1e-12 * np.abs(P).max())
     moved = with_effect(plant, sus, effect, CATALOGUE[effect].scale)
     assert np.max(np.abs(moved.response(F) - plant.response(F))) > 0
 

@@ -493,7 +493,7 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
 
     A catalogue effect is named when it is claimed (chosen, or a rival of the chosen);
     a pair when both are, its key error the worse of the two; a channel filter when its
-    channel is, its key error its stage's change at the top of the band; a resonance when a
+    channel is, its key error its stage's low-frequency delay's; a resonance when a
     ``resonance`` is claimed within 15 % of its frequency, coupling no DOF the body leaves
     alone and POS among them, its key error the frequency's ("passed off" when no
     resonance is claimed, catalogue effects are and nothing is left unexplained)."""
@@ -517,7 +517,7 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
     elif effect == "channel_filter":
         named = case.truth["channel"] in claimed
         if named:
-            err = _stage_error(case.truth, entries[case.truth["channel"]].to_json()["params"])
+            err = stage_error(case.truth, entries[case.truth["channel"]].to_json()["params"])
     elif "+" in effect:
         parts = effect.split("+")
         named = all(e in claimed for e in parts)
@@ -544,15 +544,16 @@ def body_start(truth: dict) -> dict[str, float]:
                                                  strict=True)}}
 
 
-def _stage_error(truth: dict, fitted: dict, f_hz: float = STOP_HZ) -> float:
-    """A channel stage's key error: how far the fitted stage's change at the top of the
-    band is from the true one's, relative to it (a pair of close corners, as a concealed
-    stage has, fixes its change, not each corner)."""
-    def change(p: dict) -> complex:
-        s = 2j * math.pi * f_hz
-        return (1 + s / (2 * math.pi * p["zero_hz"])) / (1 + s / (2 * math.pi * p["pole_hz"])) - 1
+def stage_error(truth: dict, fitted: dict) -> float:
+    """A channel stage's key error: its low-frequency delay ``(1/p - 1/z) / 2 pi`` (the
+    stage's change is ``-j f (1/p - 1/z)`` to first order below its corners) against the
+    truth's, relative to it. A concealed stage's corners lie close together and its change
+    is seen below them: the data fix this slope, not each corner (a stage fitted hundreds of
+    Hz above the band has the same slope)."""
+    def delay(p: dict) -> float:
+        return (1 / p["pole_hz"] - 1 / p["zero_hz"]) / (2 * math.pi)
 
-    return abs(change(fitted) - change(truth)) / abs(change(truth))
+    return abs(delay(fitted) - delay(truth)) / abs(delay(truth))
 
 
 def _resonance(truth: dict, diagnosis) -> tuple[bool, float, bool, list[str]]:  # noqa: ANN001

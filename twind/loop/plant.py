@@ -61,26 +61,20 @@ class Plant:
     def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
         """``IN1/OUT`` at frequencies `f_hz`, shape (len(f), 4, 4)."""
         s = 2j * np.pi * np.asarray(f_hz, dtype=float)
-        H = self.mechanics.admittance(s)
-        sens, act = self._filtered(s)
-        P = self.input_matrix @ sens @ H @ act @ self.output_matrix
+        if not self.channel_filters:
+            P = self.mechanics.admittance(s, self.input_matrix @ self.sensing,
+                                          self.actuation @ self.output_matrix)
+        else:  # OSEM readings per coil count, then each channel's own stage on its row/column
+            G = self.mechanics.admittance(s, self.sensing, self.actuation)
+            for kind, k, pole, zero in self.channel_filters:
+                F = (1 + s / (2 * np.pi * zero)) / (1 + s / (2 * np.pi * pole))
+                if kind == "coil":
+                    G[:, :, k] *= F[:, None]
+                else:
+                    G[:, k, :] *= F[:, None]
+            P = self.input_matrix @ G @ self.output_matrix
         drive = np.exp(-s * self.delay_s) / (1 + s / (2 * np.pi * self.drive_pole_hz))
         return P * drive[:, None, None]
-
-    def _filtered(self, s: NDArray[np.complex128]) -> tuple[NDArray, NDArray]:
-        """Sensing and actuation at `s` with the :attr:`channel_filters` in, shapes
-        (len(s), 5, n) and (len(s), n, 5) (the matrices themselves without filters)."""
-        if not self.channel_filters:
-            return self.sensing, self.actuation
-        sens = np.broadcast_to(self.sensing, (s.size, *self.sensing.shape)).astype(complex)
-        act = np.broadcast_to(self.actuation, (s.size, *self.actuation.shape)).astype(complex)
-        for kind, k, pole, zero in self.channel_filters:
-            F = (1 + s / (2 * np.pi * zero)) / (1 + s / (2 * np.pi * pole))
-            if kind == "coil":
-                act[:, :, k] *= F[:, None]
-            else:
-                sens[:, k, :] *= F[:, None]
-        return sens, act
 
     def osem_state_space(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Continuous ``(A, B_coil, B_sp, C)``: coil counts (5) and suspension point (3) in,

@@ -14,6 +14,9 @@ from numpy.typing import NDArray
 # Suspension-point inputs: translation along the beam, sideways, and yaw of the clamp frame.
 SUSPENSION_POINT = ("x_sp", "y_sp", "phi_sp")
 _SP_DOF = {"x_sp": "POS", "y_sp": "SIDE", "phi_sp": "YAW"}
+MODAL_CONDITION = 1e8
+"""Largest condition number of the modes' eigenvectors :meth:`Mechanics.admittance` sums
+over (beyond it, near-defective modes lose digits: it inverts per frequency instead)."""
 
 
 @dataclass(frozen=True)
@@ -50,10 +53,38 @@ class Mechanics:
         """
         return np.stack([self.K[:, self.index(_SP_DOF[sp])] for sp in SUSPENSION_POINT], axis=1)
 
-    def admittance(self, s: NDArray[np.complex128]) -> NDArray[np.complex128]:
-        """``(M s^2 + C s + K)^-1`` at each complex frequency, shape (len(s), n, n)."""
-        s = np.asarray(s, dtype=complex)[:, None, None]
-        return np.linalg.inv(self.M * s**2 + self.C * s + self.K)
+    def admittance(self, s: NDArray[np.complex128], left: NDArray | None = None,
+                   right: NDArray | None = None) -> NDArray[np.complex128]:
+        """``left (M s^2 + C s + K)^-1 right`` at each complex frequency, shape
+        (len(s), a, b) for `left` (a, n) and `right` (n, b) (default the identity).
+
+        Summed over the modes, ``sum_k (left v_k)(w_k right) / (s - lambda_k)`` from one
+        eigendecomposition of the state matrix: one matrix product for all frequencies
+        instead of an inverse per frequency (a fit evaluates this thousands of times).
+        Modes too close to defective for that (eigenvectors with condition number above
+        :data:`MODAL_CONDITION`) fall back to the inverses."""
+        s = np.asarray(s, dtype=complex)
+        n = self.n
+        left = np.eye(n) if left is None else np.asarray(left)
+        right = np.eye(n) if right is None else np.asarray(right)
+        A, B = self.state_space()
+        lam, V = np.linalg.eig(A)
+        if np.linalg.cond(V) > MODAL_CONDITION:
+            H = np.linalg.inv(self.M * s[:, None, None] ** 2 + self.C * s[:, None, None]
+                              + self.K)
+            return left @ H @ right
+        a, b = left @ V[:n], np.linalg.solve(V, B) @ right  # (a, 2n), (2n, b)
+        residues = (a.T[:, :, None] * b[:, None, :]).reshape(2 * n, -1)
+        with np.errstate(divide="ignore", invalid="ignore"):  # s on a pole: inf
+            poles = 1.0 / (s[:, None] - lam[None, :])
+            H = poles @ residues
+            # above the modes the terms cancel to ~ M^-1 / s^2: taken out exactly, the rest
+            # is the sum with residues lambda^2 (the first two Markov parameters are 0, M^-1)
+            high = np.abs(s) > np.abs(lam).max()
+            inertia = (left @ np.linalg.inv(self.M) @ right).ravel()
+            H[high] = (inertia + poles[high] @ (residues * lam[:, None] ** 2)) \
+                / s[high, None] ** 2
+        return H.reshape(s.size, left.shape[0], right.shape[1])
 
     def state_space(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Continuous state matrices for the state ``[q, q']`` driven by generalised forces.
