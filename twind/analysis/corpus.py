@@ -511,7 +511,7 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
     if effect is None:
         named = not claimed
     elif effect == "resonance":
-        named, err, located, coupled = _resonance(case.truth, diagnosis)
+        named, err, z, located, coupled = _resonance(case.truth, diagnosis)
         forced = (not any(e.effect.startswith("resonance") for e in diagnosis.effects)
                   and bool(diagnosis.chosen) and not diagnosis.unexplained)
     elif effect == "channel_filter":
@@ -556,21 +556,24 @@ def stage_error(truth: dict, fitted: dict) -> float:
     return abs(delay(fitted) - delay(truth)) / abs(delay(truth))
 
 
-def _resonance(truth: dict, diagnosis) -> tuple[bool, float, bool, list[str]]:  # noqa: ANN001
-    """(modelled, relative frequency error, located, DOFs the nearest claimed resonance
-    couples) of a hidden body."""
+def _resonance(truth: dict, diagnosis  # noqa: ANN001 - Diagnosis
+               ) -> tuple[bool, float, float, bool, list[str]]:
+    """(modelled, relative frequency error, the same in the fit's own sigma, located, DOFs
+    the nearest claimed resonance couples) of a hidden body."""
     f = truth["f_hz"]
     bands = [x.band_hz for x in (*diagnosis.located, *diagnosis.unexplained)]
     located = any(lo <= 1.15 * f and hi >= 0.85 * f for lo, hi in bands)
     # chosen, or a rival the data do not tell from the chosen effect (as for the catalogue)
     fits = [e.to_json() for e in diagnosis.effects if e.effect.startswith("resonance")]
     if not fits:
-        return False, math.nan, located, []
+        return False, math.nan, math.nan, located, []
     best = min(fits, key=lambda e: abs(e["params"]["f_hz"] - f))
     err = abs(best["params"]["f_hz"] - f) / f
+    sigma = best["sigma"]["f_hz"]
+    z = math.nan if not sigma else abs(best["params"]["f_hz"] - f) / sigma
     coupled = best["reading"]["coupled"]
     modelled = err <= 0.15 and "POS" in coupled and set(coupled) <= set(truth["coupled"])
-    return modelled, err, located or modelled, coupled
+    return modelled, err, z, located or modelled, coupled
 
 
 # ------------------------------------------------------------------------------ routes
@@ -689,8 +692,11 @@ def summary(scores: Sequence[Score]) -> list[str]:
                            f"modelled {sum(s.named for s in held)}; missed where the search's "
                            f"fit explains the data as well as the truth's (chi2 within "
                            f"{AS_GOOD:g}): {len(limited)}")
+                claims = [s for s in some if math.isfinite(s.key_error)]
                 out.append(f"  claimed within 15 % of its frequency, whatever DOFs it couples: "
-                           f"{sum(s.key_error <= 0.15 for s in some)}/{len(some)}")
+                           f"{sum(s.key_error <= 0.15 for s in some)}/{len(some)}; of the "
+                           f"{len(claims)} claimed, f within 2 of its own sigmas: "
+                           f"{sum(s.key_z <= 2 for s in claims)}")
                 out.append(f"  located (a band holding f +- 15 %, or modelled): "
                            f"{sum(s.located for s in some)}/{len(some)}; passed off as "
                            f"catalogue effects with nothing unexplained: "
