@@ -146,3 +146,21 @@ def test_a_channel_filter_is_one_channel_s_stage_in_model_and_engine(
     np.testing.assert_allclose(R, plant.input_matrix @ want @ plant.output_matrix
                                * np.exp(-S * plant.delay_s)[:, None, None],
                                rtol=1e-9, atol=1e-12 * np.abs(R).max())
+
+
+@pytest.mark.parametrize("effect", ["bounce_roll", "resonance"])
+def test_the_modal_admittance_is_the_inverse_at_every_frequency(effect: str, plant: Plant,
+                                                                 sus: SOSParams) -> None:
+    """The sum over modes against ``(M s^2 + C s + K)^-1`` from 0 to 5 kHz, also with a body
+    that moves nothing at the POS mode's own frequency and width (a repeated eigenvalue)."""
+    pos = plant.mechanics.index("POS")
+    w2 = plant.mechanics.K[pos, pos] / plant.mechanics.M[pos, pos]
+    f_pos = float(np.sqrt(w2) / (2 * np.pi))
+    q = float(np.sqrt(w2) / (plant.mechanics.C[pos, pos] / plant.mechanics.M[pos, pos]))
+    values = {"f_hz": f_pos, "q": q, "g_POS": 0.0, "g_PIT": 0.0, "g_YAW": 0.0, "g_SIDE": 0.0} \
+        if effect == "resonance" else CATALOGUE[effect].scale
+    mech = with_effect(plant, sus, effect, values).mechanics
+    s = 2j * np.pi * np.concatenate([[0.0], np.logspace(-2, np.log10(5000), 400)])
+    direct = np.linalg.inv(mech.M * s[:, None, None] ** 2 + mech.C * s[:, None, None] + mech.K)
+    scale = np.abs(direct).max(axis=(1, 2), keepdims=True)
+    assert np.all(np.abs(mech.admittance(s) - direct) <= 1e-9 * scale)
