@@ -164,3 +164,15 @@ def test_the_modal_admittance_is_the_inverse_at_every_frequency(effect: str, pla
     direct = np.linalg.inv(mech.M * s[:, None, None] ** 2 + mech.C * s[:, None, None] + mech.K)
     scale = np.abs(direct).max(axis=(1, 2), keepdims=True)
     assert np.all(np.abs(mech.admittance(s) - direct) <= 1e-9 * scale)
+
+
+def test_near_defective_modes_fall_back_to_the_inverse(plant: Plant,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beyond the eigenvectors' condition limit the admittance inverts per frequency, with
+    the same projections."""
+    mech, left, right = plant.mechanics, plant.sensing, plant.actuation
+    modal = mech.admittance(S, left, right)
+    monkeypatch.setattr("twind.model.mechanics.MODAL_CONDITION", 0.0)
+    direct = mech.admittance(S, left, right)
+    assert direct.shape == modal.shape == (S.size, 5, 5)
+    np.testing.assert_allclose(direct, modal, rtol=0, atol=1e-9 * np.abs(modal).max())
