@@ -75,14 +75,14 @@ class Mechanics:
             return left @ H @ right
         a, b = left @ V[:n], np.linalg.solve(V, B) @ right  # (a, 2n), (2n, b)
         residues = (a.T[:, :, None] * b[:, None, :]).reshape(2 * n, -1)
+        # above the modes the terms cancel to ~ M^-1 / s^2: taken out exactly, the rest is
+        # the sum with residues lambda^2 (the first two Markov parameters are 0 and M^-1)
+        high = np.abs(s) > np.abs(lam).max()
+        H = np.empty((s.size, residues.shape[1]), dtype=complex)
         with np.errstate(divide="ignore", invalid="ignore"):  # s on a pole: inf
-            poles = 1.0 / (s[:, None] - lam[None, :])
-            H = poles @ residues
-            # above the modes the terms cancel to ~ M^-1 / s^2: taken out exactly, the rest
-            # is the sum with residues lambda^2 (the first two Markov parameters are 0, M^-1)
-            high = np.abs(s) > np.abs(lam).max()
-            inertia = (left @ np.linalg.inv(self.M) @ right).ravel()
-            H[high] = (inertia + poles[high] @ (residues * lam[:, None] ** 2)) \
+            H[~high] = (1.0 / (s[~high, None] - lam)) @ residues
+            inertia = (left @ B[n:] @ right).ravel()  # B's lower block is M^-1
+            H[high] = (inertia + (1.0 / (s[high, None] - lam)) @ (residues * lam[:, None] ** 2)) \
                 / s[high, None] ** 2
         return H.reshape(s.size, left.shape[0], right.shape[1])
 
