@@ -13,6 +13,7 @@ import pytest
 from conftest import complex_array
 
 from twind.cli import main
+from twind.loop.damping import sensitivity
 
 KEYS = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC", "closed_loop_IN2_per_EXC")
 
@@ -73,3 +74,18 @@ def test_console_script_png(tmp_path) -> None:  # noqa: ANN001
                            "--n", "50"], capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_sensitivity_equals_the_inverse_and_refuses_a_singular_loop() -> None:
+    """The compiled ``(I - P K)^-1`` against LAPACK's, on matrices that need row exchanges
+    (a zero first pivot) and on a loop that is singular at one frequency."""
+    rng = np.random.default_rng(3)
+    P = rng.standard_normal((50, 4, 4)) + 1j * rng.standard_normal((50, 4, 4))
+    k = rng.standard_normal((50, 4)) + 1j * rng.standard_normal((50, 4))
+    P[0] = np.eye(4)[[1, 0, 2, 3]] + np.eye(4)  # I - P K has a zero (0, 0) entry
+    k[0] = 1.0
+    want = np.linalg.inv(np.eye(4) - P * k[:, None, :])
+    assert np.allclose(sensitivity(P, k), want, rtol=1e-10, atol=1e-12 * np.abs(want).max())
+    P[7], k[7] = np.eye(4), 1.0
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        sensitivity(P, k)

@@ -46,6 +46,7 @@ from twind import DOFS
 from twind.analysis.tf import Kernel, TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
+from twind.loop.damping import sensitivity
 from twind.loop.plant import Plant
 from twind.model.effects import (
     MODE_SEARCH,
@@ -303,7 +304,7 @@ class ClosedLoopModel:
     def _K(self) -> NDArray[np.complex128]:
         # when first needed: a model made only to be cut down to a measurement's bins
         # (for_data) would otherwise evaluate the filters at every bin up to Nyquist
-        return self.cfg.loop().controller(self._at)[:, :, None] * np.eye(len(DOFS))
+        return self.cfg.loop().controller(self._at)
 
     @classmethod
     def of(cls, cfg: OpticConfig, data: FitData, effect: str | None = None) -> ClosedLoopModel:
@@ -347,7 +348,7 @@ class ClosedLoopModel:
             return T
         d, w = hann_kernel(self.resolution_hz, width)
         at = (self.f[near, None] + self.resolution_hz * d).ravel()
-        K = self.cfg.loop().controller(at)[:, :, None] * np.eye(len(DOFS))
+        K = self.cfg.loop().controller(at)
         fine = _closed_loop(plant.response(at), K).reshape(near.size, d.size, *T.shape[1:])
         T = T.copy()
         T[near] = np.einsum("k,fkij->fij", w, fine)
@@ -395,7 +396,7 @@ class ClosedLoopModel:
         width = min(lo * nominal[dof] / sus.Q[dof] for dof, lo, _ in MODE_SEARCH.values())
         d, w = hann_kernel(self.resolution_hz, width)
         at = (self.f[bins, None] + self.resolution_hz * d).ravel()
-        K = self.cfg.loop().controller(at)[:, :, None] * np.eye(len(DOFS))
+        K = self.cfg.loop().controller(at)
         return bins, at, w, K
 
     def for_data(self, data: FitData) -> Callable[[Mapping[str, float]], NDArray]:
@@ -640,11 +641,10 @@ def hann_kernel(resolution_hz: float, width_hz: float
     return d, w / w.sum()
 
 
-def _closed_loop(P: NDArray[np.complex128], K: NDArray[np.complex128]
+def _closed_loop(P: NDArray[np.complex128], k: NDArray[np.complex128]
                  ) -> NDArray[np.complex128]:
-    """``IN1/EXC`` from the plant and the controller at the same frequencies."""
-    eye = np.eye(len(DOFS))
-    return np.linalg.inv(eye - P @ K) - eye
+    """``IN1/EXC`` from the plant and the controller's diagonal at the same frequencies."""
+    return sensitivity(P, k) - np.eye(len(DOFS))
 
 
 def _jacobian(fun, x: NDArray[np.float64]) -> NDArray[np.float64]:  # noqa: ANN001

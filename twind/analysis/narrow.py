@@ -44,6 +44,7 @@ from twind.analysis.fit import (
     with_params,
 )
 from twind.config import OpticConfig
+from twind.loop.damping import sensitivity
 from twind.loop.plant import Plant
 from twind.model.effects import BODY_DOFS, MODE_SEARCH, mode_bands, with_effect
 from twind.model.params import SOSParams
@@ -332,8 +333,9 @@ def _loop_at(cfg: OpticConfig, plant: Plant, at: NDArray[np.float64]
     controller, the drive's delay and pole, and ``s``."""
     flat = at.ravel()
     s = 2j * np.pi * flat
-    K = cfg.loop().controller(flat)[:, :, None] * np.eye(len(DOFS))
-    S = np.linalg.inv(np.eye(len(DOFS)) - plant.response(flat) @ K)
+    k = cfg.loop().controller(flat)
+    S = sensitivity(plant.response(flat), k)
+    K = k[:, :, None] * np.eye(len(DOFS))
     drive = np.exp(-s * plant.delay_s) / (1 + s / (2 * np.pi * plant.drive_pole_hz))
     return S, K, drive, s.reshape(at.shape)
 

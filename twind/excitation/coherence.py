@@ -143,8 +143,7 @@ def in1_noise_asd(optic_cfg: OpticConfig, f_hz: ArrayLike,
     plant = loop.plant
     mech = plant.mechanics
     r = loop.responses(f)
-    K = r["controller_diag"][:, :, None] * np.eye(4)
-    sens = np.linalg.inv(np.eye(4) - r["plant_IN1_per_OUT"] @ K)
+    sens = r["closed_loop_IN2_per_EXC"]
     H = mech.admittance(2j * np.pi * f)
     osem = np.broadcast_to(plant.input_matrix, (f.size, 4, 5))
     sp = plant.input_matrix @ plant.sensing @ H @ mech.suspension_point_forces()
