@@ -261,8 +261,10 @@ def test_the_corpus_hides_what_the_catalogue_cannot_say(etmx, reference: FitData
     assert [s.kind for s in scores] == ["resonance", "channel_filter", "pair"]
     scores[0].truth_p, scores[0].truth_margin = 1e-3, 0.5  # held, but the search did as well
     scores[0].key_z = 1.5  # claimed 10 % off, 1.5 of its own sigmas
+    scores[0].f_in_range, scores[0].f_range_width = True, 0.25
     lines = summary(scores)
-    assert any(line.endswith("of the 1 claimed, f within 2 of its own sigmas: 1")
+    assert any(line.endswith("of the 1 claimed, f within 2 of its own sigmas: 1, f in the "
+                             "ranges the data allow: 1 (their width median 25 % of f)")
                for line in lines)
     assert any(line.startswith("  with evidence enough") and line.endswith(
         "(chi2 within 1): 1") for line in lines)

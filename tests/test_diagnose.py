@@ -148,7 +148,10 @@ def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  
     assert r["along"] == "beam" and r["on_face"] and set(r["coupled"]) == {"POS", "PIT"}
     assert abs(r["z0_m"] - 0.02) < 3 * r["z0_m_sigma"]
     assert abs(r["mass_kg"] - 6e-5) < 3 * r["mass_kg_sigma"]
-    assert "as a body" in "\n".join(d.lines())
+    # a body seen at its peak: the frequencies the data allow hold it, and little else
+    assert any(lo <= truth["f_hz"] <= hi for lo, hi in r["f_hz_ranges"])
+    assert sum(hi - lo for lo, hi in r["f_hz_ranges"]) < 0.1 * truth["f_hz"]
+    assert "as a body" in "\n".join(d.lines()) and "the data allow f in" in "\n".join(d.lines())
 
 
 def test_one_readback_with_its_own_stage_is_named_with_its_corners(etmx) -> None:  # noqa: ANN001

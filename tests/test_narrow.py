@@ -10,7 +10,7 @@ import pytest
 
 from twind import DOFS
 from twind.analysis.fit import ClosedLoopModel, FitData
-from twind.analysis.narrow import _columns, p_value, search
+from twind.analysis.narrow import Scan, _columns, p_value, search
 from twind.config import load_config
 from twind.loop.plant import Plant
 from twind.model.effects import MODE_SEARCH, with_effect
@@ -119,3 +119,15 @@ def test_with_no_physical_coupling_a_mode_starts_at_its_nominal_frequency() -> N
     assert _choice(drop, x, at_nominal=2) == 2
     x[1] = 0.5
     assert _choice(drop, x, at_nominal=2) == 1  # the one physical trial
+
+
+def test_a_scan_reports_every_range_of_frequencies_the_data_cannot_tell_apart() -> None:
+    """Runs of trials within the margin of the best, each reaching the trials either side
+    (the range ends somewhere between), merged across sweeps; a barred trial (``-inf``,
+    no small attachment) breaks a run."""
+    scan = Scan((np.arange(1.0, 9.0), np.array([7.5, 9.0, 9.5])),
+                (np.array([0.0, 10.0, 9.5, 0.0, 0.0, -np.inf, 9.8, 0.0]),
+                 np.array([9.9, 0.0, 0.0])))
+    assert scan.plausible(1.0) == [(1.0, 4.0), (6.0, 9.0)]
+    assert scan.plausible(0.0) == [(1.0, 3.0)]
+    assert scan.plausible(100.0) == [(1.0, 9.5)]

@@ -439,6 +439,8 @@ class Score:
     than the search's own first fit; at or below :data:`AS_GOOD` the data do not prefer the
     truth to what the search found."""
     coupled: list[str] = field(default_factory=list)  # a resonance: the claimed one's DOFs
+    f_in_range: bool | None = None  # a claimed resonance: f inside the ranges it allows
+    f_range_width: float = math.nan  # their total width, relative to f
 
     @property
     def kind(self) -> str:
@@ -504,14 +506,15 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
     claimed = [e["effect"] for e in out["effects"]]
     entries = {e.effect: e for e in diagnosis.effects}
     tried = diagnosis.p_values
-    effect, err, z, located, forced, coupled = (case.effect, math.nan, math.nan, False,
-                                                 False, [])
+    effect, err, z, located, forced = case.effect, math.nan, math.nan, False, False
+    body: dict = {}
     p = min(tried.values(), default=math.nan) if effect is None else tried.get(
         effect, tried.get(case.truth.get("channel", ""), math.nan))
     if effect is None:
         named = not claimed
     elif effect == "resonance":
-        named, err, z, located, coupled = _resonance(case.truth, diagnosis)
+        body = _resonance(case.truth, diagnosis)
+        named, err, z, located = (body.pop(k) for k in ("named", "err", "z", "located"))
         forced = (not any(e.effect.startswith("resonance") for e in diagnosis.effects)
                   and bool(diagnosis.chosen) and not diagnosis.unexplained)
     elif effect == "channel_filter":
@@ -530,8 +533,7 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
             err = key_error(effect, case.truth, entries[effect].to_json()["params"])
             z = key_z(effect, case.truth, entries[effect].result)
     return Score(case, named, claimed, err, z, out["chi2_nu_nominal"],
-                 out["chi2_nu_final"], seconds, p, diagnosis_seconds, located, forced,
-                 coupled=coupled)
+                 out["chi2_nu_final"], seconds, p, diagnosis_seconds, located, forced, **body)
 
 
 def body_start(truth: dict) -> dict[str, float]:
@@ -556,24 +558,29 @@ def stage_error(truth: dict, fitted: dict) -> float:
     return abs(delay(fitted) - delay(truth)) / abs(delay(truth))
 
 
-def _resonance(truth: dict, diagnosis  # noqa: ANN001 - Diagnosis
-               ) -> tuple[bool, float, float, bool, list[str]]:
-    """(modelled, relative frequency error, the same in the fit's own sigma, located, DOFs
-    the nearest claimed resonance couples) of a hidden body."""
+def _resonance(truth: dict, diagnosis) -> dict:  # noqa: ANN001 - Diagnosis
+    """A hidden body's scores: ``named`` (modelled), ``err`` (relative frequency error) and
+    ``z`` (the same in the fit's own sigma), ``located``, and for the nearest claimed
+    resonance the DOFs it couples, whether f lies in the ranges it allows and their width
+    relative to f."""
     f = truth["f_hz"]
     bands = [x.band_hz for x in (*diagnosis.located, *diagnosis.unexplained)]
     located = any(lo <= 1.15 * f and hi >= 0.85 * f for lo, hi in bands)
     # chosen, or a rival the data do not tell from the chosen effect (as for the catalogue)
     fits = [e.to_json() for e in diagnosis.effects if e.effect.startswith("resonance")]
     if not fits:
-        return False, math.nan, math.nan, located, []
+        return {"named": False, "err": math.nan, "z": math.nan, "located": located}
     best = min(fits, key=lambda e: abs(e["params"]["f_hz"] - f))
     err = abs(best["params"]["f_hz"] - f) / f
     sigma = best["sigma"]["f_hz"]
-    z = math.nan if not sigma else abs(best["params"]["f_hz"] - f) / sigma
     coupled = best["reading"]["coupled"]
     modelled = err <= 0.15 and "POS" in coupled and set(coupled) <= set(truth["coupled"])
-    return modelled, err, z, located or modelled, coupled
+    ranges = best["reading"]["f_hz_ranges"]
+    return {"named": modelled, "err": err,
+            "z": math.nan if not sigma else abs(best["params"]["f_hz"] - f) / sigma,
+            "located": located or modelled, "coupled": coupled,
+            "f_in_range": any(lo <= f <= hi for lo, hi in ranges),
+            "f_range_width": sum(hi - lo for lo, hi in ranges) / f}
 
 
 # ------------------------------------------------------------------------------ routes
@@ -669,6 +676,10 @@ def _line(s: Score) -> str:
             f"  p {s.p_value:.1g}  [{s.seconds:.0f} s, diagnosis {s.diagnosis_seconds:.0f} s]")
 
 
+def _median_pct(x: Sequence[float]) -> str:
+    return f"{100 * np.median(x):.0f} %" if len(x) else "-"
+
+
 def summary(scores: Sequence[Score]) -> list[str]:
     """The issue's targets, as measured on `scores` (a corpus without effect cases or without
     nulls leaves their lines out)."""
@@ -696,7 +707,9 @@ def summary(scores: Sequence[Score]) -> list[str]:
                 out.append(f"  claimed within 15 % of its frequency, whatever DOFs it couples: "
                            f"{sum(s.key_error <= 0.15 for s in some)}/{len(some)}; of the "
                            f"{len(claims)} claimed, f within 2 of its own sigmas: "
-                           f"{sum(s.key_z <= 2 for s in claims)}")
+                           f"{sum(s.key_z <= 2 for s in claims)}, f in the ranges the data "
+                           f"allow: {sum(bool(s.f_in_range) for s in claims)} (their width "
+                           f"median {_median_pct([s.f_range_width for s in claims])} of f)")
                 out.append(f"  located (a band holding f +- 15 %, or modelled): "
                            f"{sum(s.located for s in some)}/{len(some)}; passed off as "
                            f"catalogue effects with nothing unexplained: "

@@ -126,6 +126,9 @@ class EffectFit:
     """Its fit when it was chosen (before later effects joined)."""
     radius_m: float | None = field(default=None, repr=False)
     """The optic's radius (a ``resonance``'s reading asks whether its point is on it)."""
+    f_ranges: list[tuple[float, float]] = field(default_factory=list)
+    """A searched ``resonance``: the frequency ranges (Hz) its search could not tell from
+    the one found (:data:`F_MARGIN`)."""
 
     def values(self) -> tuple[dict[str, float], dict[str, float | None]]:
         """Its parameters and their sigmas (None: undetermined), by its own names."""
@@ -153,6 +156,7 @@ class EffectFit:
             out["family"] = family
         if _base(self.effect) == "resonance":
             out["reading"] = body_reading(values, sigmas, self.radius_m)
+            out["reading"]["f_hz_ranges"] = [list(r) for r in self.f_ranges]
         return out
 
 
@@ -196,7 +200,12 @@ def _reading_line(r: dict) -> str:
     if "z0_m" in r:
         text += (f" at y0 {pm('y0_m', 1e3, '.2g')} mm, z0 {pm('z0_m', 1e3, '.2g')} mm"
                  + ("" if r["on_face"] else " (off the face: not a body on it)"))
-    return text + f", pulling along the {r['along']}"
+    text += f", pulling along the {r['along']}"
+    if r.get("f_hz_ranges"):
+        text += "; the data allow f in " + ", ".join(
+            f"{lo:.3g}-{hi:.3g}" if hi > lo else f"{lo:.3g}" for lo, hi in r["f_hz_ranges"]
+        ) + " Hz"
+    return text
 
 
 @dataclass
@@ -537,6 +546,7 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
     held = _renamed(current, combo)
     held.update({param_name(combo, effect, n): v for n, v in (own_start or {}).items()})
     paths: list[float] = []
+    scan = None
     try:
         reference = current
         if effect == "bounce_roll":
@@ -546,7 +556,7 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
             reference = fit(tfs, start, free, current.min_coherence, effect=current.effect,
                             effect_start=current.as_dict(), whole=whole)
         if _base(effect) in NARROW:
-            found, paths = _search(tfs, start, free, reference, effect, whole, unit)
+            found, paths, scan = _search(tfs, start, free, reference, effect, whole, unit)
             held.update({param_name(combo, effect, n): v for n, v in found.items()})
         result = fit(tfs, start, free, current.min_coherence, effect=combo,
                      effect_start=held, whole=whole, unfitted=_unseen(tfs, combo))
@@ -562,7 +572,14 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
     p = _p_value(lr, k, paths, _searched(result, combo, effect))
     return EffectFit(effect, result, lr, k, min(1.0, p * tried),
                      lr - k * math.log(max(n, 1)), whole=whole, searched=paths,
-                     radius_m=cfg.sus.radius_m)
+                     radius_m=cfg.sus.radius_m,
+                     f_ranges=scan.plausible(F_MARGIN * unit) if scan else [])
+
+
+F_MARGIN = float(stats.chi2.ppf(0.95, 1))
+"""How much less of the misfit (chi^2, in the nulls' units) a trial frequency of a
+``resonance`` search may remove than the best and still be reported as allowed: 95 % for
+one parameter."""
 
 
 def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosis,
@@ -628,15 +645,16 @@ def _searched(result: FitResult, combo: str, effect: str) -> int:
 
 def _search(tfs: TFSet | Sequence[TFSet], start: OpticConfig, free: list[str],
             reference: FitResult, effect: str, whole: tuple[tuple[float, float], ...],
-            unit: float) -> tuple[dict[str, float], list[float]]:
+            unit: float) -> tuple[dict[str, float], list[float], narrow.Scan | None]:
     """Where `effect`'s mode starts, searched on the first measurement in the residuals of
-    `reference` (:mod:`~twind.analysis.narrow`), and the searches' paths."""
+    `reference` (:mod:`~twind.analysis.narrow`), the searches' paths and, for a
+    ``resonance``, its scan."""
     first = _sets(tfs)[0]
     data = FitData.from_tfset(first, reference.min_coherence, whole=whole).span()
     values = reference.as_dict()
     if effect == "bounce_roll":
         found, path = narrow.search(data, start, values, free, unit, reference.effect)
-        return found, [path]
+        return found, [path], None
     return narrow.search_resonance(data, start, values, free, reference.effect)
 
 

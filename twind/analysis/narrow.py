@@ -386,9 +386,51 @@ SEARCH_Q = (8.0, 40.0)
 trial's shape correlates well with a mode's of Q within a factor of ~2.5 of it."""
 
 
+@dataclass(frozen=True)
+class Scan:
+    """Every trial frequency of a :func:`search_resonance`, one sweep per searched Q.
+
+    Attributes
+    ----------
+    f_hz : tuple of ndarray
+        Each sweep's trial frequencies (Hz), ascending.
+    drop : tuple of ndarray
+        The chi^2 each trial's best body removes, to first order (``-inf`` where that body
+        would be no small attachment).
+    """
+
+    f_hz: tuple[NDArray[np.float64], ...]
+    drop: tuple[NDArray[np.float64], ...]
+
+    def plausible(self, margin: float) -> list[tuple[float, float]]:
+        """The frequency ranges (Hz) whose trials remove within `margin` (chi^2) of the
+        best trial's drop: where the data cannot tell the mode from the one found.
+
+        The likelihood over a mode's frequency has several optima when the data see the
+        body's mass or spring and not its peak; the curvature at the best one then says
+        nothing of the others, and these ranges do."""
+        best = max(float(d.max()) for d in self.drop if d.size)
+        runs: list[tuple[float, float]] = []
+        for f, d in zip(self.f_hz, self.drop, strict=True):
+            near = np.flatnonzero(d >= best - margin)
+            # consecutive trials form one range, which ends somewhere before the trials
+            # either side of it: it reaches them
+            for run in np.split(near, np.flatnonzero(np.diff(near) > 1) + 1):
+                if run.size:
+                    runs.append((float(f[max(run[0] - 1, 0)]),
+                                 float(f[min(run[-1] + 1, f.size - 1)])))
+        merged: list[tuple[float, float]] = []
+        for lo, hi in sorted(runs):
+            if merged and lo <= merged[-1][1]:
+                merged[-1] = (merged[-1][0], max(merged[-1][1], hi))
+            else:
+                merged.append((lo, hi))
+        return merged
+
+
 def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
                      free: Sequence[str] = (), effect: str | None = None
-                     ) -> tuple[dict[str, float], list[float]]:
+                     ) -> tuple[dict[str, float], list[float], Scan]:
     """Start values of a ``resonance`` for `data`, anywhere in its band, around the nominal
     model at `values` (`free` and `effect` as in :func:`search`).
 
@@ -399,6 +441,8 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
         part of the best symmetric coupling).
     paths : list of float
         Each Q's look-elsewhere path (:func:`p_value`, one search per Q).
+    scan : Scan
+        Every trial's drop, for the range of frequencies the data allow.
     """
     model = ClosedLoopModel.of(cfg, data, effect).for_data(data)
     r = data.whiten(model(values))
@@ -408,16 +452,21 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
     idx = [plant.mechanics.index(d) for d in BODY_DOFS]
     inertia = np.sqrt(np.diag(plant.mechanics.M)[idx])
     best = (-np.inf, 0.0, 0.0, np.zeros(len(_PAIRS)))
-    paths = []
+    paths, freqs, drops = [], [], []
     for q in SEARCH_Q:
-        path = 0.0
+        path, f, d = 0.0, [], []
         for f0, drop, x, angle in trials.sweep(q):
             path += angle
             # a body heavier than a tenth of the optic is no small attachment: the
             # first-order columns no longer hold, and no such thing hangs on a face
-            if drop > best[0] and _relative_mass(x, inertia) < MAX_RELATIVE_MASS:
+            small = _relative_mass(x, inertia) < MAX_RELATIVE_MASS
+            f.append(f0)
+            d.append(drop if small else -np.inf)
+            if drop > best[0] and small:
                 best = (drop, f0, q, x)
         paths.append(path)
+        freqs.append(np.array(f))
+        drops.append(np.array(d))
     drop, f0, q, x = best
     C = trials.columns(f0, q)  # the best trial's direction, refined off the grid
     CQ = C @ Q
@@ -425,7 +474,7 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
     lam, g = _dominant(x)
     start = {"f_hz": f0, "q": q, **{f"g_{d}": float(v) for d, v in zip(
         BODY_DOFS, math.sqrt(abs(lam)) * g, strict=True)}}
-    return start, paths
+    return start, paths, Scan(tuple(freqs), tuple(drops))
 
 
 _PAIRS = [(i, j) for i in range(len(BODY_DOFS)) for j in range(i, len(BODY_DOFS))]
