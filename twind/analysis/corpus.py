@@ -670,7 +670,9 @@ def _line(s: Score) -> str:
                                                f"({s.key_z:.1f} sigma)")
     verdict = ", ".join(s.claimed) or "consistent"
     if s.coupled:
-        verdict += f" (resonance coupling {'/'.join(s.coupled)})"
+        verdict += (f" (resonance coupling {'/'.join(s.coupled)}, f "
+                    f"{'in' if s.f_in_range else 'outside'} the ranges it allows, "
+                    f"{100 * s.f_range_width:.0f} % wide)")
     return (f"{c.name:18s} {hidden_}  chi2/nu {s.chi2_nu_nominal:6.2f} -> "
             f"{s.chi2_nu_final:5.2f}  {'ok ' if s.named else 'MISS'} {verdict}{key}"
             f"  p {s.p_value:.1g}  [{s.seconds:.0f} s, diagnosis {s.diagnosis_seconds:.0f} s]")
