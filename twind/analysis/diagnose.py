@@ -128,7 +128,7 @@ class EffectFit:
     """The optic's radius (a ``resonance``'s reading asks whether its point is on it)."""
     f_ranges: list[tuple[float, float]] = field(default_factory=list)
     """A searched ``resonance``: the frequency ranges (Hz) its search could not tell from
-    the one found (:data:`F_MARGIN`)."""
+    the best trial (:data:`F_MARGIN`)."""
 
     def values(self) -> tuple[dict[str, float], dict[str, float | None]]:
         """Its parameters and their sigmas (None: undetermined), by its own names."""
@@ -156,8 +156,17 @@ class EffectFit:
             out["family"] = family
         if _base(self.effect) == "resonance":
             out["reading"] = body_reading(values, sigmas, self.radius_m)
-            out["reading"]["f_hz_ranges"] = [list(r) for r in self.f_ranges]
+            out["reading"]["f_hz_ranges"] = [list(r) for r in self._f_ranges(values, sigmas)]
         return out
+
+    def _f_ranges(self, values: dict[str, float], sigma: dict[str, float | None]
+                  ) -> list[tuple[float, float]]:
+        """The search's ranges with the fitted frequency's own (2 sigma) joined: the fit
+        may have moved off the trials."""
+        if not self.f_ranges:
+            return []
+        f, s = values["f_hz"], sigma["f_hz"] or 0.0
+        return narrow.merged([*self.f_ranges, (f - 2 * s, f + 2 * s)])
 
 
 def body_reading(values: dict[str, float], sigma: dict[str, float | None],

@@ -419,13 +419,18 @@ class Scan:
                 if run.size:
                     runs.append((float(f[max(run[0] - 1, 0)]),
                                  float(f[min(run[-1] + 1, f.size - 1)])))
-        merged: list[tuple[float, float]] = []
-        for lo, hi in sorted(runs):
-            if merged and lo <= merged[-1][1]:
-                merged[-1] = (merged[-1][0], max(merged[-1][1], hi))
-            else:
-                merged.append((lo, hi))
-        return merged
+        return merged(runs)
+
+
+def merged(ranges: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+    """`ranges` (lo, hi) as disjoint ranges, ascending."""
+    out: list[tuple[float, float]] = []
+    for lo, hi in sorted(ranges):
+        if out and lo <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], hi))
+        else:
+            out.append((lo, hi))
+    return out
 
 
 def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float],
