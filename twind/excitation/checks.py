@@ -21,6 +21,7 @@ from twind.excitation.design import (
     taper,
 )
 from twind.excitation.request import (
+    MAX_FINITE_SAMPLES,
     MAX_SAMPLES,
     MAX_TONES,
     WAVEFORMS,
@@ -30,8 +31,6 @@ from twind.excitation.request import (
     typed,
 )
 
-MAX_FINITE_SAMPLES = 2**53
-"""Longest finite excitation (samples, ~17000 years at 16384 Hz); beyond, use duration inf."""
 
 
 @dataclass(frozen=True)
@@ -172,6 +171,9 @@ def check(req: ExcitationRequest, limits: Limits, rate_hz: float,
         raise ExcitationError(f"must be a finite number >= 0, got {req.amp!r}", "amp")
     if not (math.isfinite(req.ramp) and req.ramp >= 0):
         raise ExcitationError(f"must be a finite number of seconds >= 0, got {req.ramp!r}",
+                              "ramp")
+    if req.ramp * rate_hz > MAX_FINITE_SAMPLES:  # its stop would ramp down as long
+        raise ExcitationError(f"{req.ramp:g} s is longer than any excitation may run",
                               "ramp")
     if req.start_gps is not None and not (math.isfinite(req.start_gps) and req.start_gps >= 0):
         raise ExcitationError(f"must be a GPS time >= 0 or null, got {req.start_gps!r}",

@@ -28,6 +28,10 @@ MAX_TONES = 1000
 MAX_SAMPLES = 2**26
 """Default longest stream (samples): 4096 s at 16384 Hz, 512 MB as float64."""
 
+MAX_FINITE_SAMPLES = 2**53
+"""Longest finite excitation or ramp (samples, ~17000 years at 16384 Hz; every sample index
+an int64 and a float64 hold exactly); beyond, use duration inf."""
+
 # IFO:SUS-OPTIC_SUSDOF_EXC, e.g. C1:SUS-ETMX_SUSPOS_EXC; upper case as in the CDS models.
 CHANNEL_RE = re.compile(r"(?P<ifo>[A-Z][A-Z0-9]*):SUS-(?P<optic>[A-Z][A-Z0-9]*)"
                         r"_SUS(?P<dof>" + "|".join(DOFS) + r")_EXC")

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind.excitation.design import multisine_plan, multisine_tones, noise_shape, taper
-from twind.excitation.request import ExcitationRequest
+from twind.excitation.request import MAX_FINITE_SAMPLES, ExcitationRequest
 
 NOISE_CHUNK = 8192
 """White noise is drawn and filtered this many samples at a time, whatever the block size."""
@@ -79,7 +79,7 @@ class Waveform:
         if not (math.isfinite(ramp) and ramp >= 0):
             msg = f"stop ramp must be a finite number of seconds >= 0, got {ramp!r}"
             raise ValueError(msg)
-        n = int(round(ramp * self.rate_hz))
+        n = int(round(min(ramp * self.rate_hz, MAX_FINITE_SAMPLES)))
         end = self._pos + n
         if self._stop_end is None or end < self._stop_end:
             self._stop_end, self._stop_ramp = end, n

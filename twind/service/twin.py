@@ -16,7 +16,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 import zenoh
@@ -26,7 +26,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import ROOT, control_key, data_key
 from twind.channels import block_channels, dof_channel
 from twind.config import OpticConfig, TwinConfig
-from twind.errors import TwindError
+from twind.errors import FotonError, TwindError
 from twind.excitation import (
     ExcitationError,
     ExcitationRequest,
@@ -34,6 +34,9 @@ from twind.excitation import (
     check,
     make_waveform,
 )
+from twind.loop.damping import DampingLoop
+from twind.loop.filtermodule import FilterModule
+from twind.loop.foton_file import N_STAGES
 from twind.model.effects import with_effect
 from twind.model.params import SOSParams
 from twind.simulation.engine import Engine
@@ -131,11 +134,11 @@ class TwinService:
             data_key(name, root), congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE) for name in names}
         self._events = session.declare_publisher(control_key(twin.ifo, "events", root))
-        handlers: dict[str, Callable[[dict], dict]] = {
+        self._handlers: dict[str, Callable[[dict], dict]] = {
             "status": lambda _: self.status(), "inject": self.inject, "stop": self.stop,
             "params": self.params, "filter": self.filter}
         self._queryables = [
-            session.declare_queryable(control_key(twin.ifo, verb, root), self._answer(handlers[verb]))
+            session.declare_queryable(control_key(twin.ifo, verb, root), self._answer(verb))
             for verb in VERBS]
 
     # ---------------------------------------------------------------------------- pacing
@@ -178,7 +181,14 @@ class TwinService:
             a = max(0, act.start_sample - first)
             if a >= self.n:
                 continue
-            exc[act.optic, act.dof, a:] += act.waveform.next(self.n - a)
+            try:
+                exc[act.optic, act.dof, a:] += act.waveform.next(self.n - a)
+            except Exception as err:  # noqa: BLE001 - one excitation's fault ends it, not the loop
+                exc[act.optic, act.dof, a:] = 0.0
+                del self._active[act.id]
+                self._ended.add(act.id)
+                self._publish_event("error", act, reason=f"{type(err).__name__}: {err}")
+                continue
             if act.waveform.done:
                 del self._active[act.id]
                 self._ended.add(act.id)
@@ -186,25 +196,30 @@ class TwinService:
         return exc
 
     # ---------------------------------------------------------------------------- control
-    def _answer(self, handler: Callable[[dict], dict]) -> Callable[[zenoh.Query], None]:
+    def _answer(self, verb: str) -> Callable[[zenoh.Query], None]:
         def on_query(query: zenoh.Query) -> None:
-            try:
-                payload = query.payload.to_bytes() if query.payload is not None else b""
-                if len(payload) > MAX_REQUEST_BYTES:
-                    msg = (f"request of {len(payload)} bytes; at most {MAX_REQUEST_BYTES} "
-                           "(stream long waveforms in several requests)")
-                    raise TwindError(msg)
-                request = json.loads(payload) if payload else {}
-                if not isinstance(request, dict):
-                    msg = "the request must be a JSON object"
-                    raise TwindError(msg)
-                reply = handler(request)
-            except Exception as err:  # noqa: BLE001 - every request gets an answer, never silence
-                reply = {"ok": False, "accepted": False, "reason": f"{type(err).__name__}: {err}"
-                         if not isinstance(err, TwindError) else str(err)}
-            query.reply(query.key_expr, json.dumps(reply))
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            query.reply(query.key_expr, json.dumps(self.handle(verb, payload)))
 
         return on_query
+
+    def handle(self, verb: str, payload: bytes) -> dict:
+        """The reply to one control request: `payload` (JSON) for `verb`, one of
+        :data:`VERBS`. Never raises: a request that cannot be served is answered with
+        ``"ok": false`` and the reason."""
+        try:
+            if len(payload) > MAX_REQUEST_BYTES:
+                msg = (f"request of {len(payload)} bytes; at most {MAX_REQUEST_BYTES} "
+                       "(stream long waveforms in several requests)")
+                raise TwindError(msg)
+            request = json.loads(payload) if payload else {}
+            if not isinstance(request, dict):
+                msg = "the request must be a JSON object"
+                raise TwindError(msg)
+            return self._handlers[verb](request)
+        except Exception as err:  # noqa: BLE001 - every request gets an answer, never silence
+            return {"ok": False, "accepted": False, "reason": f"{type(err).__name__}: {err}"
+                    if not isinstance(err, TwindError) else str(err)}
 
     def status(self) -> dict:
         """Real-time factor, lag, late blocks, active excitations, uptime."""
@@ -337,14 +352,24 @@ class TwinService:
                     self._effects.pop(cfg.name, None)
 
     def filter(self, request: dict) -> dict:
-        """Switch a stage (``fm``, ``on``) or ramp a gain (``gain``, ``ramp``) of a module."""
-        optic, dof = request.get("optic", self.optics[0].name), request.get("dof")
-        self._optic_index(optic)
-        with self._lock:
-            if "fm" in request:
-                self.engine.switch(optic, dof, int(request["fm"]), bool(request.get("on", True)))
-            if "gain" in request:
-                self.engine.set_gain(optic, dof, float(request["gain"]), request.get("ramp"))
+        """Switch a stage (``fm``, ``on``) or ramp a gain (``gain``, ``ramp``) of a module;
+        refused, with the reason, unless the damping loop stays stable with the change."""
+        optic = request.get("optic", self.optics[0].name)
+        index = self._optic_index(optic)
+        change = _filter_change(request)
+        with self._params_lock:
+            loop = self.engine.loops[index]
+            modules = dict(loop.modules)
+            try:
+                modules[change.dof] = change.applied(modules[change.dof])
+            except FotonError as err:
+                raise TwindError(f"{optic} {change.dof}: {err}") from None
+            _check_stable(DampingLoop(loop.name, loop.plant, modules), self.rate)
+            with self._lock:
+                if change.fm is not None:
+                    self.engine.switch(optic, change.dof, change.fm, change.on)
+                if change.gain is not None:
+                    self.engine.set_gain(optic, change.dof, change.gain, change.ramp)
         return self.params({"optic": optic})
 
     # ---------------------------------------------------------------------------- helpers
@@ -391,11 +416,74 @@ def _rms(req: ExcitationRequest) -> float:
     return req.amp if req.waveform == "noise" else req.amp / math.sqrt(2)
 
 
+@dataclass(frozen=True)
+class FilterChange:
+    """A ``filter`` request, its fields checked."""
+
+    dof: str
+    fm: int | None = None
+    on: bool = True
+    gain: float | None = None
+    ramp: float | None = None
+
+    def applied(self, module: FilterModule) -> FilterModule:
+        """`module` as it would be after the change (it is not touched)."""
+        on = set(module.on)
+        if self.fm is not None:
+            on = on | {self.fm} if self.on else on - {self.fm}
+        return replace(module, on=on, gain=module.gain if self.gain is None else self.gain)
+
+
+MAX_GAIN_RAMP_S = 3600.0
+
+
+def _filter_change(request: dict) -> FilterChange:
+    """The change a ``filter`` request asks for, or a TwindError naming the field at fault."""
+    known = {"optic", "dof", "fm", "on", "gain", "ramp"}
+    unknown = sorted(str(k)[:40] for k in request if k not in known)
+    if unknown:
+        msg = f"unknown field(s) {', '.join(unknown)}; a filter request has {', '.join(sorted(known))}"
+        raise TwindError(msg)
+    dof = request.get("dof")
+    if dof not in DOFS:
+        msg = f"dof must be one of {', '.join(DOFS)}, got {str(dof)[:40]!r}"
+        raise TwindError(msg)
+    fm, on, gain, ramp = (request.get(k) for k in ("fm", "on", "gain", "ramp"))
+    if fm is not None and (not _is_int(fm) or not 1 <= fm <= N_STAGES):
+        msg = f"fm must be an integer 1..{N_STAGES}, got {str(fm)[:40]!r}"
+        raise TwindError(msg)
+    if on is not None and not isinstance(on, bool):
+        msg = f"on must be true or false, got {str(on)[:40]!r}"
+        raise TwindError(msg)
+    if gain is not None and not (_is_real(gain) and math.isfinite(gain)):
+        msg = f"gain must be a finite number, got {str(gain)[:40]!r}"
+        raise TwindError(msg)
+    if ramp is not None and not (_is_real(ramp) and 0 <= ramp <= MAX_GAIN_RAMP_S):
+        msg = f"ramp must be a number of seconds in 0..{MAX_GAIN_RAMP_S:g}, got {str(ramp)[:40]!r}"
+        raise TwindError(msg)
+    if fm is None and gain is None:
+        msg = "a filter request changes a stage (fm, on) or the gain (gain, ramp)"
+        raise TwindError(msg)
+    return FilterChange(dof, fm, True if on is None else on,
+                        None if gain is None else float(gain),
+                        None if ramp is None else float(ramp))
+
+
+def _is_real(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _is_int(x: object) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
 def _check_stable(loop, rate: float) -> None:  # noqa: ANN001 - DampingLoop
     from twind.simulation.discretize import closed_loop_matrices
 
-    worst = np.abs(np.linalg.eigvals(closed_loop_matrices(loop, rate)[0])).max()
-    if worst >= 1.0:
+    with np.errstate(all="ignore"):
+        A = closed_loop_matrices(loop, rate)[0]
+        worst = (np.abs(np.linalg.eigvals(A)).max() if np.all(np.isfinite(A)) else math.inf)
+    if not worst < 1.0:  # NaN too
         msg = f"refused: with these parameters the damping loop would be unstable (|z| = {worst:.6f})"
         raise TwindError(msg)
 
@@ -409,6 +497,7 @@ def _summary(request: dict) -> dict:
     samples = request.get("samples")
     if isinstance(samples, list):
         x = np.asarray(samples, dtype=float)
-        request = {**request, "samples": {"n": int(x.size),
-                                          "rms": float(np.sqrt(np.mean(x**2))) if x.size else 0.0}}
+        with np.errstate(over="ignore"):  # a refused stream of 1e300s: its RMS is inf
+            rms = float(np.sqrt(np.mean(x**2))) if x.size else 0.0
+        request = {**request, "samples": {"n": int(x.size), "rms": rms}}
     return request

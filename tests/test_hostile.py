@@ -1,0 +1,170 @@
+"""The service against hostile and careless clients, in process: every control request is
+answered with an id or a reason, and the loop goes on computing finite blocks."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from twind import DOFS
+from twind.bus.session import zenoh_config
+from twind.config import load_config
+from twind.excitation import WAVEFORMS
+from twind.service.twin import LIVE_PARAMS, TwinService
+
+EXC = [f"C1:SUS-ETMX_SUS{d}_EXC" for d in DOFS]
+
+
+@pytest.fixture(scope="module")
+def service() -> Iterator[TwinService]:
+    twin = load_config(None, ["ETMX"])
+    with zenoh.open(zenoh_config()) as session:
+        svc = TwinService(session, twin, list(twin.optics.values()))
+        yield svc
+        svc.close()
+
+
+def _step_is_finite(svc: TwinService) -> None:
+    svc.step()
+    assert all(np.all(np.isfinite(v)) for v in vars(svc._buf).values()
+               if isinstance(v, np.ndarray)), "a block holds NaN or inf"
+
+
+def _ask(svc: TwinService, verb: str, request: object) -> dict:
+    reply = svc.handle(verb, json.dumps(request).encode())
+    assert isinstance(reply, dict) and isinstance(reply.get("ok"), bool)
+    if not reply["ok"]:
+        assert isinstance(reply["reason"], str) and reply["reason"]
+    elif verb == "inject":
+        assert reply["accepted"] and reply["id"].startswith("exc-")
+    return reply
+
+
+def test_a_ramp_too_long_to_stop_is_refused_and_a_stop_never_stalls_the_loop(
+        service: TwinService) -> None:
+    """An infinite excitation whose ramp no int64 holds was accepted, and stopping it
+    raised in the pacing thread and killed the service."""
+    for ramp in (1e300, 6e14):
+        reply = _ask(service, "inject", {"channel": EXC[0], "waveform": "sine", "amp": 1.0,
+                                         "freq": 3.0, "duration": "inf", "ramp": ramp})
+        assert not reply["ok"] and reply["reason"].startswith("ramp:")
+    reply = _ask(service, "inject", {"channel": EXC[0], "waveform": "sine", "amp": 1.0,
+                                     "freq": 3.0, "duration": "inf", "ramp": 5e11})
+    assert reply["ok"]
+    _step_is_finite(service)
+    assert _ask(service, "stop", {"id": reply["id"]})["stopped"] == [reply["id"]]
+    for _ in range(3):
+        _step_is_finite(service)
+    _ask(service, "stop", {"all": True})
+
+
+@pytest.mark.parametrize(("gain", "words"), [(-30.0, "unstable"), (1e300, "unstable"),
+                                             (math.nan, "finite"), ("1", "finite")])
+def test_a_gain_that_would_ring_up_or_poison_the_optic_is_refused(
+        service: TwinService, gain: object, words: str) -> None:
+    before = _ask(service, "params", {"optic": "ETMX"})["filters"]["POS"]["gain"]
+    reply = _ask(service, "filter", {"optic": "ETMX", "dof": "POS", "gain": gain, "ramp": 0})
+    assert not reply["ok"] and words in reply["reason"]
+    assert _ask(service, "params", {"optic": "ETMX"})["filters"]["POS"]["gain"] == before
+    _step_is_finite(service)
+
+
+def test_a_stage_switch_is_checked_like_a_gain(service: TwinService) -> None:
+    for bad, words in (({"fm": 11}, "fm must be"), ({"fm": True}, "fm must be"),
+                       ({"fm": 1, "on": "yes"}, "on must be"), ({"dof": "ROLL", "fm": 1},
+                                                               "dof must be"),
+                       ({"fm": 9}, "holds no filter"), ({"gains": 1.0}, "unknown field")):
+        reply = _ask(service, "filter", {"optic": "ETMX", "dof": "POS", **bad})
+        assert not reply["ok"] and words in reply["reason"], (bad, reply["reason"])
+
+
+def test_an_excitation_that_fails_while_running_ends_alone(service: TwinService) -> None:
+    """A waveform that raises in the pacing thread is stopped, with an event; the loop and
+    the other excitations go on."""
+    keep = _ask(service, "inject", {"channel": EXC[1], "waveform": "sine", "amp": 0.5,
+                                    "freq": 2.0, "duration": "inf"})["id"]
+    bad = _ask(service, "inject", {"channel": EXC[2], "waveform": "sine", "amp": 0.5,
+                                   "freq": 2.0, "duration": "inf"})["id"]
+
+    def broken(n: int) -> np.ndarray:
+        raise OverflowError("a waveform's fault")
+
+    service._active[bad].waveform.next = broken
+    _step_is_finite(service)
+    running = {e["id"] for e in _ask(service, "status", {})["excitations"]}
+    assert keep in running and bad not in running
+    assert _ask(service, "stop", {"id": bad})["already_ended"] == [bad]
+    _ask(service, "stop", {"all": True})
+
+
+_NUMBER = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(),
+                    st.floats(min_value=-1e3, max_value=1e3), st.just(1e300), st.booleans(),
+                    st.none(), st.text(max_size=8))
+_ANY = st.recursive(_NUMBER, lambda inner: st.lists(inner, max_size=3)
+                    | st.dictionaries(st.text(max_size=6), inner, max_size=3), max_leaves=6)
+
+
+def _optional(keys: dict[str, st.SearchStrategy], required: tuple[str, ...] = ()
+              ) -> st.SearchStrategy[dict]:
+    """Requests with any of `keys` or an unknown one, and twice as often with the
+    `required` ones."""
+    shaped = st.fixed_dictionaries({k: keys[k] for k in required}, optional={
+        k: v for k, v in keys.items() if k not in required})
+    return st.one_of(shaped, shaped, st.fixed_dictionaries({}, optional={**keys,
+                                                                         "colour": _ANY}))
+
+
+_REQUESTS = st.one_of(
+    st.tuples(st.just("inject"), _optional({
+        "channel": st.sampled_from([*EXC, "C1:SUS-ETMY_SUSPOS_EXC", "garbage"]),
+        "waveform": st.sampled_from([*WAVEFORMS, "square"]),
+        "amp": st.one_of(_NUMBER, st.floats(0, 10)),
+        "freq": st.one_of(_NUMBER, st.floats(0.01, 100)), "f_stop": _NUMBER,
+        "n_tones": _NUMBER, "freqs": st.lists(_NUMBER, max_size=4),
+        "duration": st.one_of(_NUMBER, st.floats(0.01, 10), st.just("inf")),
+        "ramp": st.one_of(_NUMBER, st.floats(0, 1e16)), "start_gps": _NUMBER,
+        "samples": st.lists(_NUMBER, max_size=5),
+        "seed": _NUMBER, "shape": st.one_of(st.text(max_size=12), st.just("zpk([1],[10],1)")),
+        }, required=("channel", "waveform", "amp", "freq"))),
+    st.tuples(st.just("inject"), st.fixed_dictionaries(  # mostly accepted, ended by later ones
+        {"channel": st.sampled_from(EXC), "waveform": st.sampled_from(["sine", "noise"]),
+         "amp": st.floats(0, 5), "freq": st.floats(0.05, 100)},
+        optional={"duration": st.one_of(st.floats(0.01, 10), st.just("inf"), _NUMBER),
+                  "ramp": st.one_of(st.floats(0, 5), st.sampled_from([1e12, 6e14, 1e300]),
+                                    _NUMBER), "start_gps": _NUMBER})),
+    st.tuples(st.just("stop"), _optional({"id": st.one_of(_ANY, st.just("exc-1")),
+                                          "all": st.one_of(st.just(True), _ANY)})),
+    st.tuples(st.just("params"), _optional({
+        "optic": st.one_of(st.just("ETMX"), _ANY),
+        "set": st.one_of(st.dictionaries(st.sampled_from(sorted(LIVE_PARAMS)), _NUMBER,
+                                         max_size=2), _ANY),
+        "effect": st.one_of(_ANY, st.fixed_dictionaries({"id": st.sampled_from(
+            ["coil_imbalance", "loop_delay", "nonsense"]), "values": _ANY}))})),
+    st.tuples(st.just("filter"), _optional({
+        "optic": st.one_of(st.just("ETMX"), _ANY), "dof": st.sampled_from([*DOFS, "ROLL"]),
+        "fm": st.one_of(_NUMBER, st.integers(1, 10)), "on": st.one_of(st.booleans(), _ANY),
+        "gain": st.one_of(_NUMBER, st.floats(-2, 2)), "ramp": st.one_of(_NUMBER, st.just(0))},
+        required=("dof",))),
+    st.tuples(st.just("status"), _ANY),
+)
+
+
+@settings(max_examples=600, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(requests=st.lists(_REQUESTS, min_size=1, max_size=8))
+def test_every_generated_request_is_answered_and_the_loop_goes_on(
+        service: TwinService, requests: list) -> None:
+    """Thousands of generated requests over the schemas of inject, stop, params and filter,
+    valid and not: each gets an id or a reason, and every block after them is finite."""
+    for verb, request in requests:
+        _ask(service, verb, request)
+        _step_is_finite(service)
+    _ask(service, "stop", {"all": True})
+    _step_is_finite(service)
