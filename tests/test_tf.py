@@ -398,3 +398,34 @@ def test_the_stream_keeps_a_few_segments_of_samples(tmp_path: Path,
     # a channel holds at most the history, or a segment, the lag, the look interval, a batch
     seconds = max(HISTORY_S, 2.0 + LAG_S) + 8.0 + batch_s
     assert max(t.peak for t in stream.tails.values()) <= 2 * seconds * RATE < 600 * RATE / 4
+
+
+def test_non_finite_bins_are_named_left_out_and_written_as_null(tmp_path: Path,
+                                                                capsys) -> None:  # noqa: ANN001
+    """example_null's POS file with ten NaN bins in PIT's IN1: ``tf`` says which channel and
+    how many, and its JSON (standard JSON, no bare NaN) has null there."""
+    import dttxml
+
+    from twind.analysis.diaggui import write_fft_measurement
+
+    src = [p for p in NULL if p.endswith("POS_exc.xml")][0]
+    acc = dttxml.DiagAccess(src)
+    exc = "C1:SUS-ETMX_SUSPOS_EXC"
+    chans = [f"C1:SUS-ETMX_SUS{d}_{p}" for d in DOFS for p in ("IN1", "IN2", "OUT")]
+    got = [xml_transfer(acc, c, exc) for c in chans]
+    tf = np.array([g[1] for g in got])
+    tf[chans.index("C1:SUS-ETMX_SUSPIT_IN1"), 10:20] = np.nan
+    out = write_fft_measurement(tmp_path / "ETMX_POS_exc.xml", exc, chans, got[0][0],
+                                np.asarray(acc.asd(exc).asd, dtype=float) ** 2, tf,
+                                np.array([g[2] for g in got]), got[0][3], rate_hz=256.0)
+    assert main(["tf", str(out), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert (f"twind: warning: {out}: C1:SUS-ETMX_SUSPIT_IN1/{exc}: 10 of {len(got[0][0])} "
+            "bins are NaN or inf and are left out") in captured.err
+
+    def no_nan(word: str) -> None:
+        raise AssertionError(f"{word} is not JSON")
+
+    obj = json.loads(captured.out, parse_constant=no_nan)
+    pit = obj["responses"].index("PIT")
+    assert all(obj["IN1_per_EXC"]["re"][k][pit][0] is None for k in range(10, 20))

@@ -7,17 +7,17 @@ naming the file, key and problem, and exit status 2; never a traceback.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from twind import DOFS
-from twind.errors import TwindError
+from twind import DOFS, strictjson
+from twind.errors import TwindError, TwindWarning
 
 
 def _frequencies(args: argparse.Namespace) -> np.ndarray:
@@ -56,7 +56,7 @@ def cmd_model_response(args: argparse.Namespace) -> int:
                "dofs": list(DOFS), "frequency_hz": f.tolist()}
         out.update({k: _complex(r[k]) for k in keys})
         out["uncoupled_frequencies_hz"] = cfg.sus.uncoupled_frequencies_hz()
-        json.dump(out, sys.stdout)
+        strictjson.dump(out, sys.stdout)
         sys.stdout.write("\n")
         return 0
     from twind.plotting import bode_matrix
@@ -207,7 +207,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     with _client(args) as twin:
         status = twin.status()
     if args.json:
-        print(json.dumps(status))
+        print(strictjson.dumps(status))
         return 0
     print(f"{status['ifo']} twin of {', '.join(status['optics'])}: GPS {status['gps']:.3f}, "
           f"up {status['uptime_s']:.1f} s, {status['real_time_factor']:.3f} x real time "
@@ -293,7 +293,7 @@ def cmd_tf(args: argparse.Namespace) -> int:
     if args.band:
         tfs = tfs.band(*args.band)
     if args.json:
-        json.dump(tfs.to_json(), sys.stdout)
+        strictjson.dump(tfs.to_json(), sys.stdout)
         sys.stdout.write("\n")
     if args.output and not args.output.lower().endswith(".png"):
         print(f"wrote {tfs.write(args.output)}", file=sys.stderr)
@@ -317,7 +317,7 @@ def cmd_tf(args: argparse.Namespace) -> int:
 def _show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_json and lines
     """Print a result as its JSON object or as lines for a person."""
     if as_json:
-        json.dump(result.to_json(), sys.stdout)
+        strictjson.dump(result.to_json(), sys.stdout)
         sys.stdout.write("\n")
     else:
         print("\n".join(result.lines()))
@@ -637,11 +637,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+_DEFAULT_SHOWWARNING = warnings.showwarning
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    """twind's own warnings in one line for a person; the rest as Python shows them."""
+    if issubclass(category, TwindWarning):
+        print(f"twind: warning: {message}", file=sys.stderr)
+    else:
+        _DEFAULT_SHOWWARNING(message, category, filename, lineno, file, line)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``twind`` console script."""
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return args.func(args)
     except (TwindError, OSError) as err:
         print(f"twind: error: {err}", file=sys.stderr)
         return 2

@@ -28,3 +28,12 @@ class ConfigError(TwindError):
 class FotonError(TwindError):
     """A foton design string or filter file cannot be understood."""
 
+
+
+class TwindWarning(UserWarning):
+    """Base class of the warnings twind gives a user: something was read or done, but not
+    all of it as asked (the command line prints them as ``twind: warning: ...``)."""
+
+
+class MeasurementWarning(TwindWarning):
+    """Bins of a measurement file that cannot be used (NaN or inf) and are left out."""

@@ -21,6 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
+from twind import strictjson
 from twind.analysis.fit import FIT_PARAMS, FitResult, fit, with_params
 from twind.analysis.tf import TFSet, from_session
 from twind.config import OpticConfig
@@ -281,8 +282,6 @@ def add_arguments(parser) -> None:  # noqa: ANN001 - argparse.ArgumentParser
 
 def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
     """``twind campaign``: run rounds until the target; print each round and the result."""
-    import json
-
     from twind.analysis.calibration import DRIFT
     from twind.analysis.fit import param_value
     from twind.config import load_config
@@ -305,7 +304,7 @@ def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
                "fit": last.fit.to_json(), "reached": last.worst[1] <= args.target}
         if truth:
             out["truth"] = truth
-        print(json.dumps(out))
+        print(strictjson.dumps(out))
     else:
         for r in rounds:
             name, worst = r.worst

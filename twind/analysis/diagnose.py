@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
+from twind import strictjson
 from twind.analysis import narrow
 from twind.analysis.fit import (
     FIT_PARAMS,
@@ -728,7 +729,6 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
     """Bode matrices before and after (measured, model, residual/sigma per bin), the JSON,
     and an HTML page with both, in directory `out` (created; existing files are refused)."""
     import html
-    import json
 
     from twind.analysis.fit import plot_fit
 
@@ -742,7 +742,7 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
     plot_fit(tfs, cfg, diagnosis.nominal, str(out / "nominal.png"))
     if diagnosis.effects:
         plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))
-    (out / "diagnosis.json").write_text(json.dumps(diagnosis.to_json(), indent=1))
+    (out / "diagnosis.json").write_text(strictjson.dumps(diagnosis.to_json(), indent=1))
     _write_rrd(diagnosis, tfs, cfg, out / "diagnosis.rrd")
     images = "".join(f'<h2>{n[:-4]}</h2><img src="{n}" style="max-width:100%">'
                      for n in names[:2] if (out / n).exists())

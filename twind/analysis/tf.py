@@ -13,6 +13,7 @@ with scipy.signal). The standard error of a Welch estimate is Bendat & Piersol's
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from scipy import signal
 from twind import DOFS
 from twind.analysis.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
-from twind.errors import TwindError
+from twind.errors import MeasurementWarning, TwindError
 
 __all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
            "highpassed", "welch_tf", "welch_tfs", "xml_transfer"]
@@ -199,6 +200,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                 if name not in names:
                     continue
                 f, h, g2, n = xml_transfer(acc, name, exc[0])
+                _warn_unusable(path, name, exc[0], h, g2)
                 if freq is None:
                     freq, averages = f, n
                 elif len(f) != len(freq) or np.max(np.abs(f - freq)) > 1e-9:
@@ -207,6 +209,14 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                 column[(dof, point)] = (h, g2)
         columns[m["dof"]] = column
     return assemble(optic, freq, columns, averages)
+
+
+def _warn_unusable(path: str | Path, name: str, exc: str, h: NDArray, g2: NDArray) -> None:
+    """Say which bins of `name`/`exc` are NaN or inf: every fit leaves them out."""
+    bad = ~(np.isfinite(h) & np.isfinite(g2))
+    if bad.any():
+        warnings.warn(f"{path}: {name}/{exc}: {int(bad.sum())} of {bad.size} bins are NaN "
+                      "or inf and are left out", MeasurementWarning, stacklevel=3)
 
 
 def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201

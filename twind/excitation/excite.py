@@ -17,7 +17,6 @@ a new mode is one more entry in :data:`MODES`.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -25,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from twind import DOFS
+from twind import DOFS, strictjson
 from twind.errors import TwindError
 
 
@@ -85,7 +84,7 @@ def excite_main(args: argparse.Namespace) -> int:
     if args.output:
         path = PLOTS[args.mode](design, args.output)
     if args.json:
-        print(json.dumps(design.to_json()))
+        print(strictjson.dumps(design.to_json()))
     else:
         print("\n".join(design.summary()))
         if args.output:

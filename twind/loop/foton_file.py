@@ -112,7 +112,7 @@ from typing import Any, NoReturn
 import numpy as np
 from numpy.typing import NDArray
 
-from twind.errors import FotonError
+from twind.errors import FotonError, TwindWarning
 
 __all__ = [
     "DEFAULT_SWITCHING",
@@ -157,7 +157,7 @@ _MODULE_RATE_RE = re.compile(r"#\s*SAMPLING\s+(\S+)\s+(\S+)\s*\Z")
 _DESIGN_RE = re.compile(r"#\s*DESIGN\b(.*)\Z")
 
 
-class FotonFileWarning(UserWarning):
+class FotonFileWarning(TwindWarning):
     """A filter file is readable but not quite what foton would write."""
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from mcap.decoder import DecoderFactory as McapDecoderFactory
 from numpy.typing import NDArray
 
-from twind.errors import TwindError
+from twind.errors import TwindError, TwindWarning
 from twind.recording.writer import (
     BLOCK_SCHEMA,
     CONFIG_METADATA,
@@ -43,11 +43,11 @@ class RecordingError(TwindError):
     """A recording cannot be read, or does not hold what was asked of it."""
 
 
-class TruncatedRecordingWarning(UserWarning):
+class TruncatedRecordingWarning(TwindWarning):
     """A recording ends without its summary: its writer was killed or the disk filled."""
 
 
-class GapWarning(UserWarning):
+class GapWarning(TwindWarning):
     """Blocks of a channel are missing (sequence numbers or GPS times jump)."""
 
 

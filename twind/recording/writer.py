@@ -45,6 +45,7 @@ from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapWriter
 
 import twind
+from twind import strictjson
 from twind.channels import block_channels
 from twind.timeutil import gps_to_unix_ns, now_gps
 
@@ -290,7 +291,7 @@ class McapSession:
         })
         snapshot = {"format": FORMAT, "ifo": ifo, "writer": writer, **(config or {})}
         snapshot.setdefault("gps", now_gps())
-        raw = json.dumps(snapshot, default=str).encode()
+        raw = strictjson.dumps(snapshot, default=str).encode()
         self._mcap.add_metadata(CONFIG_METADATA, {"json": raw.decode()})
         if config_message:
             config_schema = self._mcap.register_schema(
@@ -350,11 +351,10 @@ class McapSession:
 
         The log time is the event's ``gps`` field if it has one, else `gps`, else now.
         """
-        if isinstance(data, Mapping):
-            event, raw = data, json.dumps(data).encode()
-        else:
-            raw = bytes(data)
-            event = json.loads(raw)  # refuse what a JSON decoder would choke on later
+        # refuse what a JSON decoder would choke on later; NaN, which Python's decoder
+        # takes, is written as null (a real JSON reader takes no NaN)
+        event = data if isinstance(data, Mapping) else json.loads(bytes(data))
+        raw = strictjson.dumps(event).encode()
         stamp = event.get("gps") if isinstance(event, Mapping) else None
         if not isinstance(stamp, int | float) or isinstance(stamp, bool):
             stamp = gps if gps is not None else now_gps()

@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import numpy as np
 import zenoh
 
-from twind import DOFS
+from twind import DOFS, strictjson
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import ROOT, control_key, data_key
 from twind.channels import block_channels, dof_channel
@@ -199,7 +199,7 @@ class TwinService:
     def _answer(self, verb: str) -> Callable[[zenoh.Query], None]:
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
-            query.reply(query.key_expr, json.dumps(self.handle(verb, payload)))
+            query.reply(query.key_expr, strictjson.dumps(self.handle(verb, payload)))
 
         return on_query
 
@@ -394,7 +394,7 @@ class TwinService:
             body.update(id=act.id, channel=act.request.channel,
                         start_gps=self.gps0 + act.start_sample / self.rate,
                         request=_summary(act.request.to_json()))
-        self._events.put(json.dumps(body, default=_jsonable))
+        self._events.put(strictjson.dumps(body, default=_jsonable))
 
     def close(self) -> None:
         """Undeclare everything this service declared."""
