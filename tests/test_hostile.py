@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from twind import DOFS
 from twind.bus.session import zenoh_config
-from twind.config import load_config
+from twind.config import DEFAULT_CONFIG, ConfigError, load_config
 from twind.excitation import WAVEFORMS
 from twind.service.twin import LIVE_PARAMS, TwinService
 
@@ -24,6 +24,17 @@ EXC = [f"C1:SUS-ETMX_SUS{d}_EXC" for d in DOFS]
 
 @pytest.fixture(scope="module")
 def service() -> Iterator[TwinService]:
+    """One twin for the tests that leave it as they found it."""
+    yield from _service()
+
+
+@pytest.fixture
+def fresh() -> Iterator[TwinService]:
+    """A twin of its own, for a test that counts what runs on it."""
+    yield from _service()
+
+
+def _service() -> Iterator[TwinService]:
     twin = load_config(None, ["ETMX"])
     with zenoh.open(zenoh_config()) as session:
         svc = TwinService(session, twin, list(twin.optics.values()))
@@ -168,3 +179,37 @@ def test_every_generated_request_is_answered_and_the_loop_goes_on(
         _step_is_finite(service)
     _ask(service, "stop", {"all": True})
     _step_is_finite(service)
+
+
+def test_excitations_are_counted_scheduled_ones_listed_and_stopped_at_once(
+        fresh: TwinService) -> None:
+    """A test point takes ``service.excitations_per_channel`` excitations, running or
+    waiting; one scheduled beyond ``schedule_ahead_s`` is refused; ``status`` lists the
+    waiting ones and ``stop all`` removes them at once, freeing their budget."""
+    limits = fresh.accepts
+    gps = _ask(fresh, "status", {})["gps"]
+    later = {"channel": EXC[3], "waveform": "sine", "amp": 0.0, "freq": 1.0, "duration": 1.0,
+             "start_gps": gps + 3600}
+    ids = [_ask(fresh, "inject", later)["id"] for _ in range(limits.excitations_per_channel)]
+    reply = _ask(fresh, "inject", later)
+    assert not reply["ok"] and "service.excitations_per_channel" in reply["reason"]
+    far = _ask(fresh, "inject", {**later, "channel": EXC[0],
+                                 "start_gps": gps + limits.schedule_ahead_s + 10})
+    assert not far["ok"] and "service.schedule_ahead_s" in far["reason"]
+    waiting = [e for e in _ask(fresh, "status", {})["excitations"] if e["scheduled"]]
+    assert sorted(e["id"] for e in waiting) == sorted(ids)
+    assert sorted(_ask(fresh, "stop", {"all": True})["stopped"]) == sorted(ids)
+    assert _ask(fresh, "status", {})["excitations"] == []
+    assert _ask(fresh, "inject", later)["ok"]
+    _ask(fresh, "stop", {"all": True})
+
+
+def test_the_service_limits_are_read_from_the_configuration(tmp_path) -> None:  # noqa: ANN001
+    src = DEFAULT_CONFIG.read_text()
+    (tmp_path / "optics").symlink_to(DEFAULT_CONFIG.parent / "optics")
+    path = tmp_path / "c1.toml"
+    path.write_text(src.replace("excitations_per_channel = 16", "excitations_per_channel = 2"))
+    assert load_config(path, ["ETMX"]).service.excitations_per_channel == 2
+    path.write_text(src.replace("excitations = 64", "excitations = 0.5"))
+    with pytest.raises(ConfigError, match="service.excitations: expected a whole number"):
+        load_config(path, ["ETMX"])

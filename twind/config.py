@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import tomllib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -89,12 +89,41 @@ class OpticConfig:
 
 
 @dataclass(frozen=True)
+class ServiceLimits:
+    """What a running twin accepts from its clients: the ``[service]`` table of an
+    interferometer file, every key optional (these defaults otherwise).
+
+    Attributes
+    ----------
+    exc_peak, exc_rms : float
+        The sum of the excitations on one ``_EXC`` test point, in its units (um or urad):
+        well inside the OSEMs' range.
+    excitations_per_channel : int
+        Excitations running or scheduled on one test point.
+    excitations : int
+        Excitations running or scheduled in all.
+    schedule_ahead_s : float
+        How far ahead of the twin's time an excitation may be scheduled (s).
+    request_bytes : int
+        The largest control request (a stream's samples travel in it).
+    """
+
+    exc_peak: float = 100.0
+    exc_rms: float = 30.0
+    excitations_per_channel: int = 16
+    excitations: int = 64
+    schedule_ahead_s: float = 86400.0
+    request_bytes: int = 8_000_000
+
+
+@dataclass(frozen=True)
 class TwinConfig:
-    """An interferometer's worth of optics."""
+    """An interferometer's worth of optics, and what its service accepts."""
 
     ifo: str
     optics: dict[str, OpticConfig]
     source: str
+    service: ServiceLimits = field(default_factory=ServiceLimits)
 
     def select(self, names: Sequence[str] | str | None) -> list[OpticConfig]:
         """Optics by name (``"all"`` or None for every one), in the file's order."""
@@ -362,7 +391,7 @@ def load_config(path: str | Path | None = None, optics: Sequence[str] | str | No
         optic = load_optic(path)
         return TwinConfig("C1", {optic.name: optic}, str(path))
     r = _Reader(str(path), data)
-    r.only(["ifo"])
+    r.only(["ifo", "service"])
     ifo = r.sub("ifo")
     ifo.only(["name", "optics"])
     names = ifo.get("optics", lambda v: [str(x) for x in v])
@@ -377,7 +406,23 @@ def load_config(path: str | Path | None = None, optics: Sequence[str] | str | No
         if not file.exists():
             raise ifo.fail("optics", f"no file {file} for optic {name}")
         loaded[name] = load_optic(file)
-    return TwinConfig(ifo.get("name", str), loaded, str(path))
+    return TwinConfig(ifo.get("name", str), loaded, str(path), _read_service(r.sub("service", False)))
+
+
+def _read_service(r: _Reader) -> ServiceLimits:
+    """The ``[service]`` table: each key a positive number (counts whole)."""
+    defaults = ServiceLimits()
+    names = [f.name for f in fields(ServiceLimits)]
+    r.only(names)
+    return ServiceLimits(**{n: r.get(n, _positive_int if isinstance(getattr(defaults, n), int)
+                                     else _positive, getattr(defaults, n)) for n in names})
+
+
+def _positive_int(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        msg = f"expected a whole number >= 1, got {v!r}"
+        raise ValueError(msg)
+    return v
 
 
 def _read_toml(path: str | Path) -> dict[str, Any]:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twind.config import ServiceLimits
 from twind.excitation.design import (
     NOISE_PEAK_SIGMAS,
     multisine_plan,
@@ -47,6 +48,10 @@ class Limits:
 
     peak: float
     rms: float
+
+
+DEFAULT_LIMITS = Limits(peak=ServiceLimits.exc_peak, rms=ServiceLimits.exc_rms)
+"""A twin's limits when its configuration says nothing (:class:`~twind.config.ServiceLimits`)."""
 
 
 def _positive(key: str, x: object) -> float:

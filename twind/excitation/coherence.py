@@ -73,7 +73,7 @@ from scipy import optimize, special, stats
 
 from twind import DOFS
 from twind.errors import TwindError
-from twind.excitation.checks import Limits, check
+from twind.excitation.checks import DEFAULT_LIMITS, Limits, check
 from twind.excitation.design import NOISE_PEAK_SIGMAS, noise_shape
 from twind.excitation.request import ExcitationError, ExcitationRequest
 from twind.loop.foton import ZPK, parse_design
@@ -419,7 +419,7 @@ def design_coherent(optic_cfg: OpticConfig, dofs: Sequence[str] | str,
         Frequency resolution of the measurement (Hz): Hann-windowed segments of ``1/bw``
         seconds; the bins are its multiples.
     limits : Limits, optional
-        The ``_EXC`` limits (default the twin's ``DEFAULT_LIMITS``).
+        The ``_EXC`` limits (default a twin's, :data:`~twind.excitation.checks.DEFAULT_LIMITS`).
     responses : {"own", "all"}
         ``"own"``: the excited DOF's ``IN1`` must be coherent; ``"all"``: the ``IN1`` of every
         DOF in `dofs` (the largest requirement wins).
@@ -446,8 +446,6 @@ def design_coherent(optic_cfg: OpticConfig, dofs: Sequence[str] | str,
         would exceed a limit (naming the limit, the level needed and the limit's value).
     """
     if limits is None:
-        from twind.service.twin import DEFAULT_LIMITS
-
         limits = DEFAULT_LIMITS
     dof_list = [dofs] if isinstance(dofs, str) else list(dofs)
     rate = float(optic_cfg.sus.sample_rate_hz)

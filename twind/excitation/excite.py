@@ -69,16 +69,15 @@ def excite_main(args: argparse.Namespace) -> int:
     """``twind excite``: print the design (or its JSON), optionally plot it."""
     from twind.config import load_config
     from twind.excitation.checks import Limits
-    from twind.service.twin import DEFAULT_LIMITS
 
     for name in ("rms", "peak"):
         value = getattr(args, name)
         if value is not None and not (value > 0 and math.isfinite(value)):
             msg = f"--{name} must be a positive number, got {value}"
             raise TwindError(msg)
-    limits = Limits(peak=DEFAULT_LIMITS.peak if args.peak is None else args.peak,
-                    rms=DEFAULT_LIMITS.rms if args.rms is None else args.rms)
     twin = load_config(args.config, [args.optic])
+    limits = Limits(peak=twin.service.exc_peak if args.peak is None else args.peak,
+                    rms=twin.service.exc_rms if args.rms is None else args.rms)
     optic = twin.select([args.optic])[0]
     design = MODES[args.mode](args, optic, twin.ifo, limits)
     if args.output:

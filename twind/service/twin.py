@@ -42,10 +42,7 @@ from twind.model.params import SOSParams
 from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
 
-DEFAULT_LIMITS = Limits(peak=100.0, rms=30.0)  # um or urad at EXC: well inside the OSEM range
 VERBS = ("status", "inject", "stop", "params", "filter")
-# JSON parsing holds the interpreter lock the pacing thread needs: 8 MB parse in ~50 ms
-MAX_REQUEST_BYTES = 8_000_000
 # parameters a running twin may change (rate, delay and identity need a restart)
 LIVE_PARAMS = frozenset(f.name for f in fields(SOSParams)) - {"name", "sample_rate_hz",
                                                              "loop_delay_s"}
@@ -91,19 +88,19 @@ class TwinService:
         Twin seconds per wall second (1 = real time).
     seed : int
         Noise seed.
-    limits : Limits
-        Per-channel excitation limits.
     root : str
         Key root of the data channels.
     """
 
     def __init__(self, session: zenoh.Session, twin: TwinConfig, optics: list[OpticConfig],
                  block_s: float = 1 / 16, speed: float = 1.0, seed: int = 0,
-                 limits: Limits = DEFAULT_LIMITS, root: str = ROOT) -> None:
+                 root: str = ROOT) -> None:
         if not (speed > 0 and math.isfinite(speed)):
             msg = f"speed must be positive and finite, got {speed}"
             raise TwindError(msg)
-        self.twin, self.optics, self.root, self.limits = twin, optics, root, limits
+        self.twin, self.optics, self.root = twin, optics, root
+        self.accepts = twin.service  # what clients may ask (the file's [service] table)
+        self.limits = Limits(peak=twin.service.exc_peak, rms=twin.service.exc_rms)
         self.rate = optics[0].sus.sample_rate_hz
         self.n = int(round(block_s * self.rate))
         if self.n < 1:
@@ -208,9 +205,10 @@ class TwinService:
         :data:`VERBS`. Never raises: a request that cannot be served is answered with
         ``"ok": false`` and the reason."""
         try:
-            if len(payload) > MAX_REQUEST_BYTES:
-                msg = (f"request of {len(payload)} bytes; at most {MAX_REQUEST_BYTES} "
-                       "(stream long waveforms in several requests)")
+            # JSON parsing holds the interpreter lock the pacing thread needs
+            if len(payload) > self.accepts.request_bytes:
+                msg = (f"request of {len(payload)} bytes; at most {self.accepts.request_bytes} "
+                       "(service.request_bytes; stream long waveforms in several requests)")
                 raise TwindError(msg)
             request = json.loads(payload) if payload else {}
             if not isinstance(request, dict):
@@ -226,7 +224,9 @@ class TwinService:
         uptime = time.monotonic() - self._started
         twin_time = self.stats.blocks * self.block_s
         with self._lock:
-            active = [{"id": a.id, "channel": a.request.channel, "waveform": a.request.waveform}
+            active = [{"id": a.id, "channel": a.request.channel, "waveform": a.request.waveform,
+                       "start_gps": self.gps0 + a.start_sample / self.rate,
+                       "scheduled": a.start_sample >= self.engine.samples}
                       for a in self._active.values()]
         return {"ok": True, "ifo": self.twin.ifo, "optics": [o.name for o in self.optics],
                 "rate_hz": self.rate, "block_s": self.block_s, "speed": self.speed,
@@ -262,11 +262,30 @@ class TwinService:
                     reason = (f"start GPS {req.start_gps} has passed; the next sample is at "
                               f"{self.gps0 + next_sample / self.rate}")
                     return {"ok": False, "accepted": False, "reason": reason}
+            crowded = self._crowded(optic, dof, start - next_sample)
+            if crowded:
+                return {"ok": False, "accepted": False, "reason": f"{req.channel}: {crowded}"}
             act = Active(next(self._ids), req, optic, dof, start, make_waveform(req, self.rate))
             self._active[act.id] = act
             self._publish_event("start", act)  # under the lock: before any "end" of it
         return {"ok": True, "accepted": True, "id": act.id,
                 "start_gps": self.gps0 + start / self.rate}
+
+    def _crowded(self, optic: int, dof: int, ahead: int) -> str:
+        """Why one more excitation, `ahead` samples from now, is too many ("" if not);
+        under the lock."""
+        limits = self.accepts
+        if ahead > limits.schedule_ahead_s * self.rate:
+            return (f"starts {ahead / self.rate:.0f} s ahead; at most "
+                    f"{limits.schedule_ahead_s:g} s (service.schedule_ahead_s)")
+        on = sum((a.optic, a.dof) == (optic, dof) for a in self._active.values())
+        if on >= limits.excitations_per_channel:
+            return (f"{on} excitations run or wait on it already, the most one test point "
+                    "takes (service.excitations_per_channel)")
+        if len(self._active) >= limits.excitations:
+            return (f"{len(self._active)} excitations run or wait already, the most the twin "
+                    "takes (service.excitations)")
+        return ""
 
     def _room_left(self, optic: int, dof: int) -> Limits:
         """The limits less what the excitations already on that test point use: two
@@ -287,8 +306,12 @@ class TwinService:
             if missing:
                 return {"ok": False, "reason": f"no excitation {missing[0]!r}"}
             stopping = [self._active[i] for i in ids if i in self._active]
-            for act in stopping:  # ramp down as the request asked, no kick to the optic
-                act.waveform.stop(act.request.ramp)
+            for act in stopping:
+                if act.start_sample >= self.engine.samples:  # never ran: gone at once
+                    del self._active[act.id]
+                    self._ended.add(act.id)
+                else:  # ramp down as the request asked, no kick to the optic
+                    act.waveform.stop(act.request.ramp)
         for act in stopping:
             self._publish_event("stop", act)
         return {"ok": True, "stopped": [a.id for a in stopping], "already_ended": ended}
