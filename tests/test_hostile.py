@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,8 +17,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from twind import DOFS
+from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
-from twind.config import DEFAULT_CONFIG, ConfigError, load_config
+from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
 from twind.service.twin import LIVE_PARAMS, TwinService
 
@@ -25,17 +29,20 @@ EXC = [f"C1:SUS-ETMX_SUS{d}_EXC" for d in DOFS]
 @pytest.fixture(scope="module")
 def service() -> Iterator[TwinService]:
     """One twin for the tests that leave it as they found it."""
-    yield from _service()
+    with _serving() as svc:
+        yield svc
 
 
 @pytest.fixture
 def fresh() -> Iterator[TwinService]:
     """A twin of its own, for a test that counts what runs on it."""
-    yield from _service()
+    with _serving() as svc:
+        yield svc
 
 
-def _service() -> Iterator[TwinService]:
-    twin = load_config(None, ["ETMX"])
+@contextmanager
+def _serving(twin: TwinConfig | None = None) -> Iterator[TwinService]:
+    twin = twin or load_config(None, ["ETMX"])
     with zenoh.open(zenoh_config()) as session:
         svc = TwinService(session, twin, list(twin.optics.values()))
         yield svc
@@ -213,3 +220,50 @@ def test_the_service_limits_are_read_from_the_configuration(tmp_path) -> None:  
     path.write_text(src.replace("excitations = 64", "excitations = 0.5"))
     with pytest.raises(ConfigError, match="service.excitations: expected a whole number"):
         load_config(path, ["ETMX"])
+
+
+def test_the_watchdog_trips_on_an_osem_out_of_range_and_is_rearmed() -> None:
+    """With the watchdog at 0.5 um, a 5 um drive at POS trips it: the damping outputs are
+    zero from the next block on, ``status`` says so, an event says why, a gain change
+    waits, and ``params`` re-arms it."""
+    nominal = load_config(None, ["ETMX"])
+    with _serving(replace(nominal, service=replace(nominal.service, watchdog_um=0.5))) as svc:
+        _trip_and_rearm(svc)
+
+
+def _event(events: list[dict], name: str, timeout_s: float = 10.0) -> dict:
+    """The first event `name` published (Zenoh delivers on its own threads)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = [e for e in events if e["event"] == name]
+        if found:
+            return found[0]
+        time.sleep(0.01)
+    raise AssertionError(f"no {name!r} event in {timeout_s} s; got {events}")
+
+
+def _trip_and_rearm(svc: TwinService) -> None:
+    events: list[dict] = []
+    svc._session.declare_subscriber(control_key("C1", "events"), lambda sample: events.append(
+        json.loads(sample.payload.to_bytes())))
+    _ask(svc, "inject", {"channel": EXC[0], "waveform": "sine", "amp": 5.0, "freq": 1.0,
+                         "duration": 2.0})
+    for _ in range(16):
+        _step_is_finite(svc)
+    assert _ask(svc, "status", {})["watchdogs"] == {"ETMX": "tripped"}
+    tripped = _event(events, "tripped")
+    assert "service.watchdog_um" in tripped["reason"] and tripped["optic"] == "ETMX"
+    _step_is_finite(svc)
+    assert not np.any(svc._buf.out)
+    assert _ask(svc, "filter", {"dof": "POS", "gain": 0.5, "ramp": 0})["ok"]
+    _step_is_finite(svc)
+    assert not np.any(svc._buf.out)
+    _ask(svc, "stop", {"all": True})
+    assert _ask(svc, "params", {"optic": "ETMX", "watchdog": "rearm"})["watchdog"] == "armed"
+    assert _event(events, "rearmed")["optic"] == "ETMX"
+    assert sum(e["event"] == "tripped" for e in events) == 1
+    _step_is_finite(svc)
+    assert np.any(svc._buf.out)
+    assert _ask(svc, "params", {"optic": "ETMX"})["filters"]["POS"]["gain"] == 0.5
+    bad = _ask(svc, "params", {"optic": "ETMX", "watchdog": "off"})
+    assert not bad["ok"] and "rearm" in bad["reason"]

@@ -106,6 +106,9 @@ class ServiceLimits:
         How far ahead of the twin's time an excitation may be scheduled (s).
     request_bytes : int
         The largest control request (a stream's samples travel in it).
+    watchdog_um : float
+        An OSEM reading beyond this (um from its centre), or not finite, trips the optic's
+        watchdog: its damping outputs are zeroed until a request re-arms it.
     """
 
     exc_peak: float = 100.0
@@ -114,6 +117,7 @@ class ServiceLimits:
     excitations: int = 64
     schedule_ahead_s: float = 86400.0
     request_bytes: int = 8_000_000
+    watchdog_um: float = 1000.0
 
 
 @dataclass(frozen=True)

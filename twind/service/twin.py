@@ -164,11 +164,25 @@ class TwinService:
             first = self.engine.samples
             exc = self._excitation(first)
             block = self.engine.step(self.n, exc=exc, out=self._buf)
+            self._watch(block)
         gps = self.gps0 + first / self.rate
         seq = self.stats.blocks
         for name, unit, samples in block_channels(self.twin.ifo, block):
             self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples, unit).encode())
         self.stats.blocks += 1
+
+    def _watch(self, block) -> None:  # noqa: ANN001 - simulation.engine.Block
+        """Trip the watchdog of every optic whose OSEMs left their range or turned non-finite
+        in `block` (under the lock)."""
+        limit = self.accepts.watchdog_um
+        with np.errstate(invalid="ignore"):
+            peak = np.abs(block.sen).max(axis=(1, 2))
+        for o, optic in enumerate(self.optics):
+            if not peak[o] <= limit and not self.engine.tripped(optic.name):  # NaN too
+                self.engine.trip(optic.name)
+                reason = (f"an OSEM read {peak[o]:.4g} um, beyond the watchdog's {limit:g} um "
+                          "(service.watchdog_um)")
+                self._publish_event("tripped", None, optic=optic.name, reason=reason)
 
     def _excitation(self, first: int) -> np.ndarray | None:
         if not self._active:
@@ -235,7 +249,9 @@ class TwinService:
                 "lag_s": self.stats.lag_s, "max_lag_s": self.stats.max_lag_s,
                 "late_blocks": self.stats.late_blocks, "dropped_blocks": 0,
                 "cpu_fraction": self.stats.busy_s / uptime if uptime > 0 else 0.0,
-                "excitations": active, "config": self.twin.source}
+                "excitations": active, "config": self.twin.source,
+                "watchdogs": {o.name: "tripped" if self.engine.tripped(o.name) else "armed"
+                              for o in self.optics}}
 
     def inject(self, request: dict) -> dict:
         """Accept an excitation (reply with its id) or refuse it with the reason."""
@@ -320,9 +336,19 @@ class TwinService:
         """Get (``{"optic": "ETMX"}``) or set parameters: ``"set": {name: value}`` the
         nominal ones, ``"effect": {"id": ..., "values": {...}}`` physics the nominal model
         leaves out (MODEL.md's catalogue; ``{"id": null}`` removes it), kept across later
-        changes of the nominal parameters."""
+        changes of the nominal parameters; ``"watchdog": "rearm"`` re-arms a tripped
+        watchdog."""
         name = request.get("optic", self.optics[0].name)
         index = self._optic_index(name)
+        watchdog = request.get("watchdog")
+        if watchdog is not None:
+            if watchdog != "rearm":
+                msg = f"'watchdog' takes \"rearm\", got {str(watchdog)[:40]!r}"
+                raise TwindError(msg)
+            with self._lock:
+                if self.engine.tripped(name):
+                    self.engine.rearm(name)
+                    self._publish_event("rearmed", None, optic=name)
         changes = request.get("set") or {}
         effect = request.get("effect")
         if not isinstance(changes, dict):
@@ -343,6 +369,7 @@ class TwinService:
                    for d, m in self.engine.loops[index].modules.items()}
         applied = self._effects.get(name)
         return {"ok": True, "optic": name, "params": sus, "filters": modules,
+                "watchdog": "tripped" if self.engine.tripped(name) else "armed",
                 "effect": {"id": applied[0], "values": applied[1]} if applied else None}
 
     def _rebuild(self, index: int, changes: dict, effect: dict | None) -> None:

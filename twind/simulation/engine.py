@@ -163,6 +163,7 @@ class Engine:
         self._gain_step = np.zeros((n_opt, N_DOF))
         self._ramp_left = np.zeros((n_opt, N_DOF), dtype=np.int64)
         self._limit = np.array([[lp.modules[d].limit for d in DOFS] for lp in self.loops], dtype=float)
+        self._tripped = np.zeros(n_opt, dtype=bool)
 
     def _build_noise(self, specs: Sequence[NoiseSpec], seed: int) -> None:
         shaped = [s.shaping(self.rate_hz) for s in specs]
@@ -257,6 +258,9 @@ class Engine:
         if not (np.isfinite(gain) and 0 <= ramp <= 3600):
             msg = f"gain must be finite and ramp within 0..3600 s, got gain {gain}, ramp {ramp} s"
             raise ValueError(msg)
+        module.gain = gain
+        if self._tripped[o]:
+            return
         steps = int(round(ramp * self.rate_hz))
         self._gain_target[o, d] = gain
         if steps == 0:
@@ -264,7 +268,26 @@ class Engine:
         else:
             self._gain_step[o, d] = (gain - self._gain[o, d]) / steps
             self._ramp_left[o, d] = steps
-        module.gain = gain
+
+    def trip(self, optic: str) -> None:
+        """Zero an optic's damping outputs and reset its motion and filter histories, as a
+        CDS watchdog does; the outputs stay zero until :meth:`rearm` (a gain change before
+        then only sets what rearm restores)."""
+        o, _ = self._where(optic, DOFS[0])
+        self._tripped[o] = True
+        self._gain[o] = self._gain_target[o] = 0.0
+        self._ramp_left[o] = 0
+        self._x[o] = self._zi[o] = self._dbuf[o] = 0.0
+
+    def rearm(self, optic: str) -> None:
+        """Restore a tripped optic's module gains (at once, from rest)."""
+        o, _ = self._where(optic, DOFS[0])
+        self._tripped[o] = False
+        self._gain[o] = self._gain_target[o] = [self.loops[o].modules[d].gain for d in DOFS]
+
+    def tripped(self, optic: str) -> bool:
+        """Whether `optic`'s watchdog holds its outputs at zero."""
+        return bool(self._tripped[self._where(optic, DOFS[0])[0]])
 
     def switch(self, optic: str, dof: str, fm: int, on: bool) -> None:
         """Switch stage FM`fm` of a module on or off.
