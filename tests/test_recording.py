@@ -554,3 +554,44 @@ def test_cli_entry_points_report_errors(tmp_path: Path) -> None:
         assert proc.returncode == 2 and text in proc.stderr, (command, proc.stderr)
         assert "Traceback" not in proc.stderr
     shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def test_the_recorder_marks_a_silent_twin_and_its_restart(tmp_path: Path) -> None:
+    """Blocks 0..9, nothing for longer than ``silence_s``, then a restarted twin numbering
+    from 0 again, later in GPS: the file holds a ``twin_silent`` and one ``twin_restart``
+    event, the stats count them, and the reader reports the restart as one, not as a
+    negative number of missing blocks."""
+    port, out, lines = free_port(), tmp_path / "rs.mcap", []
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        rec = Recorder(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), out, silence_s=0.3,
+                       status_timeout=0.2, log=lines.append)
+        rec.start()
+        try:
+            pubs = _publishers(session, SYNTH)
+            _publish_synthetic(pubs, 10)
+            _until(lambda: rec.stats.silences == 1)
+            for k in range(5):  # the new twin: its blocks from 0, a minute later
+                for c, pub in pubs.items():
+                    pub.put(synthetic_block(c, k, gps0=GPS0 + 60))
+            _until(lambda: rec.stats.blocks == 15 * len(SYNTH))
+        finally:
+            stats = rec.stop()
+    assert (stats.silences, stats.restarts) == (1, 1)
+    assert "fell silent 1 time(s) and restarted 1 time(s)" in stats.summary()
+    assert any("the twin restarted" in line for line in lines)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        session = read_session(out)
+    kinds = [e["event"] for e in session.events]
+    assert kinds.count("twin_silent") == 1 and kinds.count("twin_restart") == 1
+    gap, = [g for g in session.gaps if g.channel == SYNTH[0]]
+    assert gap.restarted and "the twin restarted between sequence 9 and 0" in str(gap)
+    assert any("the twin restarted" in str(w.message) for w in caught)
+    assert not any("missing between" in str(w.message) for w in caught)
+
+
+def _until(done, timeout_s: float = 10.0) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.02)

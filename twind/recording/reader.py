@@ -227,14 +227,24 @@ class Gap:
     n_samples: int
 
     @property
+    def restarted(self) -> bool:
+        """Whether the twin restarted in the gap: its numbering began again."""
+        return self.before_sequence <= self.after_sequence
+
+    @property
     def missing_blocks(self) -> int:
-        """Blocks missing by the sequence numbers (negative if the numbering restarted)."""
+        """Blocks missing by the sequence numbers; across a restart, by the time."""
+        if self.restarted:
+            return -1  # the numbers say nothing: :attr:`n_samples` does
         return self.before_sequence - self.after_sequence - 1
 
     def __str__(self) -> str:
-        return (f"{self.channel}: {self.missing_blocks} block(s) missing between sequence "
-                f"{self.after_sequence} and {self.before_sequence}, GPS {self.gps_start:.6f}"
-                f" to {self.gps_end:.6f} ({self.n_samples} samples, NaN-filled)")
+        what = (f"the twin restarted between sequence {self.after_sequence} and "
+                f"{self.before_sequence}" if self.restarted else
+                f"{self.missing_blocks} block(s) missing between sequence "
+                f"{self.after_sequence} and {self.before_sequence}")
+        return (f"{self.channel}: {what}, GPS {self.gps_start:.6f} to {self.gps_end:.6f} "
+                f"({self.n_samples} samples, NaN-filled)")
 
 
 @dataclass

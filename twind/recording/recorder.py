@@ -41,6 +41,7 @@ from twind.recording.reader import RecordingError, rotated_name
 from twind.recording.writer import (
     CHUNK_BYTES,
     CHUNK_SECONDS,
+    BlockHeader,
     McapSession,
     scan_block,
 )
@@ -72,6 +73,12 @@ class RecordingStats:
         Wall-clock seconds from subscribing to the end.
     max_backlog_bytes : int
         Largest queue of received but unwritten bytes seen.
+    restarts : int
+        Times the twin restarted during the recording (its block numbering began again),
+        each marked in the file by a ``twin_restart`` event.
+    silences : int
+        Times no block came for :attr:`Recorder.silence_s` (the twin stopped or became
+        unreachable), each marked by a ``twin_silent`` event.
     """
 
     files: list[Path] = field(default_factory=list)
@@ -83,6 +90,8 @@ class RecordingStats:
     undecodable: int = 0
     elapsed_s: float = 0.0
     max_backlog_bytes: int = 0
+    restarts: int = 0
+    silences: int = 0
 
     def summary(self) -> str:
         """One line for the user."""
@@ -97,6 +106,9 @@ class RecordingStats:
             line += f"; DROPPED {self.dropped} messages: the disk could not keep up"
         if self.undecodable:
             line += f"; skipped {self.undecodable} messages that were not SampleBlocks"
+        if self.restarts or self.silences:
+            line += (f"; the twin fell silent {self.silences} time(s) and restarted "
+                     f"{self.restarts} time(s), each marked in the file")
         return line
 
 
@@ -132,6 +144,9 @@ class Recorder:
         rather than exhausting memory.
     log : callable, optional
         Receives progress lines; default prints to stderr.
+    silence_s : float
+        Seconds without a block after which the twin is reported gone (it stopped or is
+        unreachable); the recorder goes on and marks its return.
     """
 
     def __init__(self, conf: zenoh.Config, out: str | Path,
@@ -140,7 +155,7 @@ class Recorder:
                  events: bool = True, status_timeout: float = 1.0,
                  chunk_bytes: int = CHUNK_BYTES, chunk_seconds: float = CHUNK_SECONDS,
                  max_backlog_bytes: int = 1 << 30,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None, silence_s: float = 5.0) -> None:
         self.conf = conf
         self.out = Path(out)
         self.keyexprs = tuple(keyexprs) or (all_data(),)
@@ -181,6 +196,10 @@ class Recorder:
         self._config: dict[str, Any] = {}
         self._undecodable_keys: set[str] = set()
         self._t_start = 0.0
+        self.silence_s = silence_s
+        self._last_sequence: dict[str, int] = {}  # the writer thread's, as below
+        self._last_block: tuple[float, float] | None = None  # (monotonic, GPS end)
+        self._silent = False
 
     @property
     def rotating(self) -> bool:
@@ -390,6 +409,7 @@ class Recorder:
                     item = get(timeout=0.1)
                 except queue.Empty:
                     self._file.maybe_flush(self.chunk_seconds)
+                    self._check_silence()
                     continue
                 if item is _STOP:
                     return
@@ -429,10 +449,47 @@ class Recorder:
         elif self.rotate_seconds and f.first_gps is not None and \
                 header.gps_start - f.first_gps >= self.rotate_seconds:
             self._rotate(header.gps_start)
+        self._follow(key, header)
         self._file.write_block(data, header, topic=key)
         self.stats.blocks += 1
         self.stats.block_bytes += len(data)
         self.stats.channels.add(key)
+
+    def _follow(self, key: str, header: BlockHeader) -> None:
+        """Mark the twin's return after a silence and its restarts (a channel's numbering
+        beginning again) in the file, as events."""
+        if self._silent:
+            self._silent = False
+            self._log(f"twind record: blocks arrive again (GPS {header.gps_start:.3f})")
+        last = self._last_sequence.get(key)
+        if last is not None and header.sequence <= last:
+            self.stats.restarts += 1
+            self._file.write_event({"event": "twin_restart", "gps": header.gps_start,
+                                    "channel": key, "after_sequence": last,
+                                    "sequence": header.sequence})
+            self.stats.events += 1
+            self._log(f"twind record: the twin restarted (its blocks number from "
+                      f"{header.sequence} again at GPS {header.gps_start:.3f}); marked in "
+                      "the file")
+            self._last_sequence.clear()  # every channel begins again: one mark
+        self._last_sequence[key] = header.sequence
+        n = sum(b for _, b in header.runs) // 8
+        self._last_block = (time.monotonic(), header.gps_start + n / header.rate_hz)
+
+    def _check_silence(self) -> None:
+        """Report, once, a twin that sent no block for :attr:`silence_s`."""
+        if self._silent or self._last_block is None:
+            return
+        since, gps = self._last_block
+        if time.monotonic() - since < self.silence_s:
+            return
+        self._silent = True
+        self.stats.silences += 1
+        self._file.write_event({"event": "twin_silent", "gps": gps,
+                                "seconds": self.silence_s})
+        self.stats.events += 1
+        self._log(f"twind record: no block for {self.silence_s:g} s since GPS {gps:.3f}: the "
+                  "twin stopped or is unreachable; still recording, its return is marked")
 
     def _rotate(self, gps: float) -> None:
         self._file.close()
