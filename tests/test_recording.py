@@ -595,3 +595,36 @@ def _until(done, timeout_s: float = 10.0) -> None:  # noqa: ANN001
     while not done():
         assert time.monotonic() < deadline, "timed out"
         time.sleep(0.02)
+
+
+def test_a_recorder_ends_cleanly_when_the_process_that_started_it_is_killed(
+        tmp_path: Path) -> None:
+    """As ``serve --record`` starts it (``--parent``): its parent SIGKILLed, the recorder
+    closes a complete file instead of living on as an orphan."""
+    out, pid_file = tmp_path / "orphan.mcap", tmp_path / "pid"
+    launcher = subprocess.Popen([sys.executable, "-c", (
+        "import os, subprocess, sys, time\n"
+        f"p = subprocess.Popen([sys.executable, '-m', 'twind', 'record', '-o', {str(out)!r}, "
+        f"'--connect', 'tcp/127.0.0.1:{free_port()}', '--parent', str(os.getpid())])\n"
+        f"open({str(pid_file)!r}, 'w').write(str(p.pid))\n"
+        "time.sleep(120)\n")], env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT)
+    try:
+        _until(lambda: out.exists(), 60)
+        launcher.kill()
+        launcher.wait()
+
+        def complete() -> bool:
+            with open(out, "rb") as fh:
+                try:
+                    return make_reader(fh).get_summary() is not None
+                except Exception:  # noqa: BLE001 - still being written
+                    return False
+
+        _until(complete, 30)
+    finally:
+        launcher.kill()
+        if pid_file.exists():
+            try:
+                os.kill(int(pid_file.read_text()), signal.SIGKILL)
+            except ProcessLookupError:
+                pass

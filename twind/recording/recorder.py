@@ -301,12 +301,14 @@ class Recorder:
             self._session.close()
             self._session = None
 
-    def run(self, duration: float | None = None) -> RecordingStats:
-        """Record until `duration` seconds (wall clock) have passed, SIGINT or SIGTERM.
+    def run(self, duration: float | None = None, parent: int | None = None) -> RecordingStats:
+        """Record until `duration` seconds (wall clock) have passed, SIGINT or SIGTERM, or,
+        with `parent`, until process `parent` is no longer this one's parent (it exited or
+        was killed: a recorder started by ``twind serve --record`` ends with it).
 
-        Either signal ends the recording cleanly (every received block written, summary and
-        footer). Signal handlers are installed only when called from the main thread, and
-        restored on return.
+        Each ends the recording cleanly (every received block written, summary and footer).
+        Signal handlers are installed only when called from the main thread, and restored
+        on return.
 
         Returns
         -------
@@ -328,6 +330,10 @@ class Recorder:
             while not self._stop.is_set():
                 left = 0.2 if end is None else min(0.2, end - time.monotonic())
                 if left <= 0:
+                    break
+                if parent is not None and os.getppid() != parent:
+                    self._log(f"twind record: process {parent}, which started this recorder, "
+                              "is gone; closing the recording")
                     break
                 self._stop.wait(left)
         finally:
@@ -531,6 +537,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="do not record twin/@/<IFO>/events")
     parser.add_argument("--zenoh-config", metavar="FILE.json5",
                         help="a Zenoh configuration (credentials, TLS) to start from")
+    parser.add_argument("--parent", type=int, metavar="PID",
+                        help="end the recording when process PID, which started this one, "
+                             "exits or is killed (twind serve --record passes its own)")
 
 
 def record_main(args: argparse.Namespace) -> int:
@@ -548,7 +557,7 @@ def record_main(args: argparse.Namespace) -> int:
     recorder = Recorder(conf, args.output, args.keyexprs or (all_data(),), ifo=args.ifo,
                         rotate_bytes=int(args.rotate_mb * 1e6) if args.rotate_mb else None,
                         rotate_seconds=args.rotate_s, events=not args.no_events)
-    stats = recorder.run(args.duration)
+    stats = recorder.run(args.duration, parent=args.parent)
     print(stats.summary(), flush=True)
     return 0
 

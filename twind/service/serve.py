@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -88,7 +89,8 @@ def _recorder(folder: str, endpoints: Sequence[str], ifo: str) -> subprocess.Pop
     out = Path(folder) / f"{ifo}-twin-{int(now_gps())}.mcap"
     connect = [a for e in endpoints for a in ("--connect", e.replace("0.0.0.0", "127.0.0.1"))]
     proc = subprocess.Popen([sys.executable, "-m", "twind", "record", "-o", str(out),
-                             "--mode", "client", "--rotate-s", "3600", "--ifo", ifo, *connect])
+                             "--mode", "client", "--rotate-s", "3600", "--ifo", ifo,
+                             "--parent", str(os.getpid()), *connect])
     first = out.with_name(f"{out.stem}-0001.mcap")
     deadline = time.monotonic() + 60
     while not first.exists():  # the recorder subscribes before it creates its first file
