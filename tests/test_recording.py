@@ -29,6 +29,7 @@ from servicekit import free_port
 from twind.bus.codec import SampleBlock
 from twind.bus.session import zenoh_config
 from twind.channels import block_channels
+from twind.cli import main
 from twind.recording.export import add_arguments as export_arguments
 from twind.recording.export import export, export_main
 from twind.recording.reader import (
@@ -407,6 +408,24 @@ def test_recorder_sigkill_leaves_a_readable_file(tmp_path: Path) -> None:
     assert min(lengths) >= 50, lengths
     assert session_read.config["status"] is None and "no twin service" in \
         session_read.config["status_problem"]
+    # the killed file recovered: any MCAP reader takes it, with everything twind read
+    fixed = tmp_path / "fixed.mcap"
+    assert main(["recover", str(out), "-o", str(fixed)]) == 0
+    with open(fixed, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        topics = {c.topic for c in summary.channels.values()}
+        counts = summary.statistics.channel_message_counts
+        by_topic = {summary.channels[k].topic: v for k, v in counts.items()}
+    assert set(SYNTH) <= {t.removeprefix("twin/") for t in topics}
+    assert sorted(n for t, n in by_topic.items() if "SUS" in t or "SEN" in t) == sorted(lengths)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # complete now
+        again = read_session(fixed)
+    assert again.complete and again.config == session_read.config
+    for c in SYNTH:
+        assert np.array_equal(again[c].samples, session_read[c].samples)
+    assert main(["recover", str(out), "-o", str(fixed)]) == 2  # never overwritten
 
 
 @pytest.mark.parametrize("rotate", [{"rotate_bytes": 800_000}, {"rotate_seconds": 2.0}])

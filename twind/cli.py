@@ -529,6 +529,8 @@ def build_parser() -> argparse.ArgumentParser:
             ("record", "twind.recording.recorder", "record_main", "record twin channels to MCAP"),
             ("replay", "twind.recording.replay", "replay_main", "republish a recording on Zenoh"),
             ("export", "twind.recording.export", "export_main", "MCAP session to .npz or .h5"),
+            ("recover", "twind.recording.recover", "recover_main",
+             "a valid MCAP file from a killed or damaged recording"),
             ("excite", "twind.excitation.excite", "excite_main",
              "design an excitation: a coherence in a band, or the most information"),
             ("campaign", "twind.analysis.campaign", "campaign_main",

@@ -109,6 +109,8 @@ class RawMessage:
     sequence: int
     data: bytes
     file: Path
+    schema_encoding: str = ""
+    schema_data: bytes = b""
 
 
 def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
@@ -165,7 +167,9 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
                     schema = schemas.get(channel.schema_id)
                     yield RawMessage(channel.topic, schema.name if schema else "",
                                      channel.message_encoding, record.log_time,
-                                     record.sequence, record.data, path)
+                                     record.sequence, record.data, path,
+                                     schema.encoding if schema else "",
+                                     schema.data if schema else b"")
             elif isinstance(record, Metadata) and metadata is not None:
                 metadata[record.name] = dict(record.metadata)
 

@@ -102,7 +102,8 @@ def sample_block_schema_data() -> bytes:
     return build_file_descriptor_set(sample_block_class()).SerializeToString()
 
 
-def _library() -> str:
+def library_label() -> str:
+    """The MCAP header's library field: twind's and mcap-python's versions."""
     try:
         mcap_version = _dist_version("mcap")
     except Exception:  # noqa: BLE001 - only a label
@@ -270,7 +271,7 @@ class McapSession:
                                 index_types=IndexType.CHUNK | IndexType.ATTACHMENT
                                 | IndexType.METADATA,
                                 enable_crcs=True)
-        self._mcap.start(profile="", library=_library())
+        self._mcap.start(profile="", library=library_label())
         self.ifo = ifo
         self.chunk_bytes = int(chunk_bytes)
         self._pending = 0  # bytes of messages in the open chunk
