@@ -33,6 +33,7 @@ from twind.cli import main
 from twind.recording.export import add_arguments as export_arguments
 from twind.recording.export import export, export_main
 from twind.recording.reader import (
+    DamagedRecordingWarning,
     GapWarning,
     JsonDecoderFactory,
     RecordingError,
@@ -647,3 +648,26 @@ def test_a_recorder_ends_cleanly_when_the_process_that_started_it_is_killed(
                 os.kill(int(pid_file.read_text()), signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_damaged_chunk_inside_a_complete_file_costs_only_its_own_span(
+        tmp_path: Path) -> None:
+    """4 kB overwritten in the middle of a complete file: the reader goes on by the chunk
+    index, says which GPS span was lost and why (not a killed writer), and keeps the rest;
+    ``twind recover`` writes a file every MCAP reader takes, without that chunk."""
+    path = tmp_path / "damaged.mcap"
+    _synthetic_file(path, {c: list(range(80)) for c in SYNTH})
+    raw = bytearray(path.read_bytes())
+    middle = len(raw) // 2
+    raw[middle : middle + 4096] = bytes(4096)
+    path.write_bytes(bytes(raw))
+    with pytest.warns(DamagedRecordingWarning, match=r"damaged .*GPS 14\d+\.\d+ to .*lost"):
+        session = read_session(path)
+    assert not session.complete and not any("killed" in p for p in session.problems)
+    kept = [len(session[c].sequences) for c in SYNTH]
+    assert all(60 <= n < 80 for n in kept), kept  # one chunk lost, not everything after it
+    assert all(session[c].sequences[-1] == 79 for c in SYNTH)
+    assert main(["recover", str(path), "-o", str(tmp_path / "fixed.mcap")]) == 0
+    with open(tmp_path / "fixed.mcap", "rb") as fh:
+        counts = make_reader(fh).get_summary().statistics.channel_message_counts
+    assert sorted(counts.values())[-len(SYNTH):] == sorted(kept)

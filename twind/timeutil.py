@@ -16,3 +16,8 @@ def now_gps() -> float:
 def gps_to_unix_ns(gps: float) -> int:
     """Unix time in ns of a GPS time (for MCAP log times)."""
     return int(round((gps + GPS_EPOCH_UNIX - LEAP_SECONDS) * 1e9))
+
+
+def unix_ns_to_gps(ns: int) -> float:
+    """GPS time of a Unix time in ns (an MCAP log time)."""
+    return ns / 1e9 - GPS_EPOCH_UNIX + LEAP_SECONDS

@@ -7,7 +7,9 @@ recording or from the bus, as gwpy ``TimeSeriesDict`` when gwpy is installed.
 Files are read with mcap's sequential :class:`~mcap.stream_reader.StreamReader`, never
 through the summary at the end, so that a file whose writer was killed (no summary, no
 footer, perhaps half a chunk at the end) gives everything up to its last complete chunk,
-with a :class:`TruncatedRecordingWarning`.
+with a :class:`TruncatedRecordingWarning`. A damaged chunk inside a complete file is
+skipped by the file's chunk index, and the rest read, with a
+:class:`DamagedRecordingWarning` giving the time span lost.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from twind.recording.writer import (
     BlockHeader,
     scan_block,
 )
+from twind.timeutil import unix_ns_to_gps
 
 
 class RecordingError(TwindError):
@@ -45,6 +48,10 @@ class RecordingError(TwindError):
 
 class TruncatedRecordingWarning(TwindWarning):
     """A recording ends without its summary: its writer was killed or the disk filled."""
+
+
+class DamagedRecordingWarning(TwindWarning):
+    """A chunk inside a complete recording cannot be read; the rest is read by its index."""
 
 
 class GapWarning(TwindWarning):
@@ -173,6 +180,7 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
             elif isinstance(record, Metadata) and metadata is not None:
                 metadata[record.name] = dict(record.metadata)
 
+        read_to = 0  # the end of the last chunk read whole
         try:
             for record in reader.records:
                 if isinstance(record, Chunk):
@@ -180,6 +188,7 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
                     # messages is used: a chunk cut by a SIGKILL contributes nothing
                     inner = breakup_chunk(record, validate_crc=True)
                     chunks += 1
+                    read_to = fh.tell()
                     for rec in inner:
                         yield from handle(rec)
                 elif isinstance(record, DataEnd):
@@ -199,6 +208,14 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
             # an error after the footer means the closing magic is cut: not complete either
             footer = False
             reason = truncation_reason(err, size)
+            summary = None if data_end else _summary(fh)
+            if summary is not None:  # damage inside a complete file: on by its index
+                schemas.update(summary.schemas)
+                channels.update(summary.channels)
+                for chunk in _chunks_after(fh, summary, read_to, path, problems):
+                    for rec in chunk:
+                        yield from handle(rec)
+                return
         else:
             reason = ""
     if not footer:
@@ -317,9 +334,10 @@ class Session:
     configs : list of dict
         Configuration snapshot of every file (``twin/@config`` or metadata ``twind.config``).
     complete : bool
-        Whether every file ends with its summary and footer.
+        Whether every file was read whole (each ends with its summary and footer, and no
+        chunk was damaged).
     problems : list of str
-        Truncations and gaps, as also issued as warnings.
+        Truncations, damaged chunks and gaps, as also issued as warnings.
     """
 
     files: list[Path]
@@ -737,6 +755,46 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
             for s in subs:
                 s.undeclare()
     return assembler.channels()
+
+
+def _summary(fh: Any) -> Any:  # noqa: ANN401 - mcap.records.Summary or None
+    """The summary of a file whose footer and summary section are intact, else None."""
+    from mcap.reader import SeekingReader
+
+    try:
+        fh.seek(0)
+        summary = SeekingReader(fh, validate_crcs=True).get_summary()
+    except Exception:  # noqa: BLE001 - any failure: no usable index
+        return None
+    return summary if summary is not None and summary.chunk_indexes else None
+
+
+def _chunks_after(fh: Any, summary: Any, offset: int, path: Path,  # noqa: ANN401
+                  problems: list[str] | None) -> Iterator[list[Any]]:
+    """The records of each indexed chunk from `offset` on; a damaged one is skipped, and
+    the time span it held reported (a warning, and in `problems`)."""
+    import zstandard
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk
+    from mcap.stream_reader import breakup_chunk
+
+    for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        if index.chunk_start_offset < offset:
+            continue
+        try:
+            fh.seek(index.chunk_start_offset + 1 + 8)  # past the opcode and the length
+            records = list(breakup_chunk(Chunk.read(ReadDataStream(fh)), validate_crc=True))
+        except (ValueError, struct.error, zstandard.ZstdError, EOFError) as err:
+            span = (f"GPS {unix_ns_to_gps(index.message_start_time):.3f} to "
+                    f"{unix_ns_to_gps(index.message_end_time):.3f}")
+            text = (f"{path}: the chunk at byte {index.chunk_start_offset} is damaged "
+                    f"({type(err).__name__}: {err}); its messages, {span}, are lost, the "
+                    "rest is read by the file's index")
+            if problems is not None:
+                problems.append(text)
+            warnings.warn(text, DamagedRecordingWarning, stacklevel=5)
+            continue
+        yield records
 
 
 def truncation_reason(err: Exception, size: int) -> str:
