@@ -14,6 +14,9 @@ def test_short_soak() -> None:
     print("\n".join(report.lines()))
     assert report.bus_blocks > 0 and report.bus_lost == 0 and report.bus_out_of_order == 0
     assert report.mcap_blocks >= report.bus_blocks and report.mcap_gaps == 0
-    assert report.hostile_refused == report.hostile_sent == 60
-    assert report.hostile_unanswered == 0
+    assert sum(report.hostile_sent.values()) == 60
+    assert report.hostile_refused == report.hostile_sent  # every kind, every request
+    assert set(report.hostile_sent) == {"inject", "filter", "params", "stop"}
+    assert report.hostile_unanswered == 0 and not report.crashed
+    assert report.watchdog.endswith("tripped under a 42 um drive and re-armed")
     assert len(report.latency_s) >= 3

@@ -230,7 +230,8 @@ def cmd_soak(args: argparse.Namespace) -> int:
     """Serve, record, inject and attack for a while; print the service figures."""
     from twind.service.soak import soak
 
-    report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config)
+    report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config,
+                  load=args.load)
     print("\n".join(report.lines()))
     return 0
 
@@ -581,7 +582,10 @@ def build_parser() -> argparse.ArgumentParser:
     soak_p.add_argument("--optics", default="all")
     soak_p.add_argument("--hostile", type=int, default=1000, help="malformed requests to send")
     soak_p.add_argument("--port", type=int, default=17461)
-    soak_p.add_argument("--config")
+    soak_p.add_argument("--config", help="twin config (TOML); default the shipped one with its "
+                                         "watchdogs at 20 um, so that one drive trips one")
+    soak_p.add_argument("--load", type=int, default=0, metavar="N",
+                        help="N busy processes share the cores with the twin (2: both cores)")
     soak_p.set_defaults(func=cmd_soak)
 
     demo = sub.add_parser("demo", help="a 'real' twin with a concealed effect beside a "

@@ -28,6 +28,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
 from twind.bus.session import zenoh_config
 from twind.client import TwinClient
+from twind.errors import TwindError
 
 
 @dataclass
@@ -45,10 +46,13 @@ class SoakReport:
     mcap_blocks: int
     mcap_gaps: int
     latency_s: list[float] = field(default_factory=list)
-    hostile_sent: int = 0
-    hostile_refused: int = 0
+    hostile_sent: dict[str, int] = field(default_factory=dict)
+    hostile_refused: dict[str, int] = field(default_factory=dict)
     hostile_unanswered: int = 0
     block_s: float = 1 / 16
+    crashed: bool = False
+    load: int = 0
+    watchdog: str = ""
 
     def lines(self) -> list[str]:
         """Human-readable figures."""
@@ -64,8 +68,12 @@ class SoakReport:
             f"{len(self.latency_s)} injections: median {1e3 * np.median(lat):.1f} ms, "
             f"p99 {1e3 * np.percentile(lat, 99):.1f} ms (target: one block + 10 ms = "
             f"{1e3 * self.block_s + 10:.1f} ms)",
-            f"hostile requests: {self.hostile_sent} sent, {self.hostile_refused} refused with a "
-            f"reason, {self.hostile_unanswered} unanswered",
+            f"hostile requests refused with a reason, of those sent: " + ", ".join(
+                f"{verb} {self.hostile_refused.get(verb, 0)}/{n}"
+                for verb, n in self.hostile_sent.items()) + f"; {self.hostile_unanswered} "
+            "unanswered",
+            f"service crashed: {'YES' if self.crashed else 'no'}; other processes loading the "
+            f"cores: {self.load}; watchdog: {self.watchdog or 'not exercised'}",
         ]
 
 
@@ -114,6 +122,11 @@ class _Watcher:
         self.session.close()
 
 
+def _request(obj: dict) -> bytes:
+    return json.dumps(obj).encode()
+
+
+_SINE = {"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "sine", "freq": 1.0, "amp": 0.1}
 HOSTILE = [
     b"not json", b"[1, 2, 3]", b"{}", json.dumps({"channel": "C1:SUS-ETMZ_SUSPOS_EXC",
                                                  "waveform": "sine", "freq": 1, "amp": 0.1}).encode(),
@@ -130,22 +143,44 @@ HOSTILE = [
                 "samples": [1e6] * 20000}).encode(),
     json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "noise", "amp": 0.1,
                 "shape": "zpk([1],[oops"}).encode(),
+    # what it implies later: a ramp no stop could run, a start a year ahead
+    _request({**_SINE, "duration": "inf", "ramp": 1e300}),
+    _request({**_SINE, "duration": "inf", "ramp": 6e14}),
+    _request({**_SINE, "start_gps": 2e9}),
 ]
+"""Malformed or hostile ``inject`` requests, each refused with a reason."""
+HOSTILE_CONTROL = [
+    ("filter", _request({"optic": "ETMX", "dof": "POS", "gain": -30.0, "ramp": 0})),
+    ("filter", _request({"optic": "ETMX", "dof": "POS", "gain": 1e300, "ramp": 0})),
+    ("filter", b'{"optic": "ETMX", "dof": "POS", "gain": NaN}'),
+    ("filter", _request({"optic": "ETMX", "dof": "ROLL", "fm": 1})),
+    ("params", _request({"optic": "ETMX", "set": {"mass_kg": 1e-7}})),
+    ("params", _request({"optic": "ETMX", "set": {"wire_length_m": -1.0}})),
+    ("params", _request({"optic": "ETMX", "watchdog": "off"})),
+    ("stop", _request({"id": ["not", "an", "id"]})),
+]
+"""Hostile requests of the other verbs (poisoned gains, an unstable optic...)."""
 
 
-def _hostile(endpoint: str, n: int, ifo: str) -> tuple[int, int]:
-    refused = unanswered = 0
+def _hostile(endpoint: str, n: int, ifo: str) -> tuple[dict[str, int], dict[str, int], int]:
+    """Send `n` hostile requests, inject's and the other verbs' in turn: (sent and refused
+    with a reason, per verb; unanswered)."""
+    attacks = [("inject", p) for p in HOSTILE] + HOSTILE_CONTROL
+    sent: dict[str, int] = defaultdict(int)
+    refused: dict[str, int] = defaultdict(int)
+    unanswered = 0
     with zenoh.open(zenoh_config(connect=[endpoint], mode="client")) as s:
-        key = control_key(ifo, "inject")
         for i in range(n):
-            replies = list(s.get(key, payload=HOSTILE[i % len(HOSTILE)], timeout=5.0))
+            verb, payload = attacks[i % len(attacks)]
+            sent[verb] += 1
+            replies = list(s.get(control_key(ifo, verb), payload=payload, timeout=5.0))
             if not replies or replies[0].ok is None:
                 unanswered += 1
                 continue
             reply = json.loads(replies[0].ok.payload.to_string())
-            if not reply.get("accepted") and reply.get("reason"):
-                refused += 1
-    return refused, unanswered
+            if not reply.get("ok") and reply.get("reason"):
+                refused[verb] += 1
+    return dict(sent), dict(refused), unanswered
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -154,13 +189,18 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port: int = 17461,
-         injections_every: float = 2.0, config: str | None = None) -> SoakReport:
-    """Run the soak (see module docstring) and return its figures."""
+         injections_every: float = 2.0, config: str | None = None, load: int = 0
+         ) -> SoakReport:
+    """Run the soak (see module docstring) and return its figures; `load` busy processes
+    share the cores with it."""
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory(prefix="twind-soak-") as tmp:
+        config = config or _watchful_config(Path(tmp))
         cmd = [sys.executable, "-m", "twind", "serve", "--optics", optics, "--listen", endpoint,
-               "--record", tmp] + (["--config", config] if config else [])
+               "--record", tmp, "--config", config]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                for _ in range(load)]
         try:
             client = TwinClient.wait([endpoint], timeout=90, alive=lambda: proc.poll() is None)
             watcher = _Watcher(endpoint)
@@ -173,22 +213,68 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             latencies = _inject_periodically(client, watcher, status0, t0 + duration,
                                              injections_every)
             attack.join(timeout=max(1.0, t0 + duration - time.monotonic() + 30))
+            watchdog = _trip_and_rearm(client, status0)
             cpu = (_cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - t0)
             status = client.status()
             client.close()
             watcher.close()
         finally:
+            for p in busy:
+                p.kill()
+            crashed = proc.poll() is not None
             proc.terminate()
             proc.wait(timeout=60)
         mcap_blocks, mcap_gaps = _scan_recording(sorted(Path(tmp).glob("*.mcap")))
-    refused, unanswered = hostile_result[0] if hostile_result else (0, hostile)
+    sent, refused, unanswered = hostile_result[0] if hostile_result else ({}, {}, hostile)
     return SoakReport(
         duration_s=duration, optics=", ".join(status["optics"]), cpu_fraction=cpu,
         late_blocks=status["late_blocks"], max_lag_s=status["max_lag_s"],
         bus_blocks=watcher.blocks, bus_lost=watcher.lost,
         bus_out_of_order=watcher.out_of_order,
-        mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies, hostile_sent=hostile,
-        hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"])
+        mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies, hostile_sent=sent,
+        hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"],
+        crashed=crashed, load=load, watchdog=watchdog)
+
+
+SOAK_WATCHDOG_UM = 20.0
+"""The soak's twin trips its watchdogs at this OSEM reading (um): the default (1000 um) is
+beyond what the excitation limits can drive (a sine at the RMS limit near POS's resonance
+reads ~46 um), so the soak lowers it to see one trip."""
+
+
+def _watchful_config(folder: Path) -> str:
+    """The default configuration with the watchdog at :data:`SOAK_WATCHDOG_UM`, in `folder`."""
+    from twind.config import DEFAULT_CONFIG
+
+    text = DEFAULT_CONFIG.read_text()
+    if "watchdog_um" not in text:
+        msg = f"{DEFAULT_CONFIG} has no [service] watchdog_um"
+        raise TwindError(msg)
+    lines = [f"watchdog_um = {SOAK_WATCHDOG_UM}" if line.startswith("watchdog_um") else line
+             for line in text.splitlines()]
+    (folder / "optics").symlink_to(DEFAULT_CONFIG.parent / "optics")
+    path = folder / DEFAULT_CONFIG.name
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+def _trip_and_rearm(client: TwinClient, status: dict) -> str:
+    """Drive one optic's POS at the RMS limit near its resonance until its watchdog trips,
+    then re-arm it: what a commissioner sees, in words."""
+    optic = status["optics"][0]
+    reply = client.query("inject", {"channel": f"{status['ifo']}:SUS-{optic}_SUSPOS_EXC",
+                                    "waveform": "sine", "freq": 1.0, "amp": 42.0,
+                                    "duration": 20.0})
+    if not reply.get("accepted"):
+        return f"drive refused ({reply.get('reason')})"
+    deadline = time.monotonic() + 20
+    while client.status()["watchdogs"][optic] != "tripped" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    tripped = client.status()["watchdogs"][optic] == "tripped"
+    client.query("stop", {"id": reply["id"]})
+    rearmed = client.query("params", {"optic": optic, "watchdog": "rearm"}).get("watchdog")
+    return (f"{optic} tripped under a 42 um drive and re-armed" if tripped and
+            rearmed == "armed" else f"{optic}: tripped {tripped}, after re-arm {rearmed}")
 
 
 def _scan_recording(files: list[Path]) -> tuple[int, int]:

@@ -315,8 +315,11 @@ class TwinService:
 
     def stop(self, request: dict) -> dict:
         """Stop an excitation by id (``{"id": ...}``), or all with ``{"all": true}``."""
+        if request.get("all") is not True and not isinstance(request.get("id"), str):
+            msg = 'stop takes {"id": "<the id inject returned>"} or {"all": true}'
+            raise TwindError(msg)
         with self._lock:
-            ids = list(self._active) if request.get("all") is True else [request.get("id")]
+            ids = list(self._active) if request.get("all") is True else [request["id"]]
             ended = [i for i in ids if i in self._ended]
             missing = [i for i in ids if i not in self._active and i not in self._ended]
             if missing:
