@@ -129,6 +129,13 @@ class TwinClient:
             raise TwindError(reply.get("reason", "params failed"))
         return reply
 
+    def rearm(self, optic: str) -> dict:
+        """Re-arm a tripped watchdog: the optic's damping outputs come back (from rest)."""
+        reply = self.query("params", {"optic": optic, "watchdog": "rearm"})
+        if not reply.get("ok"):
+            raise TwindError(reply.get("reason", "re-arm failed"))
+        return reply
+
     def switch(self, optic: str, dof: str, fm: int, on: bool) -> dict:
         """Switch filter stage FM`fm` of a damping filter module."""
         return self._filter({"optic": optic, "dof": dof, "fm": fm, "on": on})

@@ -272,7 +272,7 @@ def _trip_and_rearm(client: TwinClient, status: dict) -> str:
         time.sleep(0.1)
     tripped = client.status()["watchdogs"][optic] == "tripped"
     client.query("stop", {"id": reply["id"]})
-    rearmed = client.query("params", {"optic": optic, "watchdog": "rearm"}).get("watchdog")
+    rearmed = client.rearm(optic)["watchdog"]
     return (f"{optic} tripped under a 42 um drive and re-armed" if tripped and
             rearmed == "armed" else f"{optic}: tripped {tripped}, after re-arm {rearmed}")
 
