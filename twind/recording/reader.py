@@ -26,7 +26,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zstandard
+from mcap.data_stream import ReadDataStream
 from mcap.decoder import DecoderFactory as McapDecoderFactory
+from mcap.reader import SeekingReader
+from mcap.exceptions import EndOfFile, InvalidMagic, McapError
+from mcap.records import Channel as McapChannel
+from mcap.records import Chunk, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from numpy.typing import NDArray
 
 from twind.errors import TwindError, TwindWarning
@@ -145,15 +152,10 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
     RecordingError
         If the file is not an MCAP file at all, or refers to a channel it never defined.
     """
-    import zstandard
-    from mcap.exceptions import EndOfFile, InvalidMagic, McapError
-    from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader, breakup_chunk
-
     path = Path(path)
     size = path.stat().st_size
     schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
+    channels: dict[int, McapChannel] = {}
     chunks = 0
     data_end = footer = False
     with open(path, "rb") as fh:
@@ -163,7 +165,7 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
         def handle(record: Any) -> Iterator[RawMessage]:
             if isinstance(record, Schema):
                 schemas[record.id] = record
-            elif isinstance(record, Channel):
+            elif isinstance(record, McapChannel):
                 channels[record.id] = record
             elif isinstance(record, Message):
                 channel = channels.get(record.channel_id)
@@ -759,8 +761,6 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
 
 def _summary(fh: Any) -> Any:  # noqa: ANN401 - mcap.records.Summary or None
     """The summary of a file whose footer and summary section are intact, else None."""
-    from mcap.reader import SeekingReader
-
     try:
         fh.seek(0)
         summary = SeekingReader(fh, validate_crcs=True).get_summary()
@@ -773,11 +773,6 @@ def _chunks_after(fh: Any, summary: Any, offset: int, path: Path,  # noqa: ANN40
                   problems: list[str] | None) -> Iterator[list[Any]]:
     """The records of each indexed chunk from `offset` on; a damaged one is skipped, and
     the time span it held reported (a warning, and in `problems`)."""
-    import zstandard
-    from mcap.data_stream import ReadDataStream
-    from mcap.records import Chunk
-    from mcap.stream_reader import breakup_chunk
-
     for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         if index.chunk_start_offset < offset:
             continue

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 from mcap.writer import CompressionType, IndexType
@@ -75,8 +76,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def recover_main(args: argparse.Namespace) -> int:
     """``twind recover``: write the file, say what was lost."""
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the loss is reported below, once
         n, problems = recover(args.input, args.output)

@@ -28,6 +28,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
 from twind.bus.session import zenoh_config
 from twind.client import TwinClient
+from twind.config import DEFAULT_CONFIG
 from twind.errors import TwindError
 
 
@@ -244,8 +245,6 @@ reads ~46 um), so the soak lowers it to see one trip."""
 
 def _watchful_config(folder: Path) -> str:
     """The default configuration with the watchdog at :data:`SOAK_WATCHDOG_UM`, in `folder`."""
-    from twind.config import DEFAULT_CONFIG
-
     text = DEFAULT_CONFIG.read_text()
     if "watchdog_um" not in text:
         msg = f"{DEFAULT_CONFIG} has no [service] watchdog_um"
