@@ -468,7 +468,7 @@ class Recorder:
             self._silent = False
             self._log(f"twind record: blocks arrive again (GPS {header.gps_start:.3f})")
         last = self._last_sequence.get(key)
-        if last is not None and header.sequence <= last:
+        if last is not None and header.sequence < last:  # equal: the same block twice
             self.stats.restarts += 1
             self._file.write_event({"event": "twin_restart", "gps": header.gps_start,
                                     "channel": key, "after_sequence": last,

@@ -195,7 +195,6 @@ class TwinService:
             try:
                 exc[act.optic, act.dof, a:] += act.waveform.next(self.n - a)
             except Exception as err:  # noqa: BLE001 - one excitation's fault ends it, not the loop
-                exc[act.optic, act.dof, a:] = 0.0
                 del self._active[act.id]
                 self._ended.add(act.id)
                 self._publish_event("error", act, reason=f"{type(err).__name__}: {err}")
