@@ -174,18 +174,38 @@ _REQUESTS = st.one_of(
 )
 
 
+@pytest.fixture(scope="module")
+def unhurried() -> Iterator[TwinService]:
+    """A twin that takes any number of changes a minute, so that the fuzz reaches them."""
+    nominal = load_config(None, ["ETMX"])
+    with _serving(replace(nominal, service=replace(nominal.service,
+                                                   changes_per_minute=10**9))) as svc:
+        yield svc
+
+
 @settings(max_examples=600, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(requests=st.lists(_REQUESTS, min_size=1, max_size=8))
 def test_every_generated_request_is_answered_and_the_loop_goes_on(
-        service: TwinService, requests: list) -> None:
+        unhurried: TwinService, requests: list) -> None:
     """Thousands of generated requests over the schemas of inject, stop, params and filter,
     valid and not: each gets an id or a reason, and every block after them is finite."""
     for verb, request in requests:
-        _ask(service, verb, request)
-        _step_is_finite(service)
-    _ask(service, "stop", {"all": True})
-    _step_is_finite(service)
+        _ask(unhurried, verb, request)
+        _step_is_finite(unhurried)
+    _ask(unhurried, "stop", {"all": True})
+    _step_is_finite(unhurried)
+
+
+def test_changes_beyond_the_configured_rate_are_refused() -> None:
+    nominal = load_config(None, ["ETMX"])
+    with _serving(replace(nominal, service=replace(nominal.service,
+                                                   changes_per_minute=3))) as svc:
+        for gain in (0.9, 1.0, 0.95):
+            assert _ask(svc, "filter", {"dof": "POS", "gain": gain, "ramp": 0})["ok"]
+        reply = _ask(svc, "params", {"optic": "ETMX", "set": {"wire_length_m": 0.25}})
+        assert not reply["ok"] and "service.changes_per_minute" in reply["reason"]
+        assert _ask(svc, "params", {"optic": "ETMX"})["ok"]  # reading is no change
 
 
 def test_excitations_are_counted_scheduled_ones_listed_and_stopped_at_once(

@@ -109,6 +109,9 @@ class ServiceLimits:
     watchdog_um : float
         An OSEM reading beyond this (um from its centre), or not finite, trips the optic's
         watchdog: its damping outputs are zeroed until a request re-arms it.
+    changes_per_minute : int
+        ``params`` and ``filter`` changes accepted in any minute (each rebuilds and checks a
+        loop, time the pacing thread shares).
     """
 
     exc_peak: float = 100.0
@@ -118,6 +121,7 @@ class ServiceLimits:
     schedule_ahead_s: float = 86400.0
     request_bytes: int = 8_000_000
     watchdog_um: float = 1000.0
+    changes_per_minute: int = 60
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ they only touch shared state under a lock.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import json
 import math
@@ -69,6 +70,7 @@ class Stats:
     max_lag_s: float = 0.0
     lag_s: float = 0.0
     busy_s: float = 0.0  # wall time spent computing and publishing
+    dropped_blocks: int = 0  # channel blocks Zenoh refused to publish
 
 
 class TwinService:
@@ -118,6 +120,7 @@ class TwinService:
         self._lock = threading.Lock()
         self._params_lock = threading.Lock()  # one parameter change at a time
         self._effects: dict[str, tuple[str, dict]] = {}  # physics pushed in beyond nominal
+        self._changes: collections.deque[float] = collections.deque()  # their times
         self._active: dict[str, Active] = {}
         tag = uuid.uuid4().hex[:6]  # ids stay unique when several twins share a router
         self._ids = (f"exc-{tag}-{i}" for i in itertools.count(1))
@@ -168,7 +171,11 @@ class TwinService:
         gps = self.gps0 + first / self.rate
         seq = self.stats.blocks
         for name, unit, samples in block_channels(self.twin.ifo, block):
-            self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples, unit).encode())
+            try:
+                self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples,
+                                                 unit).encode())
+            except zenoh.ZError:  # the session is closing or the transport failed: counted
+                self.stats.dropped_blocks += 1
         self.stats.blocks += 1
 
     def _watch(self, block) -> None:  # noqa: ANN001 - simulation.engine.Block
@@ -246,7 +253,7 @@ class TwinService:
                 "gps": self.gps0 + twin_time, "uptime_s": uptime, "blocks": self.stats.blocks,
                 "real_time_factor": twin_time / uptime if uptime > 0 else 0.0,
                 "lag_s": self.stats.lag_s, "max_lag_s": self.stats.max_lag_s,
-                "late_blocks": self.stats.late_blocks, "dropped_blocks": 0,
+                "late_blocks": self.stats.late_blocks, "dropped_blocks": self.stats.dropped_blocks,
                 "cpu_fraction": self.stats.busy_s / uptime if uptime > 0 else 0.0,
                 "excitations": active, "config": self.twin.source,
                 "watchdogs": {o.name: "tripped" if self.engine.tripped(o.name) else "armed"
@@ -374,9 +381,22 @@ class TwinService:
                 "watchdog": "tripped" if self.engine.tripped(name) else "armed",
                 "effect": {"id": applied[0], "values": applied[1]} if applied else None}
 
+    def _count_change(self) -> None:
+        """Refuse a change beyond ``service.changes_per_minute`` (under the params lock)."""
+        now, most = time.monotonic(), self.accepts.changes_per_minute
+        while self._changes and now - self._changes[0] > 60.0:
+            self._changes.popleft()
+        if len(self._changes) >= most:
+            msg = (f"{most} params/filter changes in the last minute already, the most the "
+                   f"twin takes (service.changes_per_minute); try again in "
+                   f"{60.0 - (now - self._changes[0]):.0f} s")
+            raise TwindError(msg)
+        self._changes.append(now)
+
     def _rebuild(self, index: int, changes: dict, effect: dict | None) -> None:
         """A new plant from the changed parameters and effect, checked, then swapped in."""
         with self._params_lock:
+            self._count_change()
             cfg = self.optics[index]
             sus = cfg.sus.updated(**changes)
             problems = sus.check()
@@ -410,6 +430,7 @@ class TwinService:
         index = self._optic_index(optic)
         change = _filter_change(request)
         with self._params_lock:
+            self._count_change()
             loop = self.engine.loops[index]
             modules = dict(loop.modules)
             try:
