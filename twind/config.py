@@ -17,6 +17,7 @@ import numpy as np
 
 from twind import DOFS
 from twind.errors import ConfigError, TwindError
+from twind.limits import ServiceLimits
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import N_STAGES, FilterModule, Stage
 from twind.loop.foton import design_to_sos
@@ -86,42 +87,6 @@ class OpticConfig:
         """The optic's damping loop, with fresh filter modules."""
         plant = Plant.from_params(self.sus, self.mechanics())
         return DampingLoop(self.name, plant, {d: self.damping[d].build() for d in DOFS})
-
-
-@dataclass(frozen=True)
-class ServiceLimits:
-    """What a running twin accepts from its clients: the ``[service]`` table of an
-    interferometer file, every key optional (these defaults otherwise).
-
-    Attributes
-    ----------
-    exc_peak, exc_rms : float
-        The sum of the excitations on one ``_EXC`` test point, in its units (um or urad):
-        well inside the OSEMs' range.
-    excitations_per_channel : int
-        Excitations running or scheduled on one test point.
-    excitations : int
-        Excitations running or scheduled in all.
-    schedule_ahead_s : float
-        How far ahead of the twin's time an excitation may be scheduled (s).
-    request_bytes : int
-        The largest control request (a stream's samples travel in it).
-    watchdog_um : float
-        An OSEM reading beyond this (um from its centre), or not finite, trips the optic's
-        watchdog: its damping outputs are zeroed until a request re-arms it.
-    changes_per_minute : int
-        ``params`` and ``filter`` changes accepted in any minute (each rebuilds and checks a
-        loop, time the pacing thread shares).
-    """
-
-    exc_peak: float = 100.0
-    exc_rms: float = 30.0
-    excitations_per_channel: int = 16
-    excitations: int = 64
-    schedule_ahead_s: float = 86400.0
-    request_bytes: int = 8_000_000
-    watchdog_um: float = 1000.0
-    changes_per_minute: int = 60
 
 
 @dataclass(frozen=True)

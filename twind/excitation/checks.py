@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twind.config import ServiceLimits
+from twind.limits import ServiceLimits
 from twind.excitation.design import (
     NOISE_PEAK_SIGMAS,
     multisine_plan,

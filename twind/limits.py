@@ -1,0 +1,42 @@
+"""What a running twin accepts from its clients (the ``[service]`` table of an
+interferometer file): light enough for a client to know the defaults without the physics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ServiceLimits:
+    """What a running twin accepts from its clients: the ``[service]`` table of an
+    interferometer file, every key optional (these defaults otherwise).
+
+    Attributes
+    ----------
+    exc_peak, exc_rms : float
+        The sum of the excitations on one ``_EXC`` test point, in its units (um or urad):
+        well inside the OSEMs' range.
+    excitations_per_channel : int
+        Excitations running or scheduled on one test point.
+    excitations : int
+        Excitations running or scheduled in all.
+    schedule_ahead_s : float
+        How far ahead of the twin's time an excitation may be scheduled (s).
+    request_bytes : int
+        The largest control request (a stream's samples travel in it).
+    watchdog_um : float
+        An OSEM reading beyond this (um from its centre), or not finite, trips the optic's
+        watchdog: its damping outputs are zeroed until a request re-arms it.
+    changes_per_minute : int
+        ``params`` and ``filter`` changes accepted in any minute (each rebuilds and checks a
+        loop, time the pacing thread shares).
+    """
+
+    exc_peak: float = 100.0
+    exc_rms: float = 30.0
+    excitations_per_channel: int = 16
+    excitations: int = 64
+    schedule_ahead_s: float = 86400.0
+    request_bytes: int = 8_000_000
+    watchdog_um: float = 1000.0
+    changes_per_minute: int = 60
