@@ -39,6 +39,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key, data_key
 from twind.bus.session import zenoh_config
 from twind.client import TwinClient, TwinUnreachable
+from twind.recording.reader import read_session
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 CREDENTIALS = DEPLOY / "acl" / "credentials.example.txt"
@@ -434,3 +435,41 @@ def test_tls_with_client_certificates_and_acl(tmp_path: Path, maker: str) -> Non
         assert cannot_connect(f"tcp/127.0.0.1:{port}", config(None))  # plain TCP
         assert cannot_connect(endpoint, client(pki, None))  # no client certificate
         assert cannot_connect(endpoint, client(other, "operator"))  # another CA
+
+
+def test_the_recorder_logs_in_to_the_acl_router_as_the_recorder(tmp_path: Path) -> None:
+    """deploy/twind-recorder.service's command behind the ACL router, with the "recorder"
+    user's credentials: the twin's blocks reach the file."""
+    dictionary = f"transport/auth/usrpwd/dictionary_file:{json.dumps(str(CREDENTIALS))}"
+    out = tmp_path / "acl.mcap"
+    with router(DEPLOY / "acl" / "router.json5", free_port(), dictionary) as endpoint, \
+            serving("--mode", "client", "--connect", endpoint,
+                    "--zenoh-config", str(DEPLOY / "acl" / "twin-client.json5")) as proc:
+        wait_until_answering(endpoint, str(DEPLOY / "acl" / "operator.json5"), proc)
+        recorded = subprocess.run(
+            [sys.executable, "-m", "twind", "record", "-o", str(out), "--mode", "client",
+             "--connect", endpoint, "--zenoh-config", str(DEPLOY / "acl" / "recorder.json5"),
+             "--duration", "3"], capture_output=True, text=True, timeout=60)
+    assert recorded.returncode == 0, recorded.stderr[-2000:]
+    session = read_session(out)
+    assert CHANNEL in session.channels and session.config["status"]["optics"] == ["ETMX"]
+
+
+def test_serve_record_logs_its_recorder_in_behind_the_acl_router(tmp_path: Path) -> None:
+    """``serve --record`` behind the ACL router: the twin logs in as "twin", its recorder as
+    "recorder" (--record-zenoh-config), and the session reaches the files."""
+    dictionary = f"transport/auth/usrpwd/dictionary_file:{json.dumps(str(CREDENTIALS))}"
+    with router(DEPLOY / "acl" / "router.json5", free_port(), dictionary) as endpoint, \
+            serving("--mode", "client", "--connect", endpoint,
+                    "--zenoh-config", str(DEPLOY / "acl" / "twin-client.json5"),
+                    "--record", str(tmp_path),
+                    "--record-zenoh-config", str(DEPLOY / "acl" / "recorder.json5")) as proc:
+        wait_until_answering(endpoint, str(DEPLOY / "acl" / "operator.json5"), proc)
+        watcher = Watcher(endpoint, str(DEPLOY / "acl" / "viewer.json5"))
+        try:
+            watcher.wait_for_data()
+            time.sleep(1.0)  # a second of blocks on the way to the recorder
+        finally:
+            watcher.close()
+    session = read_session(sorted(tmp_path.glob("*.mcap")))
+    assert CHANNEL in session.channels and len(session[CHANNEL].sequences) > 0

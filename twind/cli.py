@@ -165,7 +165,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     listen, connect = _endpoints(args)
     conf = zenoh_config(listen, connect, mode=args.mode, config_file=args.zenoh_config)
     return serve_main(conf, twin, optics, block_s=args.block, speed=args.speed, seed=args.seed,
-                      duration=args.duration, record_dir=args.record, endpoints=listen + connect)
+                      duration=args.duration, record_dir=args.record, endpoints=listen + connect,
+                      record_config=args.record_zenoh_config)
 
 
 def _client(args: argparse.Namespace):  # noqa: ANN202 - TwinClient
@@ -494,6 +495,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="Zenoh mode (default: the --zenoh-config file's, else peer)")
     serve.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
     serve.add_argument("--record", help="folder for rotating MCAP recordings of the session")
+    serve.add_argument("--record-zenoh-config", metavar="FILE.json5",
+                       help="the recorder's Zenoh configuration (behind an ACL router: "
+                            "deploy/acl/recorder.json5)")
     serve.add_argument("--speed", type=float, default=1.0, help="twin seconds per wall second")
     serve.add_argument("--block", type=float, default=1 / 16, help="seconds per block")
     serve.add_argument("--seed", type=_seed, default=0)

@@ -20,7 +20,8 @@ from twind.service.twin import TwinService
 
 def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float = 1 / 16,
          speed: float = 1.0, seed: int = 0, duration: float | None = None,
-         record_dir: str | None = None, endpoints: Sequence[str] = ()) -> int:
+         record_dir: str | None = None, endpoints: Sequence[str] = (),
+         record_config: str | None = None) -> int:
     """Serve `optics` on a session opened with `conf`.
 
     Parameters
@@ -37,6 +38,8 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
         Record every block and event to MCAP files rotating hourly in this folder.
     endpoints : sequence of str
         Where the service can be reached (for the recorder's session and the log).
+    record_config : str, optional
+        The recorder's Zenoh configuration file (its credentials behind an ACL router).
     """
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -50,7 +53,8 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
         with zenoh.open(conf) as session:
             # the recorder subscribes before the service answers anything, so that no block
             # and no injection event escapes the recording
-            recorder = _recorder(record_dir, endpoints, twin.ifo) if record_dir else None
+            recorder = (_recorder(record_dir, endpoints, twin.ifo, record_config)
+                        if record_dir else None)
             service = TwinService(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
             print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
                   f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "
@@ -96,7 +100,8 @@ def _report(service: TwinService, stop: threading.Event, every: float = 10.0) ->
               f"{s['late_blocks']} late, {len(s['excitations'])} excitation(s)", flush=True)
 
 
-def _recorder(folder: str, endpoints: Sequence[str], ifo: str) -> subprocess.Popen:
+def _recorder(folder: str, endpoints: Sequence[str], ifo: str,
+              zenoh_config_file: str | None = None) -> subprocess.Popen:
     """``twind record`` in a process of its own: it cannot slow the twin's pacing thread
     (Python threads share one interpreter lock) nor take the twin down if it fails."""
     from twind.timeutil import now_gps
@@ -106,7 +111,9 @@ def _recorder(folder: str, endpoints: Sequence[str], ifo: str) -> subprocess.Pop
     connect = [a for e in endpoints for a in ("--connect", e.replace("0.0.0.0", "127.0.0.1"))]
     proc = subprocess.Popen([sys.executable, "-m", "twind", "record", "-o", str(out),
                              "--mode", "client", "--rotate-s", "3600", "--ifo", ifo,
-                             "--parent", str(os.getpid()), *connect])
+                             "--parent", str(os.getpid()), *connect,
+                             *(["--zenoh-config", zenoh_config_file] if zenoh_config_file
+                               else [])])
     first = out.with_name(f"{out.stem}-0001.mcap")
     deadline = time.monotonic() + 60
     while not first.exists():  # the recorder subscribes before it creates its first file
