@@ -301,7 +301,7 @@ class ClosedLoopModel:
         self._narrow: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
 
     @functools.cached_property
-    def _K(self) -> NDArray[np.complex128]:
+    def _k(self) -> NDArray[np.complex128]:
         # when first needed: a model made only to be cut down to a measurement's bins
         # (for_data) would otherwise evaluate the filters at every bin up to Nyquist
         return self.cfg.loop().controller(self._at)
@@ -327,7 +327,7 @@ class ClosedLoopModel:
 
     def response(self, plant: Plant) -> NDArray[np.complex128]:
         """``IN1/EXC`` of the configured loop around any `plant`, shape (len(f), 4, 4)."""
-        T = self._averaged(_closed_loop(plant.response(self._at), self._K))
+        T = self._averaged(_closed_loop(plant.response(self._at), self._k))
         if self.kernel is None and self.resolution_hz > 0 and {"VERT", "ROLL"} & set(
                 plant.mechanics.dofs):
             T = self._with_narrow(plant, T)
@@ -348,8 +348,8 @@ class ClosedLoopModel:
             return T
         d, w = hann_kernel(self.resolution_hz, width)
         at = (self.f[near, None] + self.resolution_hz * d).ravel()
-        K = self.cfg.loop().controller(at)
-        fine = _closed_loop(plant.response(at), K).reshape(near.size, d.size, *T.shape[1:])
+        k = self.cfg.loop().controller(at)
+        fine = _closed_loop(plant.response(at), k).reshape(near.size, d.size, *T.shape[1:])
         T = T.copy()
         T[near] = np.einsum("k,fkij->fij", w, fine)
         return T
@@ -368,7 +368,7 @@ class ClosedLoopModel:
     def _with_narrow(self, plant: Plant, T: NDArray[np.complex128]) -> NDArray[np.complex128]:
         if self._narrow is None:
             self._narrow = self._narrow_grid()
-        bins, at, weights, K = self._narrow
+        bins, at, weights, k = self._narrow
         mech = plant.mechanics
         modes = [math.sqrt(mech.K[i, i] / mech.M[i, i]) / (2 * math.pi)
                  for i, d in enumerate(mech.dofs) if d in ("VERT", "ROLL")]
@@ -377,8 +377,8 @@ class ClosedLoopModel:
                               < NARROW_REACH_BINS * self.resolution_hz)
         if near.size:
             at = at.reshape(bins.size, weights.size)[near].ravel()
-            K = K.reshape(bins.size, weights.size, *K.shape[1:])[near].reshape(-1, *K.shape[1:])
-            fine = _closed_loop(plant.response(at), K).reshape(near.size, weights.size,
+            k = k.reshape(bins.size, weights.size, *k.shape[1:])[near].reshape(-1, *k.shape[1:])
+            fine = _closed_loop(plant.response(at), k).reshape(near.size, weights.size,
                                                               *T.shape[1:])
             T = T.copy()
             T[bins[near]] = np.einsum("k,fkij->fij", weights, fine)
@@ -396,8 +396,8 @@ class ClosedLoopModel:
         width = min(lo * nominal[dof] / sus.Q[dof] for dof, lo, _ in MODE_SEARCH.values())
         d, w = hann_kernel(self.resolution_hz, width)
         at = (self.f[bins, None] + self.resolution_hz * d).ravel()
-        K = self.cfg.loop().controller(at)
-        return bins, at, w, K
+        k = self.cfg.loop().controller(at)
+        return bins, at, w, k
 
     def for_data(self, data: FitData) -> Callable[[Mapping[str, float]], NDArray]:
         """The model shaped like `data` (its responses and excited DOFs; zeros in unused

@@ -62,19 +62,21 @@ def _show(x: object) -> str:
     return f"{type(x).__name__} {x!r:.40}"
 
 
-def _is_real(x: object) -> bool:
-    # bool is an int to Python but never a number a user meant; numpy bools are not Real.
+def is_real(x: object) -> bool:
+    """A real number a user meant (NaN and inf included): a bool is an int to Python but
+    never a number a user meant; numpy bools are not Real."""
     return isinstance(x, numbers.Real) and not isinstance(x, bool)
 
 
-def _is_int(x: object) -> bool:
+def is_int(x: object) -> bool:
+    """An integer a user meant: not a bool."""
     return isinstance(x, numbers.Integral) and not isinstance(x, bool)
 
 
 def _real(key: str, x: object, *, optional: bool = False) -> float | None:
     if x is None and optional:
         return None
-    if not _is_real(x):
+    if not is_real(x):
         want = "a number or null" if optional else "a number"
         raise ExcitationError(f"must be {want}, got {_show(x)}", key)
     return _float(key, x)
@@ -91,7 +93,7 @@ def _duration(x: object) -> float:
     # JSON has no infinity; to_json writes "inf" and Python's json module may give inf.
     if isinstance(x, str) and x.strip().lower() in ("inf", "infinity", "+inf"):
         return math.inf
-    if not _is_real(x):
+    if not is_real(x):
         raise ExcitationError(f'must be a number of seconds or "inf", got {_show(x)}',
                               "duration")
     return _float("duration", x)
@@ -103,7 +105,7 @@ def _integer(key: str, x: object, *, optional: bool = False) -> int | None:
     # JSON writers in other languages may send 3.0 for 3; a fractional count is an error.
     if isinstance(x, float) and x.is_integer():
         return int(x)
-    if not _is_int(x):
+    if not is_int(x):
         raise ExcitationError(f"must be an integer, got {_show(x)}", key)
     return int(x)  # type: ignore[arg-type]
 
@@ -127,7 +129,7 @@ def _freqs(x: object) -> tuple[float, ...] | None:
         raise ExcitationError(f"{len(x)} tones, more than the {MAX_TONES} a multisine may have",
                               "freqs")
     for j, f in enumerate(x):
-        if not _is_real(f):
+        if not is_real(f):
             raise ExcitationError(f"element {j} must be a number, got {type(f).__name__}",
                                   "freqs")
     return tuple(_float("freqs", f) for f in x)

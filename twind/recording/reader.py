@@ -256,10 +256,9 @@ class Gap:
 
     @property
     def missing_blocks(self) -> int:
-        """Blocks missing by the sequence numbers; across a restart, by the time."""
-        if self.restarted:
-            return -1  # the numbers say nothing: :attr:`n_samples` does
-        return self.before_sequence - self.after_sequence - 1
+        """Blocks missing by the sequence numbers (0 across a restart, whose numbers say
+        nothing of it: :attr:`n_samples` does)."""
+        return 0 if self.restarted else self.before_sequence - self.after_sequence - 1
 
     def __str__(self) -> str:
         what = (f"the twin restarted between sequence {self.after_sequence} and "

@@ -129,22 +129,16 @@ def _request(obj: dict) -> bytes:
 
 _SINE = {"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "sine", "freq": 1.0, "amp": 0.1}
 HOSTILE = [
-    b"not json", b"[1, 2, 3]", b"{}", json.dumps({"channel": "C1:SUS-ETMZ_SUSPOS_EXC",
-                                                 "waveform": "sine", "freq": 1, "amp": 0.1}).encode(),
-    json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "sine", "freq": float("nan"),
-                "amp": 0.1}).encode(),
-    json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "sine", "freq": 1.0,
-                "amp": 1e9}).encode(),
-    json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "sine", "freq": 1.0,
-                "amp": 0.1, "duration": -5}).encode(),
-    json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "sine", "freq": -3.0,
-                "amp": 0.1}).encode(),
-    json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "warble", "amp": 0.1}).encode(),
-    json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "stream",
-                "samples": [1e6] * 20000}).encode(),
-    json.dumps({"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "noise", "amp": 0.1,
-                "shape": "zpk([1],[oops"}).encode(),
-    # what it implies later: a ramp no stop could run, a start a year ahead
+    b"not json", b"[1, 2, 3]", b"{}",
+    _request({**_SINE, "channel": "C1:SUS-ETMZ_SUSPOS_EXC"}),
+    _request({**_SINE, "freq": float("nan")}),
+    _request({**_SINE, "amp": 1e9}),
+    _request({**_SINE, "duration": -5}),
+    _request({**_SINE, "freq": -3.0}),
+    _request({**_SINE, "waveform": "warble"}),
+    _request({"channel": _SINE["channel"], "waveform": "stream", "samples": [1e6] * 20000}),
+    _request({**_SINE, "waveform": "noise", "shape": "zpk([1],[oops"}),
+    # what it implies later: a ramp no stop could run, a start years ahead
     _request({**_SINE, "duration": "inf", "ramp": 1e300}),
     _request({**_SINE, "duration": "inf", "ramp": 6e14}),
     _request({**_SINE, "start_gps": 2e9}),

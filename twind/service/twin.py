@@ -35,6 +35,7 @@ from twind.excitation import (
     check,
     make_waveform,
 )
+from twind.excitation.request import is_int, is_real
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import FilterModule
 from twind.loop.foton_file import N_STAGES
@@ -522,16 +523,16 @@ def _filter_change(request: dict) -> FilterChange:
         msg = f"dof must be one of {', '.join(DOFS)}, got {str(dof)[:40]!r}"
         raise TwindError(msg)
     fm, on, gain, ramp = (request.get(k) for k in ("fm", "on", "gain", "ramp"))
-    if fm is not None and (not _is_int(fm) or not 1 <= fm <= N_STAGES):
+    if fm is not None and (not is_int(fm) or not 1 <= fm <= N_STAGES):
         msg = f"fm must be an integer 1..{N_STAGES}, got {str(fm)[:40]!r}"
         raise TwindError(msg)
     if on is not None and not isinstance(on, bool):
         msg = f"on must be true or false, got {str(on)[:40]!r}"
         raise TwindError(msg)
-    if gain is not None and not (_is_real(gain) and math.isfinite(gain)):
+    if gain is not None and not (is_real(gain) and math.isfinite(gain)):
         msg = f"gain must be a finite number, got {str(gain)[:40]!r}"
         raise TwindError(msg)
-    if ramp is not None and not (_is_real(ramp) and 0 <= ramp <= MAX_GAIN_RAMP_S):
+    if ramp is not None and not (is_real(ramp) and 0 <= ramp <= MAX_GAIN_RAMP_S):
         msg = f"ramp must be a number of seconds in 0..{MAX_GAIN_RAMP_S:g}, got {str(ramp)[:40]!r}"
         raise TwindError(msg)
     if fm is None and gain is None:
@@ -540,14 +541,6 @@ def _filter_change(request: dict) -> FilterChange:
     return FilterChange(dof, fm, True if on is None else on,
                         None if gain is None else float(gain),
                         None if ramp is None else float(ramp))
-
-
-def _is_real(x: object) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
-
-
-def _is_int(x: object) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
 
 
 def _check_stable(loop, rate: float) -> None:  # noqa: ANN001 - DampingLoop
