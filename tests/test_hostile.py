@@ -231,6 +231,25 @@ def test_excitations_are_counted_scheduled_ones_listed_and_stopped_at_once(
     _ask(fresh, "stop", {"all": True})
 
 
+def test_status_reports_the_latency_of_injections_made_now_only(fresh: TwinService) -> None:
+    """Request to the block with its first sample published, per injection asked for "now";
+    one scheduled ahead (or stopped before it ran) is not a latency."""
+    gps = _ask(fresh, "status", {})["gps"]
+    sine = {"channel": EXC[0], "waveform": "sine", "amp": 0.1, "freq": 1.0, "duration": 0.5}
+    later = _ask(fresh, "inject", {**sine, "channel": EXC[1], "start_gps": gps + 0.1})["id"]
+    gone = _ask(fresh, "inject", {**sine, "channel": EXC[2], "start_gps": gps + 0.1})["id"]
+    _ask(fresh, "stop", {"id": gone})
+    before = time.monotonic()
+    _ask(fresh, "inject", sine)
+    assert _ask(fresh, "status", {})["injection_latency_s"]["n"] == 0  # not yet published
+    for _ in range(4):
+        fresh.step()
+    waited = time.monotonic() - before
+    latency = _ask(fresh, "status", {})["injection_latency_s"]
+    assert latency["n"] == 1 and 0 < latency["max"] <= waited
+    assert later in [e["id"] for e in _ask(fresh, "status", {})["excitations"]]
+
+
 def test_the_service_limits_are_read_from_the_configuration(tmp_path) -> None:  # noqa: ANN001
     src = DEFAULT_CONFIG.read_text()
     (tmp_path / "optics").symlink_to(DEFAULT_CONFIG.parent / "optics")

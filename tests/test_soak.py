@@ -20,3 +20,4 @@ def test_short_soak() -> None:
     assert report.hostile_unanswered == 0 and not report.crashed
     assert report.watchdog.endswith("tripped under a 42 um drive and re-armed")
     assert len(report.latency_s) >= 3
+    assert report.service_latency["n"] >= len(report.latency_s)  # the watchdog's drive too

@@ -8,6 +8,7 @@ coefficients when the stage has no design.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,7 +43,7 @@ class Stage:
         if self.design is None:
             msg = f"stage {self.name!r} has neither a design nor coefficients"
             raise FotonError(msg)
-        return zpk_to_sos(parse_design(self.design), rate_hz)
+        return design_sections(self.design, rate_hz).copy()
 
     def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
         """Response at `f_hz` of what runs: a foton file's coefficients (its design may be
@@ -51,6 +52,16 @@ class Stage:
             _, h = signal.sosfreqz(self.sos, worN=np.asarray(f_hz), fs=self.rate_hz)
             return h
         return parse_design(self.design).response(f_hz)
+
+
+@lru_cache(maxsize=1024)
+def design_sections(design: str, rate_hz: float) -> NDArray[np.float64]:
+    """A foton design's discrete sections at `rate_hz`, computed once per design: the
+    service checks every live filter or parameter change against them, and parsing and
+    discretising the designs is most of that check's work. Do not modify the result."""
+    sos = zpk_to_sos(parse_design(design), rate_hz)
+    sos.flags.writeable = False
+    return sos
 
 
 @dataclass

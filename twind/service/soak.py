@@ -46,18 +46,22 @@ class SoakReport:
     bus_out_of_order: int
     mcap_blocks: int
     mcap_gaps: int
-    latency_s: list[float] = field(default_factory=list)
+    latency_s: list[float] = field(default_factory=list)  # at the subscriber
+    service_latency: dict = field(default_factory=dict)  # status's injection_latency_s
     hostile_sent: dict[str, int] = field(default_factory=dict)
     hostile_refused: dict[str, int] = field(default_factory=dict)
     hostile_unanswered: int = 0
     block_s: float = 1 / 16
     crashed: bool = False
+    log_tail: str = ""  # the end of the service's output, when it crashed
     load: int = 0
     watchdog: str = ""
 
     def lines(self) -> list[str]:
         """Human-readable figures."""
         lat = np.array(self.latency_s) if self.latency_s else np.array([np.nan])
+        subscriber = {"n": lat.size if self.latency_s else 0, "median": np.median(lat),
+                      "p99": np.percentile(lat, 99), "max": lat.max()}
         return [
             f"served {self.optics} for {self.duration_s:.0f} s: service CPU "
             f"{100 * self.cpu_fraction:.1f} % of one core, {self.late_blocks} late blocks, "
@@ -65,17 +69,24 @@ class SoakReport:
             f"subscriber in another process: {self.bus_blocks} blocks, {self.bus_lost} lost, "
             f"{self.bus_out_of_order} out of order",
             f"MCAP recording: {self.mcap_blocks} blocks, {self.mcap_gaps} gaps",
-            f"injection latency (request -> first excitation sample published), "
-            f"{len(self.latency_s)} injections: median {1e3 * np.median(lat):.1f} ms, "
-            f"p99 {1e3 * np.percentile(lat, 99):.1f} ms (target: one block + 10 ms = "
-            f"{1e3 * self.block_s + 10:.1f} ms)",
+            f"injection latency (request -> first excitation sample published; target: one "
+            f"block + 10 ms = {1e3 * self.block_s + 10:.1f} ms): at the service, "
+            f"{_ms(self.service_latency)}; at a subscriber in another process, "
+            f"{_ms(subscriber)}",
             f"hostile requests refused with a reason, of those sent: " + ", ".join(
                 f"{verb} {self.hostile_refused.get(verb, 0)}/{n}"
                 for verb, n in self.hostile_sent.items()) + f"; {self.hostile_unanswered} "
             "unanswered",
             f"service crashed: {'YES' if self.crashed else 'no'}; other processes loading the "
             f"cores: {self.load}; watchdog: {self.watchdog or 'not exercised'}",
-        ]
+        ] + ([f"the service's last output:\n{self.log_tail}"] if self.crashed else [])
+
+
+def _ms(latency: dict) -> str:
+    if not latency.get("n"):
+        return "no injection"
+    return (f"{latency['n']} injections: median {1e3 * latency['median']:.1f} ms, p99 "
+            f"{1e3 * latency['p99']:.1f} ms, max {1e3 * latency['max']:.1f} ms")
 
 
 class _Watcher:
@@ -193,7 +204,9 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
         config = config or _watchful_config(Path(tmp))
         cmd = [sys.executable, "-m", "twind", "serve", "--optics", optics, "--listen", endpoint,
                "--record", tmp, "--config", config]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        log_path = Path(tmp) / "serve.log"  # a file, not a pipe nobody reads while it fills
+        log = log_path.open("w")
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, text=True)
         busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
                 for _ in range(load)]
         try:
@@ -219,6 +232,8 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             crashed = proc.poll() is not None
             proc.terminate()
             proc.wait(timeout=60)
+            log.close()
+            log_tail = log_path.read_text()[-3000:] if crashed else ""
         mcap_blocks, mcap_gaps = _scan_recording(sorted(Path(tmp).glob("*.mcap")))
     sent, refused, unanswered = hostile_result[0] if hostile_result else ({}, {}, hostile)
     return SoakReport(
@@ -226,9 +241,10 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
         late_blocks=status["late_blocks"], max_lag_s=status["max_lag_s"],
         bus_blocks=watcher.blocks, bus_lost=watcher.lost,
         bus_out_of_order=watcher.out_of_order,
-        mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies, hostile_sent=sent,
+        mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies,
+        service_latency=status["injection_latency_s"], hostile_sent=sent,
         hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"],
-        crashed=crashed, load=load, watchdog=watchdog)
+        crashed=crashed, load=load, watchdog=watchdog, log_tail=log_tail)
 
 
 SOAK_WATCHDOG_UM = 20.0

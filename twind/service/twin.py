@@ -60,6 +60,7 @@ class Active:
     dof: int
     start_sample: int
     waveform: object = field(repr=False)
+    received: float = 0.0  # monotonic time the request was taken up
 
 
 @dataclass
@@ -72,6 +73,19 @@ class Stats:
     lag_s: float = 0.0
     busy_s: float = 0.0  # wall time spent computing and publishing
     dropped_blocks: int = 0  # channel blocks Zenoh refused to publish
+    latency_s: collections.deque = field(  # request -> its first sample published, the last
+        default_factory=lambda: collections.deque(maxlen=LATENCY_KEPT))  # injections'
+
+    def latency(self) -> dict:
+        """Injection latency over the last :data:`LATENCY_KEPT` injections (s)."""
+        lat = np.array(self.latency_s)
+        if lat.size == 0:
+            return {"n": 0, "median": None, "p99": None, "max": None}
+        return {"n": int(lat.size), "median": float(np.median(lat)),
+                "p99": float(np.percentile(lat, 99)), "max": float(lat.max())}
+
+
+LATENCY_KEPT = 1000
 
 
 class TwinService:
@@ -115,6 +129,8 @@ class TwinService:
         # load the compiled kernel and the schema now, so the first block is not late
         Engine([optics[0].loop()], optics[0].noise, rate_hz=self.rate).step(self.n)
         SampleBlock("warm-up", 0.0, self.rate, 0, np.zeros(self.n)).encode()
+        for optic in optics:  # and what a params or filter change checks, cached
+            _check_stable(optic.loop(), self.rate)
         self.gps0 = math.floor(now_gps() / self.block_s) * self.block_s  # blocks on GPS marks
         self.stats = Stats()
         self._buf = self.engine.new_block(self.n)
@@ -123,6 +139,7 @@ class TwinService:
         self._effects: dict[str, tuple[str, dict]] = {}  # physics pushed in beyond nominal
         self._changes: collections.deque[float] = collections.deque()  # their times
         self._active: dict[str, Active] = {}
+        self._unpublished: dict[str, Active] = {}  # accepted, first sample not yet published
         tag = uuid.uuid4().hex[:6]  # ids stay unique when several twins share a router
         self._ids = (f"exc-{tag}-{i}" for i in itertools.count(1))
         self._ended: set[str] = set()
@@ -169,6 +186,7 @@ class TwinService:
             exc = self._excitation(first)
             block = self.engine.step(self.n, exc=exc, out=self._buf)
             self._watch(block)
+            starting = [a for a in self._unpublished.values() if a.start_sample < first + self.n]
         gps = self.gps0 + first / self.rate
         seq = self.stats.blocks
         for name, unit, samples in block_channels(self.twin.ifo, block):
@@ -178,6 +196,10 @@ class TwinService:
             except zenoh.ZError:  # the session is closing or the transport failed: counted
                 self.stats.dropped_blocks += 1
         self.stats.blocks += 1
+        published = time.monotonic()
+        for act in starting:
+            self.stats.latency_s.append(published - act.received)
+            self._unpublished.pop(act.id, None)
 
     def _watch(self, block) -> None:  # noqa: ANN001 - simulation.engine.Block
         """Trip the watchdog of every optic whose OSEMs left their range or turned non-finite
@@ -225,6 +247,7 @@ class TwinService:
         """The reply to one control request: `payload` (JSON) for `verb`, one of
         :data:`VERBS`. Never raises: a request that cannot be served is answered with
         ``"ok": false`` and the reason."""
+        received = time.monotonic()
         try:
             # JSON parsing holds the interpreter lock the pacing thread needs
             if len(payload) > self.accepts.request_bytes:
@@ -235,6 +258,8 @@ class TwinService:
             if not isinstance(request, dict):
                 msg = "the request must be a JSON object"
                 raise TwindError(msg)
+            if verb == "inject":
+                return self.inject(request, received)
             return self._handlers[verb](request)
         except Exception as err:  # noqa: BLE001 - every request gets an answer, never silence
             return {"ok": False, "accepted": False, "reason": f"{type(err).__name__}: {err}"
@@ -255,13 +280,16 @@ class TwinService:
                 "real_time_factor": twin_time / uptime if uptime > 0 else 0.0,
                 "lag_s": self.stats.lag_s, "max_lag_s": self.stats.max_lag_s,
                 "late_blocks": self.stats.late_blocks, "dropped_blocks": self.stats.dropped_blocks,
+                "injection_latency_s": self.stats.latency(),
                 "cpu_fraction": self.stats.busy_s / uptime if uptime > 0 else 0.0,
                 "excitations": active, "config": self.twin.source,
                 "watchdogs": {o.name: "tripped" if self.engine.tripped(o.name) else "armed"
                               for o in self.optics}}
 
-    def inject(self, request: dict) -> dict:
-        """Accept an excitation (reply with its id) or refuse it with the reason."""
+    def inject(self, request: dict, received: float | None = None) -> dict:
+        """Accept an excitation (reply with its id) or refuse it with the reason; `received`
+        is when the request came (monotonic), for the latency ``status`` reports."""
+        received = time.monotonic() if received is None else received
         try:
             req = ExcitationRequest.from_json(request)
             optic, dof = self._test_point(req.channel)
@@ -288,8 +316,11 @@ class TwinService:
             crowded = self._crowded(optic, dof, start - next_sample)
             if crowded:
                 return {"ok": False, "accepted": False, "reason": f"{req.channel}: {crowded}"}
-            act = Active(next(self._ids), req, optic, dof, start, make_waveform(req, self.rate))
+            act = Active(next(self._ids), req, optic, dof, start, make_waveform(req, self.rate),
+                         received)
             self._active[act.id] = act
+            if req.start_gps is None:  # "now": its latency is the service's
+                self._unpublished[act.id] = act
             self._publish_event("start", act)  # under the lock: before any "end" of it
         return {"ok": True, "accepted": True, "id": act.id,
                 "start_gps": self.gps0 + start / self.rate}
@@ -335,6 +366,7 @@ class TwinService:
             for act in stopping:
                 if act.start_sample >= self.engine.samples:  # never ran: gone at once
                     del self._active[act.id]
+                    self._unpublished.pop(act.id, None)
                     self._ended.add(act.id)
                 else:  # ramp down as the request asked, no kick to the optic
                     act.waveform.stop(act.request.ramp)

@@ -9,6 +9,8 @@ Filter sections are transposed direct form II, as in the kernel.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
@@ -46,14 +48,27 @@ def balance(sos: NDArray[np.float64], rate_hz: float) -> NDArray[np.float64]:
     """
     if len(sos) == 0:
         return sos
+    shares = _balanced_shares(np.ascontiguousarray(sos, dtype=float).tobytes(), len(sos), rate_hz)
+    if shares is None:
+        return sos
+    out = sos.copy()
+    out[:, :3] *= shares[:, None]
+    return out
+
+
+@lru_cache(maxsize=1024)
+def _balanced_shares(coefficients: bytes, n: int, rate_hz: float) -> NDArray[np.float64] | None:
+    """Each section's numerator factor for :func:`balance` (None: leave the cascade as it
+    is); cached by the coefficients, as every stability check of a live change meets the
+    same stages again."""
+    sos = np.frombuffer(coefficients).reshape(n, 6)
     f = np.geomspace(1e-3, 0.45 * rate_hz, 512)
     peaks = np.array([np.abs(signal.sosfreqz(sec[None], worN=f, fs=rate_hz)[1]).max() for sec in sos])
     if not np.all(np.isfinite(peaks)) or np.any(peaks == 0):
-        return sos
-    share = np.exp(np.mean(np.log(peaks)))
-    out = sos.copy()
-    out[:, :3] *= (share / peaks)[:, None]
-    return out
+        return None
+    shares = np.exp(np.mean(np.log(peaks))) / peaks
+    shares.flags.writeable = False
+    return shares
 
 
 def stage_sections(loop: DampingLoop, dof: str, rate_hz: float) -> tuple[NDArray, dict[int, slice]]:
