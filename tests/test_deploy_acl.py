@@ -38,7 +38,7 @@ from servicekit import free_port, running
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key, data_key
 from twind.bus.session import zenoh_config
-from twind.client import TwinClient, TwinUnreachable
+from twind.client import AccessRefused, TwinClient, TwinUnreachable
 from twind.recording.reader import read_session
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
@@ -186,14 +186,16 @@ def check_rights(endpoint: str, operator_cfg: str, viewer_cfg: str,
             assert status["ok"] and status["ifo"] == "C1"
             before = list(twin.reached) if twin else None
             t0 = time.monotonic()
-            with pytest.raises(TwinUnreachable):
+            # the twin never hears of it; the client tells the refusal from a missing twin
+            with pytest.raises(AccessRefused, match="access rights of this session do not allow"):
                 viewer.inject("C1:SUS-ETMX_SUSPOS_EXC", "sine", freq=3.0, amp=0.1, duration=2.0)
             assert time.monotonic() - t0 < NO_REPLY_S + 2.0
             for verb in ("stop", "params", "filter"):
-                with pytest.raises(TwinUnreachable):
+                with pytest.raises(AccessRefused, match=verb):
                     viewer.query(verb, {"all": True})
             if twin is not None:
-                assert twin.reached == before  # the queries never reached the twin
+                # the refused queries never reached the twin; the client's status probes did
+                assert {verb for verb, _ in twin.reached[len(before):]} <= {"status"}
         assert CHANNEL in watcher.wait_for_data(CHANNEL)
         watcher.session.put(data_key(CHANNEL), b"spoof from the viewer")
         time.sleep(0.3)
@@ -472,4 +474,37 @@ def test_serve_record_logs_its_recorder_in_behind_the_acl_router(tmp_path: Path)
         finally:
             watcher.close()
     session = read_session(sorted(tmp_path.glob("*.mcap")))
+    assert CHANNEL in session.channels and len(session[CHANNEL].sequences) > 0
+
+
+def test_serve_record_over_tls_with_the_recorders_certificate(tmp_path: Path) -> None:
+    """tls/: ``serve --record`` on a TLS-only twin, its recorder logged in with the
+    "recorder" client certificate (--record-zenoh-config): the session reaches the files."""
+    make = next((m for m, available in MAKERS.values() if available), None)
+    if make is None:
+        pytest.skip("neither cryptography nor openssl is installed")
+    pki = tmp_path / "pki"
+    pki.mkdir()
+    make(pki, ("operator", "recorder"))
+    endpoint = f"tls/localhost:{free_port()}"
+    twin = materialise(config(DEPLOY / "tls" / "twin.json5",
+                              transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
+                              transport__link__tls__listen_certificate=str(pki / "twin.pem"),
+                              transport__link__tls__listen_private_key=str(pki / "twin.key")),
+                       tmp_path / "twin.json5")
+
+    def client(cn: str) -> str:
+        return materialise(config(
+            DEPLOY / "tls" / "client.json5",
+            transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
+            transport__link__tls__connect_certificate=str(pki / f"{cn}.pem"),
+            transport__link__tls__connect_private_key=str(pki / f"{cn}.key")),
+            tmp_path / f"{cn}.json5")
+
+    recordings = tmp_path / "recordings"
+    with serving("--zenoh-config", twin, "--listen", endpoint, "--record", str(recordings),
+                 "--record-zenoh-config", client("recorder")) as proc:
+        wait_until_answering(endpoint, client("operator"), proc)
+        time.sleep(1.5)  # blocks on their way to the recorder
+    session = read_session(sorted(recordings.glob("*.mcap")))
     assert CHANNEL in session.channels and len(session[CHANNEL].sequences) > 0

@@ -28,6 +28,15 @@ class TwinUnreachable(TwindError):
     """No twin answered on the bus."""
 
 
+class AccessRefused(TwinUnreachable):
+    """A twin answers ``status`` but not this request: Zenoh's access control dropped it.
+
+    Zenoh's access control drops a denied query without telling the client or the twin, so
+    the client infers the refusal from the twin answering the status query everyone may ask
+    (deploy/README.md, "Passwords and access rights").
+    """
+
+
 class TwinClient:
     """A Zenoh client session to one twin service.
 
@@ -90,9 +99,19 @@ class TwinClient:
                 raise TwindError(msg)
             replies.append(json.loads(reply.ok.payload.to_string()))
         if not replies:
-            msg = f"no twin answered on {key} within {self.timeout} s"
+            if verb != "status" and self._answers_status():
+                msg = (f"the twin answers status but not {verb} ({key}): the access rights of "
+                       f"this session do not allow {verb}; log in as a user who may (an "
+                       "operator, --zenoh-config), see deploy/README.md")
+                raise AccessRefused(msg)
+            msg = (f"no twin answered on {key} within {self.timeout} s: is `twind serve` "
+                   "running and reachable at the endpoint given (--connect)?")
             raise TwinUnreachable(msg)
         return next((r for r in replies if r.get("ok")), replies[0])
+
+    def _answers_status(self) -> bool:
+        key = control_key(self.ifo, "status", self.root)
+        return any(r.ok is not None for r in self._session.get(key, timeout=self.timeout))
 
     def status(self) -> dict:
         """The service status: real-time factor, lag, late blocks, excitations, uptime."""
