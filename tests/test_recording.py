@@ -32,6 +32,7 @@ from twind.channels import block_channels
 from twind.cli import main
 from twind.recording.export import add_arguments as export_arguments
 from twind.recording.export import export, export_main
+from twind.recording.fastread import read_channels
 from twind.recording.reader import (
     DamagedRecordingWarning,
     GapWarning,
@@ -232,8 +233,6 @@ def test_fast_reader_reads_cut_gappy_and_foreign_files_as_read_session(
     truncation warning, gaps the same NaN-filled samples, a file that is not MCAP a
     RecordingError; whatever the number of chunks decoded together."""
     from twind.recording import fastread
-    from twind.recording.fastread import read_channels
-
     batches = []
     if batch_bytes is not None:
         monkeypatch.setattr(fastread, "_BATCH_BYTES", batch_bytes)
@@ -667,6 +666,9 @@ def test_a_damaged_chunk_inside_a_complete_file_costs_only_its_own_span(
     kept = [len(session[c].sequences) for c in SYNTH]
     assert all(60 <= n < 80 for n in kept), kept  # one chunk lost, not everything after it
     assert all(session[c].sequences[-1] == 79 for c in SYNTH)
+    with pytest.warns(DamagedRecordingWarning, match=r"damaged .*GPS 14\d+\.\d+ to .*lost"):
+        fast = read_channels(path, lambda name: True)  # the fast reader, by the same rules
+    assert [len(fast[c].sequences) for c in SYNTH] == kept and not fast.complete
     assert main(["recover", str(path), "-o", str(tmp_path / "fixed.mcap")]) == 0
     with open(tmp_path / "fixed.mcap", "rb") as fh:
         counts = make_reader(fh).get_summary().statistics.channel_message_counts

@@ -39,6 +39,8 @@ from twind.recording.reader import (
     _join,
     _some,
     _warn_gaps,
+    indexed_chunks,
+    indexed_summary,
     report_truncation,
     scan_sample_block,
     session_files,
@@ -741,12 +743,32 @@ def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolE
     except truncation as err:
         footer = False
         reason = truncation_reason(err, size)
+        # damage inside a complete file: the rest is read by its index, the chunks lost named
+        # (data_end may be set: the chunks are decoded behind the records read ahead)
+        footer = _read_by_index(path, reader, chunks, problems)
     else:
         reason = ""
     if not footer:
         report_truncation(path, data_end, chunks, size, reason, problems, stacklevel=6)
     if not state.config_seen and CONFIG_METADATA in state.metadata:
         state.configs.append(json.loads(state.metadata[CONFIG_METADATA].get("json", "{}")))
+
+
+def _read_by_index(path: Path, reader: _FileReader, chunks: int, problems: list[str]) -> bool:
+    """The chunks from the `chunks`-th on (file order), read one by one through the file's
+    chunk index, a damaged one skipped and reported; False when the file has no usable
+    index (or the damage lies beyond its chunks)."""
+    with open(path, "rb") as fh:
+        summary = indexed_summary(fh)
+        if summary is None or chunks >= len(summary.chunk_indexes):
+            return False
+        for record in (*summary.schemas.values(), *summary.channels.values()):
+            reader.record(record)
+        offsets = sorted(c.chunk_start_offset for c in summary.chunk_indexes)
+        for records in indexed_chunks(fh, summary, offsets[chunks], path, problems):
+            for record in records:
+                reader.record(record)
+    return True
 
 
 def _message_counts(files: list[Path]) -> dict[str, int]:

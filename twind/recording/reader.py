@@ -210,11 +210,11 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
             # an error after the footer means the closing magic is cut: not complete either
             footer = False
             reason = truncation_reason(err, size)
-            summary = None if data_end else _summary(fh)
+            summary = None if data_end else indexed_summary(fh)
             if summary is not None:  # damage inside a complete file: on by its index
                 schemas.update(summary.schemas)
                 channels.update(summary.channels)
-                for chunk in _chunks_after(fh, summary, read_to, path, problems):
+                for chunk in indexed_chunks(fh, summary, read_to, path, problems):
                     for rec in chunk:
                         yield from handle(rec)
                 return
@@ -758,7 +758,7 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
     return assembler.channels()
 
 
-def _summary(fh: Any) -> Any:  # noqa: ANN401 - mcap.records.Summary or None
+def indexed_summary(fh: Any) -> Any:  # noqa: ANN401 - mcap.records.Summary or None
     """The summary of a file whose footer and summary section are intact, else None."""
     try:
         fh.seek(0)
@@ -768,7 +768,7 @@ def _summary(fh: Any) -> Any:  # noqa: ANN401 - mcap.records.Summary or None
     return summary if summary is not None and summary.chunk_indexes else None
 
 
-def _chunks_after(fh: Any, summary: Any, offset: int, path: Path,  # noqa: ANN401
+def indexed_chunks(fh: Any, summary: Any, offset: int, path: Path,  # noqa: ANN401
                   problems: list[str] | None) -> Iterator[list[Any]]:
     """The records of each indexed chunk from `offset` on; a damaged one is skipped, and
     the time span it held reported (a warning, and in `problems`)."""
