@@ -16,11 +16,14 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from servicekit import free_port
+
 from twind import DOFS
 from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
 from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
+from twind.service.serve import limit_messages
 from twind.service.twin import LIVE_PARAMS, TwinService
 
 EXC = [f"C1:SUS-ETMX_SUS{d}_EXC" for d in DOFS]
@@ -229,6 +232,38 @@ def test_excitations_are_counted_scheduled_ones_listed_and_stopped_at_once(
     assert _ask(fresh, "status", {})["excitations"] == []
     assert _ask(fresh, "inject", later)["ok"]
     _ask(fresh, "stop", {"all": True})
+
+
+def test_a_request_beyond_the_payload_limit_is_refused_over_the_bus() -> None:
+    nominal = load_config(None, ["ETMX"])
+    with _serving(replace(nominal, service=replace(nominal.service, request_bytes=1000))) as svc:
+        big = json.dumps({"channel": EXC[0], "waveform": "stream", "samples": [0.0] * 500})
+        replies = list(svc._session.get(control_key("C1", "inject"), payload=big, timeout=5.0))
+        reply = json.loads(replies[0].ok.payload.to_bytes())
+        assert not reply["ok"] and f"request of {len(big)} bytes" in reply["reason"]
+        assert "service.request_bytes" in reply["reason"]
+        assert _ask(svc, "status", {})["excitations"] == []
+
+
+def test_zenoh_drops_a_message_far_beyond_the_payload_limit_before_the_twin_sees_it() -> None:
+    """serve's session limits Zenoh's messages to twice ``service.request_bytes`` (a file's
+    own limit is kept): a larger query never reaches the queryable, later ones still do."""
+    kept = zenoh.Config()
+    kept.insert_json5("transport/link/rx/max_message_size", "5000000")
+    limit_messages(kept, 1000)
+    assert json.loads(kept.get_json("transport/link/rx/max_message_size")) == 5000000
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = zenoh_config(listen=[endpoint])
+    limit_messages(conf, 1000)
+    sizes: list[int] = []
+    with zenoh.open(conf) as twin, \
+            zenoh.open(zenoh_config(connect=[endpoint], mode="client")) as client:
+        twin.declare_queryable("twin/q", lambda q: (sizes.append(len(q.payload)),
+                                                     q.reply(q.key_expr, b"ok")))
+        time.sleep(0.3)
+        for size in (100, 100_000, 100):
+            list(client.get("twin/q", payload=b"x" * size, timeout=1.0))
+    assert sizes == [100, 100]
 
 
 def test_status_reports_the_latency_of_injections_made_now_only(fresh: TwinService) -> None:

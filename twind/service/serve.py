@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -49,6 +50,7 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
         msg = f"--speed and --block must be positive, got {speed} and {block_s}"
         raise TwindError(msg)
     priority = _raise_priority()  # before any thread starts: they all inherit it
+    limit_messages(conf, twin.service.request_bytes)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     # the checks of a params/filter change run LAPACK; OpenBLAS's threads, spinning on the
     # two cores beside the engine's, made each check 46 ms instead of 7 and the loop late
@@ -85,6 +87,20 @@ SWITCH_INTERVAL_S = 0.001
 """How long a thread busy with a request (a stability check, a long stream's JSON) may keep
 the interpreter from the pacing thread; Python's default, 5 ms, is paid at every hand-over
 inside a block's publishing."""
+
+ZENOH_MAX_MESSAGE = 1 << 30
+"""Zenoh's own default of ``transport/link/rx/max_message_size`` (bytes)."""
+
+
+def limit_messages(conf: zenoh.Config, request_bytes: float) -> None:
+    """Let Zenoh drop, before assembling it, a message far beyond what the twin accepts
+    (twice ``service.request_bytes``), unless the configuration file set its own limit: a
+    500 MB request then never reaches the twin's memory. The client is not answered (its
+    query times out); other clients are not affected."""
+    key = "transport/link/rx/max_message_size"
+    if json.loads(conf.get_json(key)) == ZENOH_MAX_MESSAGE:
+        conf.insert_json5(key, str(int(2 * request_bytes)))
+
 
 NICE = -10
 """The service's scheduling priority where the OS allows it: a twin paced to the wall clock

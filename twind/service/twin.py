@@ -180,26 +180,32 @@ class TwinService:
                 self.stats.late_blocks += 1
 
     def step(self) -> None:
-        """Compute the next block, with the excitations that fall in it, and publish it."""
+        """Compute the next block, with the excitations that fall in it, and publish it:
+        the EXC test points first, so that an excitation goes out before the responses of
+        every optic are published."""
         with self._lock:
             first = self.engine.samples
             exc = self._excitation(first)
             block = self.engine.step(self.n, exc=exc, out=self._buf)
             self._watch(block)
-            starting = [a for a in self._unpublished.values() if a.start_sample < first + self.n]
+            starting = collections.defaultdict(list)  # EXC channel -> excitations starting
+            for act in self._unpublished.values():
+                if act.start_sample < first + self.n:
+                    starting[act.request.channel].append(act)
         gps = self.gps0 + first / self.rate
         seq = self.stats.blocks
-        for name, unit, samples in block_channels(self.twin.ifo, block):
+        channels = sorted(block_channels(self.twin.ifo, block),
+                          key=lambda c: not c[0].endswith("_EXC"))
+        for name, unit, samples in channels:
             try:
                 self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples,
                                                  unit).encode())
             except zenoh.ZError:  # the session is closing or the transport failed: counted
                 self.stats.dropped_blocks += 1
+            for act in starting.pop(name, ()):
+                self.stats.latency_s.append(time.monotonic() - act.received)
+                self._unpublished.pop(act.id, None)
         self.stats.blocks += 1
-        published = time.monotonic()
-        for act in starting:
-            self.stats.latency_s.append(published - act.received)
-            self._unpublished.pop(act.id, None)
 
     def _watch(self, block) -> None:  # noqa: ANN001 - simulation.engine.Block
         """Trip the watchdog of every optic whose OSEMs left their range or turned non-finite
@@ -238,15 +244,16 @@ class TwinService:
     # ---------------------------------------------------------------------------- control
     def _answer(self, verb: str) -> Callable[[zenoh.Query], None]:
         def on_query(query: zenoh.Query) -> None:
-            payload = query.payload.to_bytes() if query.payload is not None else b""
+            payload = query.payload if query.payload is not None else b""
             query.reply(query.key_expr, strictjson.dumps(self.handle(verb, payload)))
 
         return on_query
 
-    def handle(self, verb: str, payload: bytes) -> dict:
+    def handle(self, verb: str, payload: bytes | zenoh.ZBytes) -> dict:
         """The reply to one control request: `payload` (JSON) for `verb`, one of
         :data:`VERBS`. Never raises: a request that cannot be served is answered with
-        ``"ok": false`` and the reason."""
+        ``"ok": false`` and the reason. A payload beyond ``service.request_bytes`` is
+        refused before it is copied out of Zenoh."""
         received = time.monotonic()
         try:
             # JSON parsing holds the interpreter lock the pacing thread needs
@@ -254,6 +261,8 @@ class TwinService:
                 msg = (f"request of {len(payload)} bytes; at most {self.accepts.request_bytes} "
                        "(service.request_bytes; stream long waveforms in several requests)")
                 raise TwindError(msg)
+            if isinstance(payload, zenoh.ZBytes):
+                payload = payload.to_bytes()
             request = json.loads(payload) if payload else {}
             if not isinstance(request, dict):
                 msg = "the request must be a JSON object"
