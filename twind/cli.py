@@ -290,8 +290,16 @@ def _input_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_tf(args: argparse.Namespace) -> int:
-    """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs."""
-    tfs = _measured_tfs(args)
+    """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs;
+    any other diaggui measurement's transfer functions as they were measured."""
+    from twind.analysis.tf import TFError
+
+    try:
+        tfs = _measured_tfs(args)
+    except TFError as err:
+        if not all(Path(p).suffix.lower() == ".xml" for p in args.inputs):
+            raise
+        return _show_transfers(args, str(err))
     if args.band:
         tfs = tfs.band(*args.band)
     if args.json:
@@ -313,6 +321,30 @@ def cmd_tf(args: argparse.Namespace) -> int:
         print(f"{tfs.optic}: excited {', '.join(tfs.excited)}; {len(tfs.frequency_hz)} bins "
               f"from {tfs.frequency_hz[0]:g} to {tfs.frequency_hz[-1]:g} Hz, {tfs.averages} "
               "averages; --json for the numbers, -o FILE.png for a plot")
+    return 0
+
+
+def _show_transfers(args: argparse.Namespace, why: str) -> int:
+    """``twind tf`` on diaggui files that are not a suspension set: every transfer function
+    with its coherence and errors (a table, ``--json`` or a Bode PNG)."""
+    from twind.analysis.diaggui import read_transfers
+    from twind.plotting import bode_transfers
+
+    transfers = [t for path in args.inputs for t in read_transfers(path)]
+    if args.band:
+        transfers = [t.band(*args.band) for t in transfers]
+    print(f"twind tf: not a suspension measurement set ({why}); its transfer functions:",
+          file=sys.stderr)
+    if args.json:
+        strictjson.dump({"transfers": [t.to_json() for t in transfers]}, sys.stdout)
+        sys.stdout.write("\n")
+    elif args.output:
+        if not args.output.lower().endswith(".png"):
+            msg = f"-o {args.output}: these transfer functions go to a .png; --json for the numbers"
+            raise TwindError(msg)
+        print(f"wrote {bode_transfers(transfers, args.output)}", file=sys.stderr)
+    else:
+        print("\n\n".join("\n".join(t.lines()) for t in transfers))
     return 0
 
 

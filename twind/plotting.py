@@ -75,6 +75,54 @@ def bode_matrix(f_hz: NDArray[np.float64], curves: Mapping[str, NDArray[np.compl
     return path
 
 
+MIN_COHERENCE = 0.5
+"""Points below this coherence are drawn faded: their phase is mostly noise."""
+
+
+def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Path:
+    """Measured transfer functions (:class:`twind.analysis.diaggui.Transfer`) as a Bode plot.
+
+    Magnitude with its standard error, phase and coherence share the frequency axis; points
+    below :data:`MIN_COHERENCE` are faded.
+
+    Returns
+    -------
+    Path
+        The PNG written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (mag, phase, coh) = plt.subplots(3, 1, figsize=(8, 8), sharex=True,
+                                          gridspec_kw={"height_ratios": [3, 2, 1]})
+    for t in transfers:
+        f, h, s = t.frequency_hz, t.tf, t.sigma()
+        good = t.coherence >= MIN_COHERENCE
+        line = mag.errorbar(f[good], np.abs(h[good]), yerr=s[good], fmt=".-", ms=3,
+                            capsize=2, label=t.name)[0]
+        color = line.get_color()
+        mag.plot(f[~good], np.abs(h[~good]), ".", color=color, alpha=0.25)
+        phase.plot(f[good], np.degrees(np.angle(h[good])), ".-", ms=3, color=color)
+        phase.plot(f[~good], np.degrees(np.angle(h[~good])), ".", color=color, alpha=0.25)
+        coh.plot(f, t.coherence, ".-", ms=3, color=color)
+    mag.set(xscale="log", yscale="log", ylabel="magnitude [B/A]")
+    phase.set(ylabel="phase [deg]", ylim=(-180, 180), yticks=[-180, -90, 0, 90, 180])
+    coh.set(ylabel="coherence", ylim=(0, 1.05), xlabel="frequency [Hz]")
+    coh.axhline(MIN_COHERENCE, color="gray", lw=0.8, ls="--")
+    for ax in (mag, phase, coh):
+        ax.grid(True, which="both", alpha=0.3)
+    mag.legend(fontsize=8)
+    kinds = sorted({f"{t.kind}, {t.averages} averages" for t in transfers})
+    fig.suptitle(title or f"measured transfer functions ({'; '.join(kinds)})")
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def plot_comparison(cmp: "ModelComparison", path: str | Path) -> Path:
     """Write a 4x4 Bode-magnitude matrix of both models' admittances to a PNG.
 

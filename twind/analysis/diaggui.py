@@ -1,9 +1,11 @@
-"""Write diaggui "Fourier tools" measurements (LIGO_LW "Diagnostics Test" XML, FFT type).
+"""diaggui measurements (LIGO_LW "Diagnostics Test" XML): read any, write FFT ones.
 
-The layout is that of ``../shared/reference/example_null`` and of what diaggui saves: one
-file per excited DOF, channel A the ``_EXC``, channels B the test points; a PowerSpectrum
-(ASD, float) per channel, one CrossCorrelation (complex, B against A) and one Coherence
-block over the B channels, indexed in the "Index" section.  dttxml reads them back
+:func:`read_transfers` reads every transfer function of a file diaggui saved, Fourier tools
+(FFT) or swept sine, whatever its channels (another observatory, subsystem or test point), each
+with its coherence and standard errors. The writer makes FFT measurements as diaggui saves
+them: one file per excited DOF, channel A the ``_EXC``, channels B the test points; a
+PowerSpectrum (ASD, float) per channel, one CrossCorrelation (complex, B against A) and one
+Coherence block over the B channels, indexed in the "Index" section. dttxml reads them back
 (``xfer(B, A) = CSD / ASD_A^2``); twind writes them so that measurements made on the twin can
 be handed around, and diagnosed, exactly like measurements made on an optic.
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import base64
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from xml.sax.saxutils import escape
 
@@ -43,6 +46,116 @@ _DTD = """<?xml version="1.0"?>
 <!ATTLIST Time Name CDATA #IMPLIED Type (GPS|Unix|ISO-8601) "ISO-8601">
 ]>
 """
+KINDS = {"TF": "swept sine", "CSD": "FFT"}
+"""dttxml's result types that hold transfer functions, and the measurement each comes from."""
+
+
+@dataclass(frozen=True)
+class Transfer:
+    """One transfer function ``numerator/denominator`` (diaggui's B/A) of a measurement.
+
+    Attributes
+    ----------
+    numerator, denominator : str
+        Channel names (B and A).
+    frequency_hz, tf, coherence : ndarray
+        The points (swept sine) or bins (FFT), the complex ratio and its magnitude-squared
+        coherence.
+    averages : int
+    kind : str
+        ``"swept sine"`` or ``"FFT"``.
+    source : str
+        The file it was read from.
+    """
+
+    numerator: str
+    denominator: str
+    frequency_hz: NDArray[np.float64]
+    tf: NDArray[np.complex128]
+    coherence: NDArray[np.float64]
+    averages: int
+    kind: str
+    source: str
+
+    @property
+    def name(self) -> str:
+        """``B/A`` as diaggui labels it."""
+        return f"{self.numerator}/{self.denominator}"
+
+    def sigma(self) -> NDArray[np.float64]:
+        """Standard error of the real and of the imaginary part of each point, from its
+        coherence and the averages (Bendat & Piersol): swept sine and FFT alike."""
+        g2 = np.clip(self.coherence, 1e-12, 1.0)
+        return np.abs(self.tf) * np.sqrt((1 - g2) / (2 * self.averages * g2))
+
+    def band(self, lo: float, hi: float) -> Transfer:
+        """The points from `lo` to `hi` Hz."""
+        keep = (self.frequency_hz >= lo) & (self.frequency_hz <= hi)
+        if not keep.any():
+            msg = (f"{self.name}: no point in {lo:g}-{hi:g} Hz; measured "
+                   f"{self.frequency_hz.min():g}-{self.frequency_hz.max():g} Hz")
+            raise TFError(msg)
+        return replace(self, frequency_hz=self.frequency_hz[keep], tf=self.tf[keep],
+                       coherence=self.coherence[keep])
+
+    def to_json(self) -> dict:
+        """The ``twind tf --json`` object of one transfer function."""
+        return {"numerator": self.numerator, "denominator": self.denominator,
+                "kind": self.kind, "averages": self.averages, "source": self.source,
+                "frequency_hz": self.frequency_hz.tolist(),
+                "tf": {"re": self.tf.real.tolist(), "im": self.tf.imag.tolist()},
+                "coherence": self.coherence.tolist(), "sigma": self.sigma().tolist()}
+
+    def lines(self) -> list[str]:
+        """A table for a person: one row per point."""
+        head = (f"{self.name} ({self.kind}, {self.averages} averages, {len(self.frequency_hz)} "
+                f"points, {self.source})")
+        rows = [f"{'f [Hz]':>12} {'re':>12} {'im':>12} {'|H|':>11} {'phase [deg]':>11} "
+                f"{'coherence':>9} {'sigma':>10}"]
+        for f, h, g2, s in zip(self.frequency_hz, self.tf, self.coherence, self.sigma(),
+                               strict=True):
+            rows.append(f"{f:12.5g} {h.real:12.5g} {h.imag:12.5g} {abs(h):11.4g} "
+                        f"{np.degrees(np.angle(h)):11.2f} {g2:9.4f} {s:10.3g}")
+        return [head, *rows]
+
+
+def read_transfers(path: str | Path) -> list[Transfer]:
+    """Every transfer function measured in a diaggui file (swept sine or FFT).
+
+    Channel A of each result is the denominator; where some A channels are excitations
+    (named ``..._EXC``), only their results are kept, as diaggui shows them. References
+    stored in the file (``(REF n)``) are left out.
+
+    Raises
+    ------
+    TFError
+        If the file is not a readable diaggui XML file or holds no transfer function.
+    """
+    import dttxml
+
+    try:
+        acc = dttxml.DiagAccess(str(path))
+        results = {kind: acc.results[kind] for kind in KINDS if kind in acc.results}
+    except Exception as err:  # noqa: BLE001 - dttxml raises many kinds on a bad file
+        msg = f"{path}: not a readable diaggui XML file ({type(err).__name__}: {err})"
+        raise TFError(msg) from None
+    pairs = [(kind, str(r.channelA), str(b)) for kind, found in results.items()
+             for key, r in found.items() if "(REF" not in key
+             for b in r.channelB if str(b) != str(r.channelA)]
+    excited = [p for p in pairs if p[1].endswith("_EXC")]
+    transfers = []
+    for kind, a, b in dict.fromkeys(excited or pairs):
+        x = acc.xfer(b, a)
+        transfers.append(Transfer(b, a, np.asarray(x.FHz, dtype=float),
+                                  np.asarray(x.xfer, dtype=complex),
+                                  np.asarray(x.coh, dtype=float), int(x.averages), KINDS[kind],
+                                  str(path)))
+    if not transfers:
+        msg = f"{path}: no transfer function in it (a diaggui file of spectra only?)"
+        raise TFError(msg)
+    return transfers
+
+
 HANN = 1  # diaggui's window code for Hann
 _ENBW_BINS = 1.5  # Hann's equivalent noise bandwidth, in bins (diaggui's "BW")
 

@@ -186,7 +186,11 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
         names = sorted(acc.channels()[0])
         exc = [n for n in names if n.endswith("_EXC") and _CHANNEL.match(n)]
         if len(exc) != 1:
-            msg = f"{path}: expected one SUS ..._EXC channel (channel A), found {exc or 'none'}"
+            others = [n for n in names if n.endswith("_EXC")] or names
+            msg = (f"{path}: a suspension measurement has one excitation named "
+                   "<IFO>:SUS-<OPTIC>_SUS<DOF>_EXC (channel A) and its _IN1, _IN2, _OUT as "
+                   f"channels B; this file has {', '.join(exc or others[:4])} "
+                   "(`twind tf` shows any measurement's transfer functions)")
             raise TFError(msg)
         m = _CHANNEL.match(exc[0])
         optic = optic or m["optic"]
