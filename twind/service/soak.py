@@ -44,6 +44,7 @@ class SoakReport:
     bus_blocks: int
     bus_lost: int
     bus_out_of_order: int
+    bus_corrupt: int
     mcap_blocks: int
     mcap_gaps: int
     latency_s: list[float] = field(default_factory=list)  # at the subscriber
@@ -67,7 +68,7 @@ class SoakReport:
             f"{100 * self.cpu_fraction:.1f} % of one core, {self.late_blocks} late blocks, "
             f"max lag {1e3 * self.max_lag_s:.1f} ms",
             f"subscriber in another process: {self.bus_blocks} blocks, {self.bus_lost} lost, "
-            f"{self.bus_out_of_order} out of order",
+            f"{self.bus_out_of_order} out of order, {self.bus_corrupt} undecodable",
             f"MCAP recording: {self.mcap_blocks} blocks, {self.mcap_gaps} gaps",
             f"injection latency (request -> first excitation sample published; target: one "
             f"block + 10 ms = {1e3 * self.block_s + 10:.1f} ms): at the service, "
@@ -94,7 +95,7 @@ class _Watcher:
 
     def __init__(self, endpoint: str) -> None:
         self.last: dict[str, int] = {}
-        self.blocks = self.lost = self.out_of_order = 0
+        self.blocks = self.lost = self.out_of_order = self.corrupt = 0
         self.first_nonzero: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
         self._lock = threading.Lock()
         self.session = zenoh.open(zenoh_config(connect=[endpoint], mode="client"))
@@ -102,7 +103,12 @@ class _Watcher:
 
     def _on(self, sample: zenoh.Sample) -> None:
         now = time.monotonic()
-        block = SampleBlock.decode(sample.payload.to_bytes())
+        try:
+            block = SampleBlock.decode(sample.payload.to_bytes())
+        except Exception:  # noqa: BLE001 - a block that arrives damaged is counted, not raised
+            with self._lock:
+                self.corrupt += 1
+            return
         with self._lock:
             self.blocks += 1
             last = self.last.get(block.channel)
@@ -240,7 +246,7 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
         duration_s=duration, optics=", ".join(status["optics"]), cpu_fraction=cpu,
         late_blocks=status["late_blocks"], max_lag_s=status["max_lag_s"],
         bus_blocks=watcher.blocks, bus_lost=watcher.lost,
-        bus_out_of_order=watcher.out_of_order,
+        bus_out_of_order=watcher.out_of_order, bus_corrupt=watcher.corrupt,
         mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies,
         service_latency=status["injection_latency_s"], hostile_sent=sent,
         hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"],
