@@ -376,6 +376,29 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_modes(args: argparse.Namespace) -> int:
+    """Each optic's free-swinging modes: measured, as configured, and with the wire length,
+    break-off and clamp separation solved for the measured POS, PIT and YAW."""
+    from twind.analysis.modes import fit_modes, read_mode_table
+    from twind.config import MEASURED_MODES, load_config
+
+    table = read_mode_table(args.table or MEASURED_MODES)
+    names = args.optic or list(table)
+    missing = [n for n in names if n not in table]
+    if missing:
+        msg = f"{', '.join(missing)} not in {args.table or MEASURED_MODES}"
+        raise TwindError(msg)
+    twin = load_config(args.config, names)
+    fits = [fit_modes(twin.optics[n], table[n]) for n in names]
+    if args.json:
+        strictjson.dump([f.to_json() for f in fits], sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(fits[0].header(list(fits[0].measured)))
+        print("\n".join(line for f in fits for line in f.lines()))
+    return 0
+
+
 def cmd_diagnose(args: argparse.Namespace) -> int:
     """Locate the mismatch, name the physics left out, fit it, show the improvement."""
     from twind.analysis.diagnose import diagnose, write_report
@@ -602,6 +625,15 @@ def build_parser() -> argparse.ArgumentParser:
     fitp.add_argument("--truth", metavar="JSON",
                       help="a simulated optic's truth.json: also print (fitted - truth)/sigma")
     fitp.set_defaults(func=cmd_fit)
+
+    modes = sub.add_parser("modes", help="free-swinging modes: measured, as configured, and "
+                                         "with the geometry solved for them")
+    modes.add_argument("table", nargs="?", help="CSV of measured modes (Hz): optic, POS, PIT, "
+                                                "YAW, SIDE (default: the 40m's, 2020)")
+    modes.add_argument("--optic", nargs="+", metavar="NAME", help="optics (default: the table's)")
+    modes.add_argument("--config", help="twin config (TOML) holding the optics")
+    modes.add_argument("--json", action="store_true", help="the numbers as JSON")
+    modes.set_defaults(func=cmd_modes)
 
     diag = sub.add_parser("diagnose", help="where the model misses, which physics it left "
                                            "out, and the fit with it")

@@ -27,6 +27,8 @@ from twind.simulation.noise import NoiseSpec
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "c1.toml"
+MEASURED_MODES = CONFIG_DIR / "measured" / "c1_free_swinging_2020.csv"
+"""The 40m optics' measured free-swinging frequencies (source in the file)."""
 
 # config key -> (SOSParams field, dimension)
 SUSPENSION_KEYS = {

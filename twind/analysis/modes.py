@@ -1,0 +1,169 @@
+"""Free-swinging modes: the model's eigenfrequencies by DOF, and the suspension geometry that
+puts them where an optic's were measured.
+
+The 40m measures its optics' health from their free-swinging peaks (damping off, the optic
+kicked and left to ring down). In the T000134 model POS is set mostly by the wire length,
+PIT by the break-off height and YAW by the clamp separation, so those three are solved for
+the measured POS, PIT and YAW; SIDE follows (``g/(l + b)``) and is compared, not fitted. A
+measured mode the model cannot reach is reported as such, with how far it stays.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg
+from scipy.optimize import least_squares
+
+from twind import DOFS
+from twind.config import OpticConfig
+from twind.errors import TwindError
+
+FITTED = {"POS": "wire_length_m", "PIT": "b_m", "YAW": "R1_m"}
+"""The parameter solved for each measured mode."""
+
+TOLERANCE_HZ = 0.005
+"""How closely a mode must land on its measurement: the measured table's +-5 mHz."""
+
+
+def modes_hz(optic: OpticConfig) -> dict[str, float]:
+    """The undamped eigenfrequencies of the optic's configured model, each labelled by the
+    DOF that holds most of its kinetic energy.
+
+    Raises
+    ------
+    TwindError
+        If two modes fall in one DOF (a coupling strong enough to mix them).
+    """
+    mech = optic.mechanics()
+    w2, vectors = scipy.linalg.eigh(mech.K, mech.M)
+    energy = (vectors**2) * np.diag(mech.M)[:, None]
+    found: dict[str, float] = {}
+    for k in range(len(w2)):
+        dof = mech.dofs[int(np.argmax(energy[:, k]))]
+        if dof in found:
+            msg = f"{optic.name}: two modes are mostly {dof}; the labels are ambiguous"
+            raise TwindError(msg)
+        found[dof] = float(np.sqrt(max(w2[k], 0.0)) / (2 * np.pi))
+    return {d: found[d] for d in DOFS if d in found}
+
+
+@dataclass(frozen=True)
+class ModeFit:
+    """An optic's measured modes beside the model's, before and after solving its geometry.
+
+    Attributes
+    ----------
+    optic : str
+    measured, nominal, fitted : dict of str to float
+        Mode frequencies (Hz) by DOF: measured; the configured model's; with the solved
+        parameters.
+    before, after : dict of str to float
+        The solved parameters as configured and as solved (SI units).
+    """
+
+    optic: str
+    measured: dict[str, float]
+    nominal: dict[str, float]
+    fitted: dict[str, float]
+    before: dict[str, float]
+    after: dict[str, float]
+
+    def missed(self) -> dict[str, float]:
+        """Modes the solved model still misses by more than :data:`TOLERANCE_HZ` (Hz,
+        model minus measured)."""
+        return {d: self.fitted[d] - f for d, f in self.measured.items()
+                if abs(self.fitted[d] - f) > TOLERANCE_HZ}
+
+    def lines(self) -> list[str]:
+        """One row for a person (mHz: measured / as configured / solved), then the solved
+        parameters and what the model cannot reach."""
+        cells = [f"{1e3 * f:5.0f} {1e3 * self.nominal[d]:5.0f} {1e3 * self.fitted[d]:5.0f}"
+                 + (" *" if d in self.missed() else "  ") for d, f in self.measured.items()]
+        rows = [f"{self.optic:5} " + " | ".join(cells),
+                "      " + ", ".join(f"{k} {self.before[k]:.5g} -> {self.after[k]:.5g}"
+                                     for k in self.after)]
+        if "SIDE" in self.missed() and "POS" in self.measured:
+            apart = 1e3 * (self.measured["SIDE"] - self.measured["POS"])
+            model = 1e3 * (self.fitted["SIDE"] - self.fitted["POS"])
+            rows.append(f"      * SIDE measured {apart:+.0f} mHz from POS, modelled {model:+.0f}"
+                        " mHz: T000134 keeps SIDE = sqrt(g/(l+b)) just below POS whatever the "
+                        "geometry, so this is physics the model leaves out")
+        return rows
+
+    @staticmethod
+    def header(dofs: list[str]) -> str:
+        """The column heads of :meth:`lines`."""
+        return ("optic " + " | ".join(f"{d:^19}" for d in dofs) + "\n      "
+                + " | ".join(f"{'meas  conf solved':19}" for _ in dofs) + "   (mHz)")
+
+    def to_json(self) -> dict:
+        """The ``twind modes --json`` object."""
+        return {"optic": self.optic, "measured_hz": self.measured, "nominal_hz": self.nominal,
+                "fitted_hz": self.fitted, "params_before": self.before,
+                "params_after": self.after, "missed_hz": self.missed()}
+
+
+def fit_modes(optic: OpticConfig, measured: dict[str, float]) -> ModeFit:
+    """Solve the wire length, break-off height and clamp separation for the measured POS,
+    PIT and YAW (those given); the other modes follow and are compared.
+
+    Parameters
+    ----------
+    optic : OpticConfig
+        The optic as configured (the starting point and every parameter not solved).
+    measured : dict of str to float
+        Measured mode frequencies (Hz) by DOF.
+
+    Returns
+    -------
+    ModeFit
+    """
+    unknown = sorted(set(measured) - set(DOFS))
+    if unknown:
+        msg = f"{optic.name}: no mode {', '.join(unknown)}; modes are {', '.join(DOFS)}"
+        raise TwindError(msg)
+    names = [FITTED[d] for d in FITTED if d in measured]
+    start = np.array([getattr(optic.sus, n) for n in names])
+
+    def residual(log_scale: np.ndarray) -> np.ndarray:
+        trial = _with(optic, dict(zip(names, start * np.exp(log_scale), strict=True)))
+        model = modes_hz(trial)
+        return np.array([np.log(model[d] / measured[d]) for d in FITTED if d in measured])
+
+    solved = least_squares(residual, np.zeros(len(names)), xtol=1e-12, ftol=1e-12)
+    after = dict(zip(names, (start * np.exp(solved.x)).tolist(), strict=True))
+    return ModeFit(optic.name, dict(measured), modes_hz(optic), modes_hz(_with(optic, after)),
+                   dict(zip(names, start.tolist(), strict=True)), after)
+
+
+def _with(optic: OpticConfig, params: dict[str, float]) -> OpticConfig:
+    return OpticConfig(optic.name, optic.sus.updated(**params), optic.damping, optic.noise,
+                       optic.model, optic.source)
+
+
+def read_mode_table(path: str | Path) -> dict[str, dict[str, float]]:
+    """Measured mode frequencies by optic from a CSV file: a header ``optic`` and some of
+    ``POS, PIT, YAW, SIDE`` (Hz); lines starting with ``#`` are comments (the source)."""
+    path = Path(path)
+    try:
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip() and
+                 not ln.lstrip().startswith("#")]
+    except OSError as err:
+        msg = f"{path}: {err.strerror}"
+        raise TwindError(msg) from None
+    rows = list(csv.DictReader(lines, skipinitialspace=True))
+    if not rows or "optic" not in rows[0]:
+        msg = f"{path}: expected a CSV table with a header 'optic' and some of {', '.join(DOFS)}"
+        raise TwindError(msg)
+    table = {}
+    for n, row in enumerate(rows, start=2):
+        try:
+            table[row["optic"]] = {d: float(row[d]) for d in DOFS if row.get(d)}
+        except ValueError as err:
+            msg = f"{path}: row {n} ({row['optic']}): {err}"
+            raise TwindError(msg) from None
+    return table
