@@ -399,6 +399,53 @@ def cmd_modes(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_freeswing(args: argparse.Namespace) -> int:
+    """The free-swinging health check: modes, Qs, OSEM gains and the diagonalising input
+    matrix from a ringdown, made on the twin or read from a recording."""
+    from twind.analysis.freeswing import analyse, ringdown
+    from twind.config import load_config
+    from twind.plotting import plot_freeswing
+
+    optic = load_config(args.config, [args.optic]).optics[args.optic]
+    if args.input:
+        sen, rate = _recorded_osems(args.input, args.optic)
+    else:
+        print(f"twind freeswing: {optic.name} kicked, damping off, {args.duration:g} s of "
+              "ringdown on the twin ...", file=sys.stderr, flush=True)
+        sen, rate = ringdown(optic, args.duration, seed=args.seed)
+    result = analyse(optic, sen, rate)
+    _show(result, args.json)
+    if args.output:
+        print(f"wrote {plot_freeswing(result, sen, rate, args.output)}", file=sys.stderr)
+    return 0
+
+
+def _recorded_osems(path: str, optic: str):  # noqa: ANN202 - (ndarray, float)
+    """The five OSEM signals of `optic` from a recording, for freeswing."""
+    import numpy as np
+
+    from twind.model.osem import OSEMS
+    from twind.recording.fastread import read_channels
+
+    if not Path(path).exists():
+        msg = f"no such input: {path}"
+        raise TwindError(msg)
+    wanted = {f"-{optic}_{o}SEN_OUT": o for o in OSEMS}
+    session = read_channels(path, lambda name: any(name.endswith(w) for w in wanted))
+    channels = {o: ch for name, ch in session.channels.items()
+                for w, o in wanted.items() if name.endswith(w)}
+    missing = [o for o in OSEMS if o not in channels]
+    if missing:
+        msg = f"{path}: no {optic} {', '.join(missing)} OSEM readings (..._<OSEM>SEN_OUT)"
+        raise TwindError(msg)
+    n = min(len(channels[o].samples) for o in OSEMS)
+    sen = np.array([channels[o].samples[:n] for o in OSEMS])
+    if not np.all(np.isfinite(sen)):
+        msg = f"{path}: the OSEM readings have gaps; freeswing needs an unbroken ringdown"
+        raise TwindError(msg)
+    return sen, channels[OSEMS[0]].rate
+
+
 def cmd_diagnose(args: argparse.Namespace) -> int:
     """Locate the mismatch, name the physics left out, fit it, show the improvement."""
     from twind.analysis.diagnose import diagnose, write_report
@@ -448,7 +495,7 @@ def _bench_pull(args: argparse.Namespace) -> int:
     """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
     from twind.analysis.calibration import pull_test
     cfg = _optic(args)
-    report = pull_test(cfg, n=args.realisations, bw=args.bw or 0.02, estimator=args.estimator,
+    report = pull_test(cfg, n=args.realisations or 100, bw=args.bw or 0.02, estimator=args.estimator,
                        workers=args.workers)
     print("\n".join(report.lines()))
     return 0
@@ -484,8 +531,19 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_freeswing(args: argparse.Namespace) -> int:
+    """twind freeswing on the ringdowns of random drifted optics with OSEM imbalances."""
+    from twind.analysis.freeswing import benchmark
+
+    duration = 1000.0 if args.duration is None else args.duration
+    print("\n".join(benchmark(_optic(args, args.optic), n=args.realisations or 8,
+                              duration_s=duration)), flush=True)
+    return 0
+
+
 BENCH_SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
-                "information": _bench_information, "diagnose": _bench_diagnose}
+                "information": _bench_information, "diagnose": _bench_diagnose,
+                "freeswing": _bench_freeswing}
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -635,6 +693,20 @@ def build_parser() -> argparse.ArgumentParser:
     modes.add_argument("--json", action="store_true", help="the numbers as JSON")
     modes.set_defaults(func=cmd_modes)
 
+    free = sub.add_parser("freeswing", help="free-swinging health check: modes, Qs, OSEM "
+                                            "gains, diagonalising input matrix")
+    free.add_argument("input", nargs="?", help="a recording (MCAP) of a ringdown; default: "
+                                               "make one on the twin in process")
+    free.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
+    free.add_argument("--config", help="twin config (TOML) holding the optic's model")
+    free.add_argument("--duration", type=float, default=1000.0,
+                      help="seconds of ringdown made on the twin (default 1000)")
+    free.add_argument("--seed", type=int, default=0, help="noise seed of the twin's ringdown")
+    free.add_argument("--json", action="store_true", help="the numbers as JSON")
+    free.add_argument("-o", "--output", help="PNG: OSEM spectra with the modes, and both "
+                                             "input matrices")
+    free.set_defaults(func=cmd_freeswing)
+
     diag = sub.add_parser("diagnose", help="where the model misses, which physics it left "
                                            "out, and the fit with it")
     _input_arguments(diag)
@@ -671,7 +743,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="engine: simulation speed; tf: twind tf on a written session; "
                             "pull: calibration of twind fit's sigmas; information: D-optimal "
                             "excitation against white noise on the twin; diagnose: twind "
-                            "diagnose on the proof corpus (--route, --per-effect, --nulls)")
+                            "diagnose on the proof corpus (--route, --per-effect, --nulls); "
+                            "freeswing: twind freeswing on random drifted optics")
     bench.add_argument("--config")
     bench.add_argument("--duration", type=float, default=None,
                        help="engine: simulated seconds per run (default 20); tf: seconds of "
@@ -679,7 +752,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--workdir", help="tf: directory for the session file (default a "
                                          "temporary one)")
     bench.add_argument("--keep", action="store_true", help="tf: keep the session file")
-    bench.add_argument("--realisations", type=int, default=100, help="pull: noise realisations")
+    bench.add_argument("--realisations", type=int, default=None,
+                       help="pull: noise realisations (default 100); freeswing: optics (8)")
     bench.add_argument("--route", choices=["xml", "mcap", "both"], default="xml",
                        help="diagnose: the corpus as diaggui XML sets or MCAP sessions")
     bench.add_argument("--optic", default="ETMX",

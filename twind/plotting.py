@@ -123,6 +123,53 @@ def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Pa
     return path
 
 
+def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: ANN001
+                   path: str | Path) -> Path:
+    """A free-swinging check (:class:`twind.analysis.freeswing.FreeSwing`) as a figure: the
+    OSEM spectra with the modes found and the model's, and both input matrices as maps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy import signal
+
+    from twind import DOFS
+    from twind.model.osem import OSEMS
+
+    fig = plt.figure(figsize=(11, 7))
+    spec = fig.add_subplot(2, 1, 1)
+    q = max(1, int(rate_hz / 16))
+    low = signal.decimate(sen - sen.mean(axis=1, keepdims=True), q, ftype="fir", axis=1) \
+        if q > 1 else sen
+    f, p = signal.welch(low, fs=rate_hz / q, nperseg=min(low.shape[1], int(400 * rate_hz / q)),
+                        axis=1)
+    keep = (f > 0.3) & (f < 1.5)
+    for name, row in zip(OSEMS, p, strict=True):
+        spec.semilogy(f[keep], np.sqrt(row[keep]), lw=0.8, label=name)
+    for d in DOFS:
+        spec.axvline(result.frequency_hz[d], color="k", lw=0.8)
+        spec.axvline(result.model_hz[d], color="r", lw=0.8, ls=":")
+        spec.text(result.frequency_hz[d], spec.get_ylim()[1], f" {d}", va="top", fontsize=8)
+    spec.set(xlabel="frequency [Hz]", ylabel="OSEM ASD [um/rtHz]",
+             title=f"{result.optic}: free-swinging OSEM spectra; modes found (black), the "
+                   "model's (red, dotted)")
+    spec.legend(fontsize=8, ncol=5)
+    for k, (m, title) in enumerate(((result.input_matrix, "input matrix: diagonalising"),
+                                    (result.configured, "configured"))):
+        ax = fig.add_subplot(2, 2, 3 + k)
+        scaled = m / np.abs(result.configured).max(axis=1, keepdims=True)
+        im = ax.imshow(scaled, cmap="RdBu_r", vmin=-1.2, vmax=1.2)
+        ax.set(xticks=range(len(OSEMS)), xticklabels=OSEMS, yticks=range(len(DOFS)),
+               yticklabels=DOFS, title=title)
+        for (i, j), x in np.ndenumerate(scaled):
+            ax.text(j, i, f"{x:.2f}", ha="center", va="center", fontsize=7)
+    fig.colorbar(im, ax=fig.axes[1:], shrink=0.8, label="over the configured row's largest")
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def plot_comparison(cmp: "ModelComparison", path: str | Path) -> Path:
     """Write a 4x4 Bode-magnitude matrix of both models' admittances to a PNG.
 

@@ -130,17 +130,18 @@ def fit_modes(optic: OpticConfig, measured: dict[str, float]) -> ModeFit:
     start = np.array([getattr(optic.sus, n) for n in names])
 
     def residual(log_scale: np.ndarray) -> np.ndarray:
-        trial = _with(optic, dict(zip(names, start * np.exp(log_scale), strict=True)))
+        trial = with_params(optic, dict(zip(names, start * np.exp(log_scale), strict=True)))
         model = modes_hz(trial)
         return np.array([np.log(model[d] / measured[d]) for d in FITTED if d in measured])
 
     solved = least_squares(residual, np.zeros(len(names)), xtol=1e-12, ftol=1e-12)
     after = dict(zip(names, (start * np.exp(solved.x)).tolist(), strict=True))
-    return ModeFit(optic.name, dict(measured), modes_hz(optic), modes_hz(_with(optic, after)),
+    return ModeFit(optic.name, dict(measured), modes_hz(optic), modes_hz(with_params(optic, after)),
                    dict(zip(names, start.tolist(), strict=True)), after)
 
 
-def _with(optic: OpticConfig, params: dict[str, float]) -> OpticConfig:
+def with_params(optic: OpticConfig, params: dict[str, float]) -> OpticConfig:
+    """`optic` with some suspension parameters changed."""
     return OpticConfig(optic.name, optic.sus.updated(**params), optic.damping, optic.noise,
                        optic.model, optic.source)
 
