@@ -47,6 +47,7 @@ class SoakReport:
     bus_corrupt: int
     mcap_blocks: int
     mcap_gaps: int
+    bus_anomalies: list[str] = field(default_factory=list)  # what the subscriber saw amiss
     latency_s: list[float] = field(default_factory=list)  # at the subscriber
     service_latency: dict = field(default_factory=dict)  # status's injection_latency_s
     hostile_sent: dict[str, int] = field(default_factory=dict)
@@ -68,7 +69,8 @@ class SoakReport:
             f"{100 * self.cpu_fraction:.1f} % of one core, {self.late_blocks} late blocks, "
             f"max lag {1e3 * self.max_lag_s:.1f} ms",
             f"subscriber in another process: {self.bus_blocks} blocks, {self.bus_lost} lost, "
-            f"{self.bus_out_of_order} out of order, {self.bus_corrupt} undecodable",
+            f"{self.bus_out_of_order} out of order, {self.bus_corrupt} undecodable"
+            + "".join(f"\n  {a}" for a in self.bus_anomalies),
             f"MCAP recording: {self.mcap_blocks} blocks, {self.mcap_gaps} gaps",
             f"injection latency (request -> first excitation sample published; target: one "
             f"block + 10 ms = {1e3 * self.block_s + 10:.1f} ms): at the service, "
@@ -96,6 +98,8 @@ class _Watcher:
     def __init__(self, endpoint: str) -> None:
         self.last: dict[str, int] = {}
         self.blocks = self.lost = self.out_of_order = self.corrupt = 0
+        self.anomalies: list[str] = []  # the first few, with when and what
+        self._t0 = time.monotonic()
         self.first_nonzero: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
         self._lock = threading.Lock()
         self.session = zenoh.open(zenoh_config(connect=[endpoint], mode="client"))
@@ -103,26 +107,38 @@ class _Watcher:
 
     def _on(self, sample: zenoh.Sample) -> None:
         now = time.monotonic()
+        data = sample.payload.to_bytes()
+        key = str(sample.key_expr)
         try:
-            block = SampleBlock.decode(sample.payload.to_bytes())
-        except Exception:  # noqa: BLE001 - a block that arrives damaged is counted, not raised
+            block = SampleBlock.decode(data)
+        except Exception as err:  # noqa: BLE001 - a block that arrives damaged is counted
             with self._lock:
                 self.corrupt += 1
+                self._note(f"undecodable on {key}: {len(data)} bytes, {data[:24].hex()} "
+                           f"({type(err).__name__})")
             return
         with self._lock:
             self.blocks += 1
+            if not key.endswith(block.channel):
+                self._note(f"{key} delivered a block of {block.channel} (sequence "
+                           f"{block.sequence})")
             last = self.last.get(block.channel)
             if last is not None and block.sequence != last + 1:
                 if block.sequence > last + 1:
                     self.lost += block.sequence - last - 1
                 else:
                     self.out_of_order += 1
+                self._note(f"{block.channel}: sequence {block.sequence} after {last}")
             self.last[block.channel] = block.sequence
             if block.channel.endswith("_EXC"):
                 nz = np.flatnonzero(block.samples)
                 if nz.size:
                     gps = block.gps_start + nz[0] / block.rate_hz
                     self.first_nonzero[block.channel].append((gps, now, block.gps_start))
+
+    def _note(self, what: str) -> None:
+        if len(self.anomalies) < 8:
+            self.anomalies.append(f"t = {time.monotonic() - self._t0:.1f} s: {what}")
 
     def arrival_of(self, channel: str, start_gps: float, timeout: float = 5.0) -> float | None:
         """Monotonic time at which the block holding `start_gps` of `channel` arrived."""
@@ -247,6 +263,7 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
         late_blocks=status["late_blocks"], max_lag_s=status["max_lag_s"],
         bus_blocks=watcher.blocks, bus_lost=watcher.lost,
         bus_out_of_order=watcher.out_of_order, bus_corrupt=watcher.corrupt,
+        bus_anomalies=watcher.anomalies,
         mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies,
         service_latency=status["injection_latency_s"], hostile_sent=sent,
         hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"],
