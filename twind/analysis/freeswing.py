@@ -15,13 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import NDArray
 from scipy import signal
 from scipy.optimize import least_squares
 
 from twind import DOFS
-from twind.analysis.modes import FITTED, fit_modes, modes_hz, with_params
+from twind.analysis.modes import FITTED, fit_modes, modes_hz, normal_modes, with_params
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
 from twind.errors import TwindError
@@ -153,12 +152,13 @@ def analyse(optic: OpticConfig, sen: NDArray[np.float64], rate_hz: float) -> Fre
         raise TwindError(msg)
     y = signal.sosfiltfilt(sos, y, axis=1)[:, edge:-edge]  # the band-pass's transients cut
     # every OSEM at one scale, so that SIDE, which one OSEM sees, weighs like the face modes
-    z = _pencil(y / y.std(axis=1, keepdims=True), ORDER)
+    scaled = y / y.std(axis=1, keepdims=True)
+    z = _pencil(scaled, ORDER)
     model = modes_hz(optic)
     plant = optic.loop().plant
     every = _amplitudes(y, z)
     chosen = _match(z, dt, model, plant.input_matrix @ every)
-    poles = _refine(y / y.std(axis=1, keepdims=True), np.array([z[k] for k in chosen.values()]))
+    poles = _refine(scaled, np.array([z[k] for k in chosen.values()]))
     amp = _amplitudes(y, poles)
     f = {d: float(np.angle(p) / (2 * np.pi * dt)) for d, p in zip(DOFS, poles, strict=True)}
     decay = {d: float(-np.log(abs(p)) / dt) for d, p in zip(DOFS, poles, strict=True)}
@@ -240,12 +240,8 @@ def _amplitudes(y: NDArray, z: NDArray) -> NDArray[np.complex128]:
 
 def _shapes(optic: OpticConfig, sensing: NDArray) -> NDArray[np.float64]:
     """The model's amplitude pattern of each mode over the OSEMs (5 x 4, DOFS order)."""
-    mech = optic.mechanics()
-    _, vectors = scipy.linalg.eigh(mech.K, mech.M)
-    energy = (vectors**2) * np.diag(mech.M)[:, None]
-    order = [int(np.argmax(energy[:, k])) for k in range(vectors.shape[1])]
-    cols = [vectors[:, order.index(mech.dofs.index(d))] for d in DOFS]
-    return sensing @ np.array(cols).T
+    modes = normal_modes(optic)
+    return sensing @ np.array([modes[d][1] for d in DOFS]).T
 
 
 def _osem_gains(amp: NDArray, shapes: NDArray) -> dict[str, float]:

@@ -29,9 +29,10 @@ TOLERANCE_HZ = 0.005
 """How closely a mode must land on its measurement: the measured table's +-5 mHz."""
 
 
-def modes_hz(optic: OpticConfig) -> dict[str, float]:
-    """The undamped eigenfrequencies of the optic's configured model, each labelled by the
-    DOF that holds most of its kinetic energy.
+def normal_modes(optic: OpticConfig) -> dict[str, tuple[float, np.ndarray]]:
+    """The undamped normal modes of the optic's configured model, each labelled by the DOF
+    that holds most of its kinetic energy: frequency (Hz) and shape over the model's
+    coordinates.
 
     Raises
     ------
@@ -41,14 +42,19 @@ def modes_hz(optic: OpticConfig) -> dict[str, float]:
     mech = optic.mechanics()
     w2, vectors = scipy.linalg.eigh(mech.K, mech.M)
     energy = (vectors**2) * np.diag(mech.M)[:, None]
-    found: dict[str, float] = {}
+    found: dict[str, tuple[float, np.ndarray]] = {}
     for k in range(len(w2)):
         dof = mech.dofs[int(np.argmax(energy[:, k]))]
         if dof in found:
             msg = f"{optic.name}: two modes are mostly {dof}; the labels are ambiguous"
             raise TwindError(msg)
-        found[dof] = float(np.sqrt(max(w2[k], 0.0)) / (2 * np.pi))
+        found[dof] = (float(np.sqrt(max(w2[k], 0.0)) / (2 * np.pi)), vectors[:, k])
     return {d: found[d] for d in DOFS if d in found}
+
+
+def modes_hz(optic: OpticConfig) -> dict[str, float]:
+    """The frequencies of :func:`normal_modes` (Hz), by DOF."""
+    return {d: f for d, (f, _) in normal_modes(optic).items()}
 
 
 @dataclass(frozen=True)
