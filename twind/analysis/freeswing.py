@@ -23,6 +23,7 @@ from twind import DOFS
 from twind.analysis.modes import FITTED, fit_modes, modes_hz, normal_modes, with_params
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
+from twind.model.effects import with_effect
 from twind.errors import TwindError
 from twind.model.osem import OSEMS
 from twind.simulation.engine import Engine
@@ -277,8 +278,6 @@ def benchmark(optic: OpticConfig, n: int = 8, duration_s: float = 1000.0, seed: 
     OSEM gains off by up to +-10 %, analysed with the nominal model. Lines: per optic, the
     worst frequency error against the drifted optic's eigenfrequencies (mHz), the worst Q
     error (%) and the worst OSEM gain error (% of each imbalance); then the worst of all."""
-    from twind.model.effects import with_effect
-
     rng = np.random.default_rng(seed)
     rows, worst = [], np.zeros(3)
     for k in range(n):
