@@ -100,9 +100,9 @@ class TwinClient:
             replies.append(json.loads(reply.ok.payload.to_string()))
         if not replies:
             if verb != "status" and self._answers_status():
-                msg = (f"the twin answers status but not {verb} ({key}): the access rights of "
-                       f"this session do not allow {verb}; log in as a user who may (an "
-                       "operator, --zenoh-config), see deploy/README.md")
+                msg = (f"the twin answers status but not {verb} ({key}): most likely the "
+                       f"access rights of this session do not allow {verb}; log in as a user "
+                       "who may (an operator, --zenoh-config), see deploy/README.md")
                 raise AccessRefused(msg)
             msg = (f"no twin answered on {key} within {self.timeout} s: is `twind serve` "
                    "running and reachable at the endpoint given (--connect)?")

@@ -85,8 +85,7 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
 
 SWITCH_INTERVAL_S = 0.001
 """How long a thread busy with a request (a stability check, a long stream's JSON) may keep
-the interpreter from the pacing thread; Python's default, 5 ms, is paid at every hand-over
-inside a block's publishing."""
+the interpreter from the pacing thread before it must hand it over (Python's default: 5 ms)."""
 
 ZENOH_MAX_MESSAGE = 1 << 30
 """Zenoh's own default of ``transport/link/rx/max_message_size`` (bytes)."""
