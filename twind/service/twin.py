@@ -145,12 +145,15 @@ class TwinService:
         self._ended: set[str] = set()
         self._started = self._t0 = time.monotonic()
         self._session = session
-        names = [name for name, _, _ in block_channels(twin.ifo, self._buf)]
+        # every block is computed into _buf, so its channels' views are taken once; the EXC
+        # test points first, so that an excitation goes out before every optic's responses
+        self._channels = sorted(block_channels(twin.ifo, self._buf),
+                                key=lambda c: not c[0].endswith("_EXC"))
         # Zenoh drops samples under congestion by default; a twin whose recordings have gaps is
         # worse than one that waits a moment for a slow subscriber
         self._pubs = {name: session.declare_publisher(
             data_key(name, root), congestion_control=zenoh.CongestionControl.BLOCK,
-            reliability=zenoh.Reliability.RELIABLE) for name in names}
+            reliability=zenoh.Reliability.RELIABLE) for name, _, _ in self._channels}
         self._events = session.declare_publisher(control_key(twin.ifo, "events", root))
         self._handlers: dict[str, Callable[[dict], dict]] = {
             "status": lambda _: self.status(), "inject": self.inject, "stop": self.stop,
@@ -180,23 +183,18 @@ class TwinService:
                 self.stats.late_blocks += 1
 
     def step(self) -> None:
-        """Compute the next block, with the excitations that fall in it, and publish it:
-        the EXC test points first, so that an excitation goes out before the responses of
-        every optic are published."""
+        """Compute the next block, with the excitations that fall in it, and publish it."""
         with self._lock:
             first = self.engine.samples
             exc = self._excitation(first)
-            block = self.engine.step(self.n, exc=exc, out=self._buf)
-            self._watch(block)
+            self._watch(self.engine.step(self.n, exc=exc, out=self._buf))
             starting = collections.defaultdict(list)  # EXC channel -> excitations starting
             for act in self._unpublished.values():
                 if act.start_sample < first + self.n:
                     starting[act.request.channel].append(act)
         gps = self.gps0 + first / self.rate
         seq = self.stats.blocks
-        channels = sorted(block_channels(self.twin.ifo, block),
-                          key=lambda c: not c[0].endswith("_EXC"))
-        for name, unit, samples in channels:
+        for name, unit, samples in self._channels:
             try:
                 self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples,
                                                  unit).encode())
