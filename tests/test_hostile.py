@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import json
 import math
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,14 +20,16 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from servicekit import free_port
+from servicekit import free_port, serving
 
 from twind import DOFS
 from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
 from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
-from twind.service.serve import limit_messages
+from twind.client import TwinClient
+from twind.limits import ServiceLimits
+from twind.service.serve import limit_zenoh
 from twind.service.twin import LIVE_PARAMS, TwinService
 
 EXC = [f"C1:SUS-ETMX_SUS{d}_EXC" for d in DOFS]
@@ -250,11 +256,11 @@ def test_zenoh_drops_a_message_far_beyond_the_payload_limit_before_the_twin_sees
     own limit is kept): a larger query never reaches the queryable, later ones still do."""
     kept = zenoh.Config()
     kept.insert_json5("transport/link/rx/max_message_size", "5000000")
-    limit_messages(kept, 1000)
+    limit_zenoh(kept, ServiceLimits(request_bytes=1000))
     assert json.loads(kept.get_json("transport/link/rx/max_message_size")) == 5000000
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     conf = zenoh_config(listen=[endpoint])
-    limit_messages(conf, 1000)
+    limit_zenoh(conf, ServiceLimits(request_bytes=1000))
     sizes: list[int] = []
     with zenoh.open(conf) as twin, \
             zenoh.open(zenoh_config(connect=[endpoint], mode="client")) as client:
@@ -264,6 +270,78 @@ def test_zenoh_drops_a_message_far_beyond_the_payload_limit_before_the_twin_sees
         for size in (100, 100_000, 100):
             list(client.get("twin/q", payload=b"x" * size, timeout=1.0))
     assert sizes == [100, 100]
+
+
+DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
+
+
+def test_no_session_of_twind_and_no_shipped_router_passes_blocks_through_shared_memory(
+        tmp_path: Path) -> None:
+    """Zenoh's shared memory hands a subscriber that was descheduled buffers already reused
+    (blocks undecodable or of another channel): twind's sessions turn it off even when a
+    configuration file turns it on, and the shipped routers have it off and let a client
+    that reads nothing go after the twin's ``service.subscriber_wait_s``."""
+    on = tmp_path / "shm.json5"
+    on.write_text("{transport: {shared_memory: {enabled: true}}}")
+    for conf in (zenoh_config(), zenoh_config(config_file=str(on), mode="client")):
+        assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
+    wait = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+    for router in (DEPLOY / "zenoh-router.json5", DEPLOY / "acl" / "router.json5"):
+        conf = zenoh.Config.from_file(str(router))
+        assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False, router
+        assert json.loads(conf.get_json(wait)) == 1e6 * ServiceLimits().subscriber_wait_s
+
+
+SUBSCRIBER = """
+import json, sys, time, zenoh
+from twind.bus.codec import SampleBlock
+conf = zenoh.Config()  # Zenoh's defaults (shared memory on), as a commissioner's script has
+conf.insert_json5("mode", '"client"')
+conf.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
+last, report = {}, {"blocks": 0, "damaged": [], "gaps": 0}
+def on(sample):
+    key = str(sample.key_expr)
+    try:
+        block = SampleBlock.decode(sample.payload.to_bytes())
+    except Exception as err:
+        report["damaged"].append(f"{key}: {type(err).__name__}")
+        return
+    before = last.get(key, -1)
+    if not key.endswith(block.channel) or block.sequence <= before:
+        report["damaged"].append(f"{key}: block {block.sequence} of {block.channel} after {before}")
+    report["gaps"] += before >= 0 and block.sequence > before + 1
+    report["blocks"] += 1
+    last[key] = block.sequence
+with zenoh.open(conf) as s, s.declare_subscriber("twin/**", on):
+    print("ready", flush=True)
+    sys.stdin.readline()
+report["last"] = max(last.values(), default=-1)
+print(json.dumps(report), flush=True)
+"""
+
+
+def test_a_suspended_subscriber_holds_the_twin_briefly_and_no_one_gets_a_damaged_block() -> None:
+    """Two subscribers with Zenoh's defaults, one suspended for 6 s (SIGSTOP, as Ctrl-Z):
+    the twin waits for it at most ``service.subscriber_wait_s`` (0.5 s; Zenoh alone waits
+    5 s), then closes its session and goes on. The other gets every block in sequence;
+    the suspended one, resumed, reconnects and gets intact blocks again."""
+    with serving("--optics", "all") as endpoint:
+        readers = [subprocess.Popen([sys.executable, "-c", SUBSCRIBER, endpoint], text=True,
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+                   for _ in range(2)]
+        assert [r.stdout.readline().strip() for r in readers] == ["ready", "ready"]
+        time.sleep(1.0)
+        readers[1].send_signal(signal.SIGSTOP)
+        time.sleep(6.0)
+        readers[1].send_signal(signal.SIGCONT)
+        time.sleep(4.0)
+        with TwinClient([endpoint]) as client:
+            status = client.status()
+        steady, resumed = (json.loads(r.communicate("\n", timeout=30)[0]) for r in readers)
+    assert status["max_lag_s"] < 2.5, f"the twin waited {status['max_lag_s']:.2f} s for a reader"
+    assert steady["damaged"] == [] and steady["gaps"] == 0
+    assert resumed["damaged"] == [] and resumed["gaps"] > 0  # its session was closed
+    assert resumed["last"] >= status["blocks"] - 32  # and it reads again
 
 
 def test_status_reports_the_latency_of_injections_made_now_only(fresh: TwinService) -> None:

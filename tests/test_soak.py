@@ -10,10 +10,13 @@ from twind.service.soak import soak
 
 @pytest.mark.slow
 def test_short_soak() -> None:
-    report = soak(duration=8.0, optics="ETMX", hostile=60, port=free_port(), injections_every=1.0)
+    report = soak(duration=8.0, optics="ETMX", hostile=60, port=free_port(), injections_every=1.0,
+                  suspend=2.0)
     print("\n".join(report.lines()))
     assert report.bus_blocks > 0 and report.bus_lost == 0 and report.bus_out_of_order == 0
-    assert report.bus_corrupt == 0
+    assert report.bus_corrupt == 0 and report.bus_misdelivered == 0
+    resumed = report.suspended  # a subscriber suspended for 2 s, then read again
+    assert resumed["blocks"] > 0 and resumed["corrupt"] == resumed["misdelivered"] == 0
     assert report.mcap_blocks >= report.bus_blocks and report.mcap_gaps == 0
     assert sum(report.hostile_sent.values()) == 60
     assert report.hostile_refused == report.hostile_sent  # every kind, every request

@@ -232,7 +232,7 @@ def cmd_soak(args: argparse.Namespace) -> int:
     from twind.service.soak import soak
 
     report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config,
-                  load=args.load)
+                  load=args.load, suspend=args.suspend)
     print("\n".join(report.lines()))
     return 0
 
@@ -726,6 +726,8 @@ def build_parser() -> argparse.ArgumentParser:
                                          "watchdogs at 20 um, so that one drive trips one")
     soak_p.add_argument("--load", type=int, default=0, metavar="N",
                         help="N busy processes share the cores with the twin (2: both cores)")
+    soak_p.add_argument("--suspend", type=float, default=6.0, metavar="S",
+                        help="seconds a second subscriber is suspended (SIGSTOP) at the end")
     soak_p.set_defaults(func=cmd_soak)
 
     demo = sub.add_parser("demo", help="a 'real' twin with a concealed effect beside a "

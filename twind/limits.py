@@ -30,6 +30,11 @@ class ServiceLimits:
     changes_per_minute : int
         ``params`` and ``filter`` changes accepted in any minute (each rebuilds and checks a
         loop, time the pacing thread shares).
+    subscriber_wait_s : float
+        How long the twin waits for a subscriber that reads nothing (suspended with Ctrl-Z,
+        hung) before Zenoh closes that subscriber's session. Blocks wait for a slow reader,
+        so that a recording has no gap, but one stalled client holds the loop and every
+        other subscriber at most this long; it reconnects when it runs again.
     """
 
     exc_peak: float = 100.0
@@ -40,3 +45,4 @@ class ServiceLimits:
     request_bytes: int = 8_000_000
     watchdog_um: float = 1000.0
     changes_per_minute: int = 60
+    subscriber_wait_s: float = 0.5

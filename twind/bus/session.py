@@ -30,8 +30,15 @@ def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (),
     Returns
     -------
     zenoh.Config
+        With Zenoh's shared memory off, whatever the file says. Zenoh 1.x passes a message
+        of more than 3 kB to a process on the same host through a shared-memory pool; when
+        the receiver is descheduled for a moment (a loaded machine, a suspended client), the
+        sender reuses buffers not yet read, and a subscriber got blocks undecodable, of
+        another channel or out of sequence (zenoh 1.10.2; upstream eclipse-zenoh/zenoh#2628).
+        Blocks are 8 kB: copying them costs little. Routers need the same setting (deploy/).
     """
     conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     if mode is not None or not config_file:
         conf.insert_json5("mode", json.dumps(mode or "peer"))
     if listen:

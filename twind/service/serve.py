@@ -17,6 +17,7 @@ from threadpoolctl import threadpool_limits
 
 from twind.config import TwinConfig
 from twind.errors import TwindError
+from twind.limits import ServiceLimits
 from twind.service.twin import TwinService
 
 
@@ -50,7 +51,7 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
         msg = f"--speed and --block must be positive, got {speed} and {block_s}"
         raise TwindError(msg)
     priority = _raise_priority()  # before any thread starts: they all inherit it
-    limit_messages(conf, twin.service.request_bytes)
+    limit_zenoh(conf, twin.service)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     # the checks of a params/filter change run LAPACK; OpenBLAS's threads, spinning on the
     # two cores beside the engine's, made each check 46 ms instead of 7 and the loop late
@@ -87,18 +88,26 @@ SWITCH_INTERVAL_S = 0.001
 """How long a thread busy with a request (a stability check, a long stream's JSON) may keep
 the interpreter from the pacing thread before it must hand it over (Python's default: 5 ms)."""
 
-ZENOH_MAX_MESSAGE = 1 << 30
-"""Zenoh's own default of ``transport/link/rx/max_message_size`` (bytes)."""
+ZENOH_DEFAULTS = {"transport/link/rx/max_message_size": 1 << 30,
+                  "transport/link/tx/queue/congestion_control/block/wait_before_close": 5_000_000}
+"""Zenoh's own defaults of the settings :func:`limit_zenoh` bounds (bytes, microseconds)."""
 
 
-def limit_messages(conf: zenoh.Config, request_bytes: float) -> None:
-    """Let Zenoh drop, before assembling it, a message far beyond what the twin accepts
-    (twice ``service.request_bytes``), unless the configuration file set its own limit: a
-    500 MB request then never reaches the twin's memory. The client is not answered (its
-    query times out); other clients are not affected."""
-    key = "transport/link/rx/max_message_size"
-    if json.loads(conf.get_json(key)) == ZENOH_MAX_MESSAGE:
-        conf.insert_json5(key, str(int(2 * request_bytes)))
+def limit_zenoh(conf: zenoh.Config, service: ServiceLimits) -> None:
+    """Bound what a client can cost the twin through Zenoh itself, where the configuration
+    file left Zenoh's default:
+
+    - a message beyond twice ``service.request_bytes`` is dropped before it is assembled,
+      so a 500 MB request never reaches the twin's memory (its sender is not answered);
+    - a subscriber that reads nothing for ``service.subscriber_wait_s`` has its session
+      closed, instead of holding every block for Zenoh's 5 s.
+    """
+    wanted = {"transport/link/rx/max_message_size": int(2 * service.request_bytes),
+              "transport/link/tx/queue/congestion_control/block/wait_before_close":
+                  int(1e6 * service.subscriber_wait_s)}
+    for key, value in wanted.items():
+        if json.loads(conf.get_json(key)) == ZENOH_DEFAULTS[key]:
+            conf.insert_json5(key, str(value))
 
 
 NICE = -10

@@ -3,15 +3,18 @@
 A ``twind serve --record`` process runs the configured optics in real time; this process
 subscribes to every channel (another process, as a commissioner's script would), injects
 short sines and measures the latency from request to the first published excitation sample,
-sends malformed and hostile requests, and at the end reads the recording back. Printed:
-CPU use of the service, lag, late blocks, lost or out-of-order blocks on the bus and in the
-MCAP files, latency percentiles, and how many hostile requests were refused with a reason.
+sends malformed and hostile requests, suspends a second subscriber for a while (as Ctrl-Z
+does), and at the end reads the recording back. Printed: CPU use of the service, lag, late
+blocks, lost or out-of-order blocks on the bus and in the MCAP files, latency percentiles,
+how many hostile requests were refused with a reason, and what the suspended subscriber
+cost the twin and found when it ran again.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -28,7 +31,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
 from twind.bus.session import zenoh_config
 from twind.client import TwinClient
-from twind.config import DEFAULT_CONFIG
+from twind.config import DEFAULT_CONFIG, load_config
 from twind.errors import TwindError
 
 
@@ -45,6 +48,7 @@ class SoakReport:
     bus_lost: int
     bus_out_of_order: int
     bus_corrupt: int
+    bus_misdelivered: int
     mcap_blocks: int
     mcap_gaps: int
     bus_anomalies: list[str] = field(default_factory=list)  # what the subscriber saw amiss
@@ -58,6 +62,7 @@ class SoakReport:
     log_tail: str = ""  # the end of the service's output, when it crashed
     load: int = 0
     watchdog: str = ""
+    suspended: dict = field(default_factory=dict)  # the suspended subscriber's figures
 
     def lines(self) -> list[str]:
         """Human-readable figures."""
@@ -69,7 +74,8 @@ class SoakReport:
             f"{100 * self.cpu_fraction:.1f} % of one core, {self.late_blocks} late blocks, "
             f"max lag {1e3 * self.max_lag_s:.1f} ms",
             f"subscriber in another process: {self.bus_blocks} blocks, {self.bus_lost} lost, "
-            f"{self.bus_out_of_order} out of order, {self.bus_corrupt} undecodable"
+            f"{self.bus_out_of_order} out of order, {self.bus_corrupt} undecodable, "
+            f"{self.bus_misdelivered} of another channel"
             + "".join(f"\n  {a}" for a in self.bus_anomalies),
             f"MCAP recording: {self.mcap_blocks} blocks, {self.mcap_gaps} gaps",
             f"injection latency (request -> first excitation sample published; target: one "
@@ -80,9 +86,20 @@ class SoakReport:
                 f"{verb} {self.hostile_refused.get(verb, 0)}/{n}"
                 for verb, n in self.hostile_sent.items()) + f"; {self.hostile_unanswered} "
             "unanswered",
+            _suspended_line(self.suspended),
             f"service crashed: {'YES' if self.crashed else 'no'}; other processes loading the "
             f"cores: {self.load}; watchdog: {self.watchdog or 'not exercised'}",
         ] + ([f"the service's last output:\n{self.log_tail}"] if self.crashed else [])
+
+
+def _suspended_line(s: dict) -> str:
+    if not s:
+        return "suspended subscriber: not exercised"
+    return (f"a subscriber suspended for {s['seconds']:g} s (SIGSTOP): {s['late_blocks']} "
+            f"blocks late meanwhile, the twin's max lag then {1e3 * s['max_lag_s']:.1f} ms "
+            f"(service.subscriber_wait_s = {s['wait_s']:g} s); resumed, it read "
+            f"{s['blocks']} blocks, missed {s['lost']} while away, {s['out_of_order']} out of "
+            f"order, {s['corrupt']} undecodable, {s['misdelivered']} of another channel")
 
 
 def _ms(latency: dict) -> str:
@@ -97,7 +114,7 @@ class _Watcher:
 
     def __init__(self, endpoint: str) -> None:
         self.last: dict[str, int] = {}
-        self.blocks = self.lost = self.out_of_order = self.corrupt = 0
+        self.blocks = self.lost = self.out_of_order = self.corrupt = self.misdelivered = 0
         self.anomalies: list[str] = []  # the first few, with when and what
         self._t0 = time.monotonic()
         self.first_nonzero: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
@@ -120,6 +137,7 @@ class _Watcher:
         with self._lock:
             self.blocks += 1
             if not key.endswith(block.channel):
+                self.misdelivered += 1
                 self._note(f"{key} delivered a block of {block.channel} (sequence "
                            f"{block.sequence})")
             last = self.last.get(block.channel)
@@ -151,9 +169,25 @@ class _Watcher:
             time.sleep(0.005)
         return None
 
+    def counts(self) -> dict[str, int]:
+        """What arrived, and what arrived amiss."""
+        with self._lock:
+            return {"blocks": self.blocks, "lost": self.lost, "out_of_order": self.out_of_order,
+                    "corrupt": self.corrupt, "misdelivered": self.misdelivered}
+
     def close(self) -> None:
         self.sub.undeclare()
         self.session.close()
+
+
+def watch_until_told(endpoint: str) -> None:
+    """A :class:`_Watcher` in a process of its own: says ``ready``, counts until a line
+    arrives on stdin, then prints its counts as JSON."""
+    watcher = _Watcher(endpoint)
+    print("ready", flush=True)
+    sys.stdin.readline()
+    watcher.close()
+    print(json.dumps(watcher.counts()), flush=True)
 
 
 def _request(obj: dict) -> bytes:
@@ -217,10 +251,11 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port: int = 17461,
-         injections_every: float = 2.0, config: str | None = None, load: int = 0
-         ) -> SoakReport:
+         injections_every: float = 2.0, config: str | None = None, load: int = 0,
+         suspend: float = 6.0) -> SoakReport:
     """Run the soak (see module docstring) and return its figures; `load` busy processes
-    share the cores with it."""
+    share the cores with it, a second subscriber is suspended for `suspend` seconds after
+    the injections."""
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory(prefix="twind-soak-") as tmp:
         config = config or _watchful_config(Path(tmp))
@@ -246,6 +281,7 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             watchdog = _trip_and_rearm(client, status0)
             cpu = (_cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - t0)
             status = client.status()
+            suspended = _suspend_a_subscriber(client, endpoint, suspend, config)
             client.close()
             watcher.close()
         finally:
@@ -263,11 +299,11 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
         late_blocks=status["late_blocks"], max_lag_s=status["max_lag_s"],
         bus_blocks=watcher.blocks, bus_lost=watcher.lost,
         bus_out_of_order=watcher.out_of_order, bus_corrupt=watcher.corrupt,
-        bus_anomalies=watcher.anomalies,
+        bus_misdelivered=watcher.misdelivered, bus_anomalies=watcher.anomalies,
         mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies,
         service_latency=status["injection_latency_s"], hostile_sent=sent,
         hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"],
-        crashed=crashed, load=load, watchdog=watchdog, log_tail=log_tail)
+        crashed=crashed, load=load, watchdog=watchdog, log_tail=log_tail, suspended=suspended)
 
 
 SOAK_WATCHDOG_UM = 20.0
@@ -307,6 +343,33 @@ def _trip_and_rearm(client: TwinClient, status: dict) -> str:
     rearmed = client.rearm(optic)["watchdog"]
     return (f"{optic} tripped under a 42 um drive and re-armed" if tripped and
             rearmed == "armed" else f"{optic}: tripped {tripped}, after re-arm {rearmed}")
+
+
+def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float,
+                          config: str) -> dict:
+    """Subscribe in another process, suspend it for `seconds` (SIGSTOP, as Ctrl-Z does),
+    resume it: what the twin lost meanwhile (late blocks, lag) and what the subscriber read."""
+    proc = subprocess.Popen([sys.executable, "-c", "from twind.service.soak import "
+                             f"watch_until_told; watch_until_told({endpoint!r})"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        if proc.stdout.readline().strip() != "ready":
+            msg = "the subscriber to suspend did not start"
+            raise TwindError(msg)
+        time.sleep(1.0)
+        before = client.status()
+        proc.send_signal(signal.SIGSTOP)
+        time.sleep(seconds)
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(3.0)  # it reconnects and reads again
+        after = client.status()
+        counts = json.loads(proc.communicate("\n", timeout=30)[0])
+    finally:
+        proc.send_signal(signal.SIGCONT)
+        proc.kill()
+    return {"seconds": seconds, "late_blocks": after["late_blocks"] - before["late_blocks"],
+            "max_lag_s": after["max_lag_s"], **counts,
+            "wait_s": load_config(config, []).service.subscriber_wait_s}
 
 
 def _scan_recording(files: list[Path]) -> tuple[int, int]:
