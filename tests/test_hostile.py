@@ -321,19 +321,24 @@ print(json.dumps(report), flush=True)
 
 
 def test_a_suspended_subscriber_holds_the_twin_briefly_and_no_one_gets_a_damaged_block() -> None:
-    """Two subscribers with Zenoh's defaults, one suspended for 6 s (SIGSTOP, as Ctrl-Z):
-    the twin waits for it at most ``service.subscriber_wait_s`` (0.5 s; Zenoh alone waits
-    5 s), then closes its session and goes on. The other gets every block in sequence;
-    the suspended one, resumed, reconnects and gets intact blocks again."""
+    """Two subscribers with Zenoh's defaults; one is descheduled 16 times for 0.1-0.4 s
+    (through Zenoh's shared memory, such pauses damage blocks), then suspended for
+    6 s (SIGSTOP, as Ctrl-Z): the twin waits for it at most ``service.subscriber_wait_s``
+    (0.5 s; Zenoh alone waits 5 s), then closes its session and goes on. The other gets
+    every block in sequence; the suspended one, resumed, reconnects and gets intact blocks
+    again."""
+    pauses = np.random.default_rng(18).uniform(0.1, 0.4, 16)
     with serving("--optics", "all") as endpoint:
         readers = [subprocess.Popen([sys.executable, "-c", SUBSCRIBER, endpoint], text=True,
                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
                    for _ in range(2)]
         assert [r.stdout.readline().strip() for r in readers] == ["ready", "ready"]
         time.sleep(1.0)
-        readers[1].send_signal(signal.SIGSTOP)
-        time.sleep(6.0)
-        readers[1].send_signal(signal.SIGCONT)
+        for pause in [*pauses, 6.0]:
+            readers[1].send_signal(signal.SIGSTOP)
+            time.sleep(pause)
+            readers[1].send_signal(signal.SIGCONT)
+            time.sleep(0.4)
         time.sleep(4.0)
         with TwinClient([endpoint]) as client:
             status = client.status()
