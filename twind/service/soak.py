@@ -95,7 +95,8 @@ class SoakReport:
 def _suspended_line(s: dict) -> str:
     if not s:
         return "suspended subscriber: not exercised"
-    return (f"a subscriber suspended for {s['seconds']:g} s (SIGSTOP): {s['late_blocks']} "
+    return (f"a subscriber paused {PAUSES} times for 0.1-0.4 s, then suspended for "
+            f"{s['seconds']:g} s (SIGSTOP): {s['late_blocks']} "
             f"blocks late meanwhile, the twin's max lag then {1e3 * s['max_lag_s']:.1f} ms "
             f"(service.subscriber_wait_s = {s['wait_s']:g} s); resumed, it read "
             f"{s['blocks']} blocks, missed {s['lost']} while away, {s['out_of_order']} out of "
@@ -345,10 +346,16 @@ def _trip_and_rearm(client: TwinClient, status: dict) -> str:
             rearmed == "armed" else f"{optic}: tripped {tripped}, after re-arm {rearmed}")
 
 
+PAUSES = 16
+"""Short pauses of the suspended subscriber before its long one: through Zenoh's shared
+memory, pauses of 0.1-0.4 s handed it reused buffers (blocks damaged)."""
+
+
 def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float,
                           config: str) -> dict:
-    """Subscribe in another process, suspend it for `seconds` (SIGSTOP, as Ctrl-Z does),
-    resume it: what the twin lost meanwhile (late blocks, lag) and what the subscriber read."""
+    """Subscribe in another process, deschedule it :data:`PAUSES` times for 0.1-0.4 s, then
+    suspend it for `seconds` (SIGSTOP, as Ctrl-Z does) and resume it: what the twin lost
+    meanwhile (late blocks, lag) and what the subscriber read."""
     proc = subprocess.Popen([sys.executable, "-c", "from twind.service.soak import "
                              f"watch_until_told; watch_until_told({endpoint!r})"],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -358,9 +365,11 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float,
             raise TwindError(msg)
         time.sleep(1.0)
         before = client.status()
-        proc.send_signal(signal.SIGSTOP)
-        time.sleep(seconds)
-        proc.send_signal(signal.SIGCONT)
+        for pause in [*np.random.default_rng(0).uniform(0.1, 0.4, PAUSES), seconds]:
+            proc.send_signal(signal.SIGSTOP)
+            time.sleep(pause)
+            proc.send_signal(signal.SIGCONT)
+            time.sleep(0.4)
         time.sleep(3.0)  # it reconnects and reads again
         after = client.status()
         counts = json.loads(proc.communicate("\n", timeout=30)[0])
