@@ -30,6 +30,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     conf = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
     conf.insert_json5("mode", '"router"')
+    # never through shared memory, whatever the file says: see zenoh-router.json5
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     if args.listen:
         conf.insert_json5("listen/endpoints", json.dumps(args.listen))
     for item in args.cfg:
