@@ -11,7 +11,7 @@ from twind.service.soak import soak
 @pytest.mark.slow
 def test_short_soak() -> None:
     report = soak(duration=8.0, optics="ETMX", hostile=60, port=free_port(), injections_every=1.0,
-                  suspend=2.0)
+                  suspend=2.0, pauses=2)  # test_hostile pauses one 16 times
     print("\n".join(report.lines()))
     assert report.bus_blocks > 0 and report.bus_lost == 0 and report.bus_out_of_order == 0
     assert report.bus_corrupt == 0 and report.bus_misdelivered == 0

@@ -95,7 +95,7 @@ class SoakReport:
 def _suspended_line(s: dict) -> str:
     if not s:
         return "suspended subscriber: not exercised"
-    return (f"a subscriber paused {PAUSES} times for 0.1-0.4 s, then suspended for "
+    return (f"a subscriber paused {s['pauses']} times for 0.1-0.4 s, then suspended for "
             f"{s['seconds']:g} s (SIGSTOP): {s['late_blocks']} "
             f"blocks late meanwhile, the twin's max lag then {1e3 * s['max_lag_s']:.1f} ms "
             f"(service.subscriber_wait_s = {s['wait_s']:g} s); resumed, it read "
@@ -253,10 +253,10 @@ def _cpu_seconds(pid: int) -> float:
 
 def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port: int = 17461,
          injections_every: float = 2.0, config: str | None = None, load: int = 0,
-         suspend: float = 6.0) -> SoakReport:
+         suspend: float = 6.0, pauses: int = 16) -> SoakReport:
     """Run the soak (see module docstring) and return its figures; `load` busy processes
-    share the cores with it, a second subscriber is suspended for `suspend` seconds after
-    the injections."""
+    share the cores with it; after the injections a second subscriber is paused `pauses`
+    times for 0.1-0.4 s, then suspended for `suspend` seconds."""
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory(prefix="twind-soak-") as tmp:
         config = config or _watchful_config(Path(tmp))
@@ -282,7 +282,7 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             watchdog = _trip_and_rearm(client, status0)
             cpu = (_cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - t0)
             status = client.status()
-            suspended = _suspend_a_subscriber(client, endpoint, suspend, config)
+            suspended = _suspend_a_subscriber(client, endpoint, suspend, pauses, config)
             client.close()
             watcher.close()
         finally:
@@ -346,16 +346,12 @@ def _trip_and_rearm(client: TwinClient, status: dict) -> str:
             rearmed == "armed" else f"{optic}: tripped {tripped}, after re-arm {rearmed}")
 
 
-PAUSES = 16
-"""Short pauses of the suspended subscriber before its long one: through Zenoh's shared
-memory, pauses of 0.1-0.4 s handed it reused buffers (blocks damaged)."""
-
-
-def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float,
+def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float, pauses: int,
                           config: str) -> dict:
-    """Subscribe in another process, deschedule it :data:`PAUSES` times for 0.1-0.4 s, then
-    suspend it for `seconds` (SIGSTOP, as Ctrl-Z does) and resume it: what the twin lost
-    meanwhile (late blocks, lag) and what the subscriber read."""
+    """Subscribe in another process, deschedule it `pauses` times for 0.1-0.4 s (through
+    Zenoh's shared memory, such pauses damaged blocks), then suspend it for `seconds`
+    (SIGSTOP, as Ctrl-Z does) and resume it: what the twin lost meanwhile (late blocks,
+    lag) and what the subscriber read."""
     proc = subprocess.Popen([sys.executable, "-c", "from twind.service.soak import "
                              f"watch_until_told; watch_until_told({endpoint!r})"],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -365,7 +361,7 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float,
             raise TwindError(msg)
         time.sleep(1.0)
         before = client.status()
-        for pause in [*np.random.default_rng(0).uniform(0.1, 0.4, PAUSES), seconds]:
+        for pause in [*np.random.default_rng(0).uniform(0.1, 0.4, pauses), seconds]:
             proc.send_signal(signal.SIGSTOP)
             time.sleep(pause)
             proc.send_signal(signal.SIGCONT)
@@ -376,7 +372,7 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float,
     finally:
         proc.send_signal(signal.SIGCONT)
         proc.kill()
-    return {"seconds": seconds, "late_blocks": after["late_blocks"] - before["late_blocks"],
+    return {"seconds": seconds, "pauses": pauses, "late_blocks": after["late_blocks"] - before["late_blocks"],
             "max_lag_s": after["max_lag_s"], **counts,
             "wait_s": load_config(config, []).service.subscriber_wait_s}
 
