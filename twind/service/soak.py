@@ -372,8 +372,9 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float, pau
     finally:
         proc.send_signal(signal.SIGCONT)
         proc.kill()
-    return {"seconds": seconds, "pauses": pauses, "late_blocks": after["late_blocks"] - before["late_blocks"],
-            "max_lag_s": after["max_lag_s"], **counts,
+    return {"seconds": seconds, "pauses": pauses, **counts,
+            "late_blocks": after["late_blocks"] - before["late_blocks"],
+            "max_lag_s": after["max_lag_s"],
             "wait_s": load_config(config, []).service.subscriber_wait_s}
 
 
