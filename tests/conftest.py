@@ -1,4 +1,4 @@
-"""Shared fixtures: the reference data in ../shared/reference and the shipped configs."""
+"""Shared fixtures: the reference data in tests/data (see its README) and the shipped configs."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference"
+REFERENCE = Path(__file__).resolve().parent / "data"
 
 
 def complex_array(obj: dict) -> np.ndarray:
@@ -18,7 +18,6 @@ def complex_array(obj: dict) -> np.ndarray:
 
 @pytest.fixture(scope="session")
 def golden() -> dict:
-    # no skip: a missing ../shared/reference must fail CI, not pass it quietly
     return json.loads((REFERENCE / "golden_tf.json").read_text())
 
 

@@ -75,7 +75,7 @@ def test_example_null_plant_matches_its_drifted_truth() -> None:
 
 
 def test_real_diaggui_swept_sine_reads() -> None:
-    f, h, g2, n = xml_transfer(REFERENCE / "real" / "H1_DARM_OLGTF_swept_sine_2020-01-03.xml",
+    f, h, g2, n = xml_transfer(REFERENCE / "H1_DARM_OLGTF_swept_sine_2020-01-03.xml",
                                "H1:LSC-DARM1_IN1", "H1:LSC-DARM1_EXC")
     assert f[0] == pytest.approx(5.619) and len(f) == 46
     assert h[0] == pytest.approx(-0.994 + 0.007j, abs=2e-3)
