@@ -8,15 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from twind.config import CONFIG_DIR, load_config, load_optic
+from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.errors import ConfigError
 
-ETMX = CONFIG_DIR / "optics" / "ETMX.toml"
 FORTY_M = ("ETMX", "ETMY", "ITMX", "ITMY", "BS", "PRM", "SRM", "MC1", "MC2", "MC3")
 
 
-def test_default_etmx_equals_reference(nominal: dict) -> None:
-    cfg = load_config(None, ["ETMX"]).optics["ETMX"]
+def test_nominal_etmx_equals_reference(nominal: dict) -> None:
+    cfg = load_optic(NOMINAL_ETMX)
     sus = cfg.sus
     for key in ("mass_kg", "radius_m", "thickness_m", "I_pitch_kgm2", "I_yaw_kgm2", "I_roll_kgm2",
                 "wire_length_m", "b_m", "R1_m", "R2_m", "vertical_stiffness_Npm", "osem_lever_m",
@@ -40,7 +39,7 @@ def test_40m_config_has_every_sos_with_its_own_parameters() -> None:
 
 
 def _edited(tmp_path: Path, old: str, new: str) -> Path:
-    text = ETMX.read_text()
+    text = NOMINAL_ETMX.read_text()
     assert old in text, old
     path = tmp_path / "bad.toml"
     path.write_text(text.replace(old, new, 1))

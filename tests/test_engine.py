@@ -1,6 +1,6 @@
 """The fixed-step engine: determinism, exactness against python-control, test points, noise,
 gain ramps and filter switches, and the acceptance test of closed-loop transfer functions
-measured with Welch estimates against ../shared/reference/golden_tf.json.
+measured with Welch estimates against tests/data/golden_tf.json.
 
 Every check is physical or exact; statistical checks use fixed seeds and thresholds derived
 from the estimators' own distributions, so a pass is not luck and a failure is not noise.
@@ -16,7 +16,7 @@ import pytest
 from scipy import signal, stats
 
 from twind import DOFS
-from twind.config import load_config
+from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.simulation.discretize import discrete_closed_loop, module_sections
 from twind.simulation.engine import Engine
 from twind.simulation.noise import CHANNELS, NoiseSpec
@@ -34,8 +34,9 @@ def cfg():
 
 
 @pytest.fixture(scope="module")
-def etmx(cfg):
-    return cfg.optics["ETMX"]
+def etmx():
+    """ETMX as the golden responses have it."""
+    return load_optic(NOMINAL_ETMX)
 
 
 def _complex(obj: dict) -> np.ndarray:

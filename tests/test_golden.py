@@ -1,4 +1,4 @@
-"""`twind model response --json` against ../shared/reference/golden_tf.json."""
+"""`twind model response --json` of the nominal ETMX against tests/data/golden_tf.json."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import pytest
 from conftest import complex_array
 
 from twind.cli import main
+from twind.config import NOMINAL_ETMX, load_optic
 from twind.loop.damping import sensitivity
 
 KEYS = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC", "closed_loop_IN2_per_EXC")
@@ -21,7 +22,7 @@ KEYS = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC", "clos
 def _response(args: list[str]) -> dict:
     buf = io.StringIO()
     with redirect_stdout(buf):
-        assert main(["model", "response", "--json", *args]) == 0
+        assert main(["model", "response", "--json", "--config", str(NOMINAL_ETMX), *args]) == 0
     return json.loads(buf.getvalue())
 
 
@@ -57,9 +58,7 @@ def test_explicit_frequencies(golden: dict) -> None:
 
 def test_golden_check_can_fail(golden: dict) -> None:
     """A 1e-5 change of one parameter must break the comparison."""
-    from twind.config import load_config
-
-    cfg = load_config(None, ["ETMX"]).optics["ETMX"]
+    cfg = load_optic(NOMINAL_ETMX)
     f = np.asarray(golden["frequency_hz"])
     loop = cfg.loop()
     loop.modules["POS"].gain *= 1 + 1e-5

@@ -15,6 +15,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data
 from twind.bus.session import zenoh_config
 from twind.client import InjectionRefused, TwinClient
+from twind.config import load_config
 
 POS = "C1:SUS-ETMX_SUSPOS"
 
@@ -95,7 +96,8 @@ def test_live_parameters_and_filters() -> None:
     with serving("--optics", "ETMX,ITMX") as endpoint, \
             TwinClient(connect=[endpoint]) as twin:
         before = twin.params("ETMX")
-        assert before["params"]["wire_length_m"] == pytest.approx(0.248)
+        configured = load_config(None, ["ETMX"]).optics["ETMX"].sus.wire_length_m
+        assert before["params"]["wire_length_m"] == pytest.approx(configured)
         after = twin.params("ETMX", wire_length_m=0.25)
         assert after["params"]["wire_length_m"] == pytest.approx(0.25)
         for bad in ({"wire_lenght_m": 0.25}, {"loop_delay_s": 0.01}, {"check": 1}):

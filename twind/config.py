@@ -29,6 +29,8 @@ CONFIG_DIR = Path(__file__).parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "c1.toml"
 MEASURED_MODES = CONFIG_DIR / "measured" / "c1_free_swinging_2020.csv"
 """The 40m optics' measured free-swinging frequencies (source in the file)."""
+NOMINAL_ETMX = CONFIG_DIR / "etmx_nominal.toml"
+"""ETMX as LIGO-T000134 gives it, before any measurement: the optic of the golden responses."""
 
 # config key -> (SOSParams field, dimension)
 SUSPENSION_KEYS = {
