@@ -379,6 +379,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def cmd_modes(args: argparse.Namespace) -> int:
     """Each optic's free-swinging modes: measured, as configured, and with the wire length,
     break-off and clamp separation solved for the measured POS, PIT and YAW."""
+    from twind.analysis.candidates import compare
     from twind.analysis.modes import fit_modes, read_mode_table
     from twind.config import MEASURED_MODES, load_config
 
@@ -389,6 +390,14 @@ def cmd_modes(args: argparse.Namespace) -> int:
         msg = f"{', '.join(missing)} not in {args.table or MEASURED_MODES}"
         raise TwindError(msg)
     twin = load_config(args.config, names)
+    if args.candidates:
+        comparison = compare(twin.optics, {n: table[n] for n in names})
+        if args.json:
+            strictjson.dump(comparison.to_json(), sys.stdout)
+            sys.stdout.write("\n")
+        else:
+            print("\n".join(comparison.lines()))
+        return 0
     fits = [fit_modes(twin.optics[n], table[n]) for n in names]
     if args.json:
         strictjson.dump([f.to_json() for f in fits], sys.stdout)
@@ -690,6 +699,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "YAW, SIDE (default: the 40m's, 2020)")
     modes.add_argument("--optic", nargs="+", metavar="NAME", help="optics (default: the table's)")
     modes.add_argument("--config", help="twin config (TOML) holding the optics")
+    modes.add_argument("--candidates", action="store_true",
+                       help="fit candidate physics for what the model misses (SIDE), optic by "
+                            "optic, and weigh them over the optics")
     modes.add_argument("--json", action="store_true", help="the numbers as JSON")
     modes.set_defaults(func=cmd_modes)
 

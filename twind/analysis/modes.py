@@ -21,6 +21,7 @@ from scipy.optimize import least_squares
 from twind import DOFS
 from twind.config import OpticConfig
 from twind.errors import TwindError
+from twind.model.mechanics import Mechanics
 
 FITTED = {"POS": "wire_length_m", "PIT": "b_m", "YAW": "R1_m"}
 """The parameter solved for each measured mode."""
@@ -39,14 +40,18 @@ def normal_modes(optic: OpticConfig) -> dict[str, tuple[float, np.ndarray]]:
     TwindError
         If two modes fall in one DOF (a coupling strong enough to mix them).
     """
-    mech = optic.mechanics()
+    return mechanics_modes(optic.mechanics(), optic.name)
+
+
+def mechanics_modes(mech: Mechanics, name: str = "") -> dict[str, tuple[float, np.ndarray]]:
+    """:func:`normal_modes` of given rigid-body dynamics (`name` for messages)."""
     w2, vectors = scipy.linalg.eigh(mech.K, mech.M)
     energy = (vectors**2) * np.diag(mech.M)[:, None]
     found: dict[str, tuple[float, np.ndarray]] = {}
     for k in range(len(w2)):
         dof = mech.dofs[int(np.argmax(energy[:, k]))]
         if dof in found:
-            msg = f"{optic.name}: two modes are mostly {dof}; the labels are ambiguous"
+            msg = f"{name}: two modes are mostly {dof}; the labels are ambiguous"
             raise TwindError(msg)
         found[dof] = (float(np.sqrt(max(w2[k], 0.0)) / (2 * np.pi)), vectors[:, k])
     return {d: found[d] for d in DOFS if d in found}
