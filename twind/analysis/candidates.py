@@ -27,10 +27,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from twind import DOFS
-from twind.analysis.modes import FITTED, TOLERANCE_HZ, mechanics_modes, with_params
+from twind.analysis.modes import TOLERANCE_HZ, mechanics_modes, solve_geometry
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.model.mechanics import Mechanics
@@ -52,10 +51,6 @@ def bending_length(optic: OpticConfig) -> float:
     return math.sqrt(WIRE_YOUNG_PA * inertia / (sus.mass_kg * sus.g_mps2 / 2))
 
 
-def _pendulum_stiffness(optic: OpticConfig) -> float:
-    return optic.sus.mass_kg * optic.sus.g_mps2 / optic.sus.wire_length_m
-
-
 def _add(mech: Mechanics, entries: Mapping[tuple[str, str], float]) -> Mechanics:
     K = mech.K.copy()
     for (a, b), value in entries.items():
@@ -64,8 +59,9 @@ def _add(mech: Mechanics, entries: Mapping[tuple[str, str], float]) -> Mechanics
 
 
 def _bending(mech: Mechanics, optic: OpticConfig, _: float) -> Mechanics:
-    l, lam = optic.sus.wire_length_m, bending_length(optic)
-    extra = _pendulum_stiffness(optic) * (l / (l - 2 * lam) - 1)
+    sus, lam = optic.sus, bending_length(optic)
+    pendulum = sus.mass_kg * sus.g_mps2 / sus.wire_length_m
+    extra = pendulum * (sus.wire_length_m / (sus.wire_length_m - 2 * lam) - 1)
     return _add(mech, {("POS", "POS"): extra, ("SIDE", "SIDE"): extra})
 
 
@@ -163,43 +159,22 @@ class CandidateFit:
 
 def fit_candidate(optic: OpticConfig, measured: Mapping[str, float],
                   candidate: Candidate = NOMINAL) -> CandidateFit:
-    """Solve the geometry (and the candidate's free parameter) for the measured modes.
-
-    The wire length, break-off height and clamp separation are solved for POS, PIT and YAW
-    as :func:`twind.analysis.modes.fit_modes` does; a free parameter is solved with them for
-    SIDE too. A candidate that cannot label its modes at some trial (two modes mostly one
-    DOF) is steered away from it.
-    """
-    names = [FITTED[d] for d in FITTED if d in measured]
-    dofs = [d for d in FITTED if d in measured] + (
-        ["SIDE"] if candidate.free and "SIDE" in measured else [])
-    start = np.array([getattr(optic.sus, n) for n in names])
-    unit = _pendulum_stiffness(optic)  # free stiffness in units of the pendulum's m g / l
-
-    def trial(x: np.ndarray) -> tuple[dict[str, float], Mechanics]:
-        geometry = dict(zip(names, (start * np.exp(x[:len(names)])).tolist(), strict=True))
-        value = unit * x[len(names)] if candidate.free else 0.0
-        return geometry, candidate.mechanics(with_params(optic, geometry), value)
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        try:
-            modes = mechanics_modes(trial(x)[1], optic.name)
-        except TwindError:
-            return np.ones(len(dofs))
-        if any(modes[d][0] <= 0 for d in dofs):  # a negative stiffness: no oscillation
-            return np.ones(len(dofs))
-        return np.array([math.log(modes[d][0] / measured[d]) for d in dofs])
-
-    x0 = np.zeros(len(names) + (1 if candidate.free else 0))
-    x = least_squares(residual, x0, xtol=1e-12, ftol=1e-12).x
-    geometry, mech = trial(x)
-    params = dict(geometry, **({candidate.free: unit * x[-1]} if candidate.free else {}))
+    """Solve the geometry (and the candidate's free parameter, for SIDE) for the measured
+    modes (:func:`twind.analysis.modes.solve_geometry`) and compare every mode."""
+    geometry, value, mech = solve_geometry(optic, measured, candidate.mechanics,
+                                           free=bool(candidate.free) and "SIDE" in measured)
+    params = dict(geometry, **({candidate.free: value} if candidate.free else {}))
     try:
         modes = mechanics_modes(mech, optic.name)
     except TwindError:
         modes = {}
     return CandidateFit(optic.name, candidate.id, dict(measured),
                         {d: f for d, (f, _) in modes.items()}, params, _mixing(mech, modes))
+
+
+def _npm(value: float) -> str:
+    """A stiffness (N/m), 0 within :data:`SIGN_NPM`."""
+    return f"{value:+.3f}" if abs(value) > SIGN_NPM else "0"
 
 
 def _span(values: list[float]) -> str:
@@ -275,8 +250,8 @@ class Comparison:
                  f"{s['chi2']:.0f}")
         if c.free is None:
             return f"{c.id} (size predicted): {reach}"
-        return (f"{c.id} (one free {c.free} per optic, {s['free_min']:+.3f} to "
-                f"{s['free_max']:+.3f}, positive on {s['free_positive']}/{s['optics']}): "
+        return (f"{c.id} (one free {c.free} per optic, {_npm(s['free_min'])} to "
+                f"{_npm(s['free_max'])}, positive on {s['free_positive']}/{s['optics']}): "
                 f"{reach}, BIC {nominal['bic']:.0f} -> {s['bic']:.0f}")
 
     def lines(self) -> list[str]:
@@ -300,7 +275,7 @@ class Comparison:
         for c in CANDIDATES:
             if c.free:
                 rows.append(f"{c.free}: " + ", ".join(
-                    f"{f.optic} {f.params[c.free]:+.3f}" for f in self.fits[c.id]))
+                    f"{f.optic} {_npm(f.params[c.free])}" for f in self.fits[c.id]))
         return rows + ["* a measured mode missed by more than 5 mHz", ""] + self.verdict()
 
     def to_json(self) -> dict:

@@ -11,6 +11,7 @@ measured mode the model cannot reach is reported as such, with how far it stays.
 from __future__ import annotations
 
 import csv
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -137,18 +138,56 @@ def fit_modes(optic: OpticConfig, measured: dict[str, float]) -> ModeFit:
     if unknown:
         msg = f"{optic.name}: no mode {', '.join(unknown)}; modes are {', '.join(DOFS)}"
         raise TwindError(msg)
-    names = [FITTED[d] for d in FITTED if d in measured]
-    start = np.array([getattr(optic.sus, n) for n in names])
-
-    def residual(log_scale: np.ndarray) -> np.ndarray:
-        trial = with_params(optic, dict(zip(names, start * np.exp(log_scale), strict=True)))
-        model = modes_hz(trial)
-        return np.array([np.log(model[d] / measured[d]) for d in FITTED if d in measured])
-
-    solved = least_squares(residual, np.zeros(len(names)), xtol=1e-12, ftol=1e-12)
-    after = dict(zip(names, (start * np.exp(solved.x)).tolist(), strict=True))
+    after, _, _ = solve_geometry(optic, measured)
     return ModeFit(optic.name, dict(measured), modes_hz(optic), modes_hz(with_params(optic, after)),
-                   dict(zip(names, start.tolist(), strict=True)), after)
+                   {n: getattr(optic.sus, n) for n in after}, after)
+
+
+Stiffen = Callable[[OpticConfig, float], Mechanics]
+"""``(optic, value) -> mechanics``: an optic's dynamics with one more stiffness in."""
+
+
+def solve_geometry(optic: OpticConfig, measured: Mapping[str, float],
+                   stiffen: Stiffen | None = None, free: bool = False
+                   ) -> tuple[dict[str, float], float, Mechanics]:
+    """The wire length, break-off height and clamp separation that put the modes of
+    `stiffen(optic, value)` (default: the optic's own model) on the measured POS, PIT and
+    YAW; with `free`, `value` (a stiffness, N/m) is solved with them for SIDE too.
+
+    Least squares on the log of the frequencies; a trial whose modes cannot be labelled (two
+    mostly one DOF) or do not oscillate is steered away from.
+
+    Returns
+    -------
+    geometry : dict of str to float
+        The solved parameters (m), by :data:`FITTED`'s names.
+    value : float
+        The solved stiffness (0 without `free`).
+    mechanics : Mechanics
+        The solved optic's dynamics.
+    """
+    stiffen = stiffen or (lambda trial, _: trial.mechanics())
+    names = [FITTED[d] for d in FITTED if d in measured]
+    dofs = [d for d in FITTED if d in measured] + (["SIDE"] if free else [])
+    start = np.array([getattr(optic.sus, n) for n in names])
+    unit = optic.sus.mass_kg * optic.sus.g_mps2 / optic.sus.wire_length_m  # m g / l
+
+    def trial(x: np.ndarray) -> tuple[dict[str, float], float, Mechanics]:
+        geometry = dict(zip(names, (start * np.exp(x[:len(names)])).tolist(), strict=True))
+        value = unit * x[-1] if free else 0.0
+        return geometry, value, stiffen(with_params(optic, geometry), value)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        try:
+            modes = mechanics_modes(trial(x)[2], optic.name)
+        except TwindError:
+            return np.ones(len(dofs))
+        if any(modes[d][0] <= 0 for d in dofs):
+            return np.ones(len(dofs))
+        return np.array([np.log(modes[d][0] / measured[d]) for d in dofs])
+
+    x0 = np.zeros(len(names) + (1 if free else 0))
+    return trial(least_squares(residual, x0, xtol=1e-12, ftol=1e-12).x)
 
 
 def with_params(optic: OpticConfig, params: dict[str, float]) -> OpticConfig:
