@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage, signal
-from scipy.optimize import least_squares, nnls
+from scipy import signal
+from scipy.optimize import least_squares
 
 from twind import DOFS
 from twind.analysis.modes import FITTED, fit_modes, modes_hz, normal_modes, with_params
@@ -62,8 +62,6 @@ class FreeSwing:
         SIDE OSEM sees one mode only, so its gain and that mode's amplitude are one number).
     model_hz : dict of str to float
         The configured model's eigenfrequencies.
-    frequency_sigma_hz, q_sigma : dict of str to float
-        Standard errors of each mode's frequency and Q (:func:`_sigmas`).
     """
 
     optic: str
@@ -74,16 +72,12 @@ class FreeSwing:
     configured: NDArray[np.float64]
     osem_gains: dict[str, float]
     model_hz: dict[str, float]
-    frequency_sigma_hz: dict[str, float]
-    q_sigma: dict[str, float]
 
     def lines(self) -> list[str]:
         """The modes, the OSEM gains and both input matrices, for a person."""
-        rows = [f"{self.optic} free-swinging modes: DOF, frequency (Hz), Q, with their "
-                "standard errors; the model's frequency (Hz)"]
+        rows = [f"{self.optic} free-swinging modes: DOF, frequency (Hz), Q, the model's (Hz)"]
         for d in DOFS:
-            rows.append(f"  {d:4} {self.frequency_hz[d]:.5f} +- {self.frequency_sigma_hz[d]:.5f}"
-                        f"  Q {self.q[d]:6.0f} +- {self.q_sigma[d]:4.0f}  model "
+            rows.append(f"  {d:4} {self.frequency_hz[d]:.5f}  Q {self.q[d]:6.0f}  model "
                         f"{self.model_hz[d]:.5f}")
         rows.append("  OSEM gains (face mean = 1): " + ", ".join(
             f"{o} {g:.3f}" for o, g in self.osem_gains.items()))
@@ -98,7 +92,6 @@ class FreeSwing:
     def to_json(self) -> dict:
         """The ``twind freeswing --json`` object."""
         return {"optic": self.optic, "frequency_hz": self.frequency_hz, "q": self.q,
-                "frequency_sigma_hz": self.frequency_sigma_hz, "q_sigma": self.q_sigma,
                 "model_hz": self.model_hz,
                 "osem_gains": self.osem_gains, "osems": list(OSEMS), "dofs": list(DOFS),
                 "input_matrix": self.input_matrix.tolist(),
@@ -171,7 +164,6 @@ def analyse(optic: OpticConfig, sen: NDArray[np.float64], rate_hz: float) -> Fre
     f = {d: float(np.angle(p) / (2 * np.pi * dt)) for d, p in zip(DOFS, poles, strict=True)}
     decay = {d: float(-np.log(abs(p)) / dt) for d, p in zip(DOFS, poles, strict=True)}
     q = {d: float(np.pi * f[d] / decay[d]) for d in DOFS}
-    sigma_f, sigma_q = _sigmas(scaled, poles, dt)
     # the mode shapes of the geometry that gives the measured POS, PIT, YAW: a drifted
     # optic's POS-PIT mixing is not the nominal one's
     solved = fit_modes(optic, {d: f[d] for d in FITTED})
@@ -179,8 +171,7 @@ def analyse(optic: OpticConfig, sen: NDArray[np.float64], rate_hz: float) -> Fre
     gains = _osem_gains(amp, shapes)
     return FreeSwing(optic.name, f, q, amp,
                      _input_matrix(amp, plant.input_matrix), plant.input_matrix, gains,
-                     model, dict(zip(DOFS, sigma_f, strict=True)),
-                     dict(zip(DOFS, sigma_q, strict=True)))
+                     model)
 
 
 def _decimate(sen: NDArray, rate_hz: float) -> tuple[NDArray, float]:
@@ -237,81 +228,6 @@ def _refine(y: NDArray, z: NDArray) -> NDArray[np.complex128]:
     start = np.concatenate([np.log(np.abs(z)), np.angle(z)])
     fit = least_squares(residual, start, x_scale=np.abs(start) * 1e-3 + 1e-9)
     return np.exp(fit.x[: len(z)] + 1j * fit.x[len(z):])
-
-
-def _sigmas(y: NDArray, z: NDArray, dt: float) -> tuple[NDArray, NDArray]:
-    """Standard errors of the modes' frequencies (Hz) and Qs from the Fisher information of
-    the ringdown in the noise its residuals show (Whittle's likelihood over the channels).
-
-    The residual is not white: the optic's own noise drives its modes, so most of it sits at
-    the peaks, where the information about them is, and it is the same motion in every
-    OSEM that sees the mode. Its cross-spectral density is modelled as each channel's
-    broadband floor plus each mode's Lorentzian times the outer product of the mode's
-    pattern over the OSEMs (:func:`_noise_model`). The modes' amplitudes in every channel
-    are fitted too, so their uncertainty is marginalised."""
-    t = np.arange(y.shape[1])
-    powers = z[None, :] ** t[:, None]  # (time, modes)
-    amp = _amplitudes(y, z)  # (channels, modes)
-    residual = y - 2 * np.real(amp @ powers.T)
-    freqs = np.fft.rfftfreq(y.shape[1], dt)
-    band = (freqs > BAND[0]) & (freqs < BAND[1])
-    spectra = np.stack([np.fft.rfft(_derivatives(amp[c], powers, t, c, y.shape[0]), axis=0)[band]
-                        for c in range(y.shape[0])], axis=1)  # (bins, channels, parameters)
-    noise = _noise_model(np.fft.rfft(residual, axis=1)[:, band], amp,
-                         _lorentzians(freqs[band], z, dt))
-    info = 2 * np.real(np.einsum("bcp,bcq->pq", spectra.conj(), np.linalg.solve(noise, spectra)))
-    n_modes = len(z)
-    cov = np.linalg.pinv(info)[:2 * n_modes, :2 * n_modes]  # log|z| and angle(z) per mode
-    alpha, omega = np.log(np.abs(z)), np.angle(z)
-    sigma_f = np.sqrt(np.diag(cov)[n_modes:]) / (2 * np.pi * dt)
-    grad = np.zeros((n_modes, 2 * n_modes))  # of Q = -omega / (2 alpha)
-    grad[range(n_modes), range(n_modes)] = omega / (2 * alpha**2)
-    grad[range(n_modes), range(n_modes, 2 * n_modes)] = -1 / (2 * alpha)
-    sigma_q = np.sqrt(np.einsum("ki,ij,kj->k", grad, cov, grad))
-    return sigma_f, sigma_q
-
-
-FLOOR_BINS = 51
-"""Periodogram bins the median of a residual's broadband floor is taken over (wider than
-the peaks, so that they do not lift it)."""
-
-
-def _lorentzians(f: NDArray, z: NDArray, dt: float) -> NDArray[np.float64]:
-    """The power shape of each mode's response to a white force, bins x modes."""
-    f0 = np.angle(z) / (2 * np.pi * dt)
-    width = -np.log(np.abs(z)) / (2 * np.pi * dt)
-    return 1 / ((f[:, None] - f0[None, :]) ** 2 + width[None, :] ** 2)
-
-
-def _noise_model(residual: NDArray, amp: NDArray, peaks: NDArray) -> NDArray[np.complex128]:
-    """The residuals' expected cross-periodogram, bins x channels x channels: each channel's
-    broadband floor (a running median of its periodogram) on the diagonal, plus each mode
-    driven by the optic's noise: its Lorentzian times its pattern over the channels, with
-    non-negative weights fitted to the summed periodograms. The residuals' own
-    periodograms are too rough to divide by: near a peak one bin holds all the information
-    and its power is chi-squared with two degrees of freedom."""
-    power = np.abs(residual) ** 2  # (channels, bins)
-    floor = ndimage.median_filter(power, (1, FLOOR_BINS), mode="nearest")
-    shape = amp / np.linalg.norm(amp, axis=0, keepdims=True)  # (channels, modes)
-    weights, _ = nnls(peaks, np.maximum(power - floor, 0.0).sum(axis=0))
-    driven = np.einsum("bk,ck,dk->bcd", peaks * weights[None, :], shape, shape.conj())
-    return driven + np.einsum("cb,cd->bcd", floor, np.eye(len(floor)))
-
-
-def _derivatives(a: NDArray, powers: NDArray, t: NDArray, channel: int, channels: int
-                 ) -> NDArray[np.float64]:
-    """d(signal of one channel)/d(parameter), columns: log|z_k|, angle(z_k) of every mode,
-    then the real and imaginary parts of every channel's amplitude of every mode (zero but
-    for this channel's)."""
-    n_modes = powers.shape[1]
-    d = np.zeros((len(t), 2 * n_modes + 2 * channels * n_modes))
-    tz = t[:, None] * powers * a[None, :]
-    d[:, :n_modes] = 2 * np.real(tz)
-    d[:, n_modes:2 * n_modes] = -2 * np.imag(tz)
-    first = 2 * n_modes + 2 * channel * n_modes
-    d[:, first:first + n_modes] = 2 * np.real(powers)
-    d[:, first + n_modes:first + 2 * n_modes] = -2 * np.imag(powers)
-    return d
 
 
 def _amplitudes(y: NDArray, z: NDArray) -> NDArray[np.complex128]:
