@@ -19,7 +19,7 @@ from conftest import REFERENCE
 from twind.analysis.corpus import FACES, key_z
 from twind.analysis.diagnose import ALPHA, diagnose
 from twind.cli import main
-from twind.config import load_config
+from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.loop.plant import Plant
 from twind.simulation.measurement import measure_tfs
 
@@ -30,7 +30,9 @@ KEYS = {"consistent", "chi2_nu_nominal", "chi2_nu_final", "located", "effects",
 
 @pytest.fixture(scope="module")
 def etmx():  # noqa: ANN201
-    return load_config(None, ["ETMX"]).optics["ETMX"]
+    """The nominal ETMX (its concealed-effect cases diagnose in 2/3 of the time the measured
+    ETMX's take; the method is the same)."""
+    return load_optic(NOMINAL_ETMX)
 
 
 def _measured(etmx, plant: Plant):  # noqa: ANN001, ANN202
