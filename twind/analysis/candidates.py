@@ -3,7 +3,7 @@ the wire geometry, and weighed over the optics measured.
 
 ``twind modes`` solves the wire length, break-off height and clamp separation for an optic's
 measured POS, PIT and YAW; T000134 then keeps SIDE just below POS, while the 40m measures it
-12-56 mHz away. Each candidate here changes the optic's stiffness; its fit solves the geometry
+12-54 mHz away. Each candidate here changes the optic's stiffness; its fit solves the geometry
 again with the candidate in, and, where the candidate's size is not predicted, its parameter
 too. Candidates of predicted size can fail; one free parameter per optic fits any one
 frequency, so those are weighed by what else they predict: the sign of the parameter across
