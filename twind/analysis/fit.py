@@ -94,7 +94,7 @@ def param_value(sus: SOSParams, name: str) -> float:
 
 def read_truth(path: str | Path) -> dict[str, float]:
     """Fit-parameter values of a ``truth.json`` (``drifted_params``, Q per DOF), as
-    ``../shared/reference/example_null`` holds them for its simulated optic."""
+    ``tests/data/example_null`` holds them for its simulated optic."""
     try:
         given = json.loads(Path(path).read_text())
         given = given.get("drifted_params", given)
