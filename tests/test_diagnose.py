@@ -30,8 +30,7 @@ KEYS = {"consistent", "chi2_nu_nominal", "chi2_nu_final", "located", "effects",
 
 @pytest.fixture(scope="module")
 def etmx():  # noqa: ANN201
-    """The nominal ETMX (its concealed-effect cases diagnose in 2/3 of the time the measured
-    ETMX's take; the method is the same)."""
+    """The nominal ETMX, which the example set drifted from."""
     return load_optic(NOMINAL_ETMX)
 
 
