@@ -410,18 +410,22 @@ def cmd_modes(args: argparse.Namespace) -> int:
 
 def cmd_freeswing(args: argparse.Namespace) -> int:
     """The free-swinging health check: modes, Qs, OSEM gains and the diagonalising input
-    matrix from a ringdown, made on the twin or read from a recording."""
+    matrix from a ringdown, made on the twin (in process or served) or read from a
+    recording."""
     from twind.analysis.freeswing import analyse, ringdown
     from twind.config import load_config
     from twind.plotting import plot_freeswing
 
     optic = load_config(args.config, [args.optic]).optics[args.optic]
+    duration = 1000.0 if args.duration is None else args.duration
     if args.input:
-        sen, rate = _recorded_osems(args.input, args.optic)
+        sen, rate = _recorded_osems(args.input, args.ifo, args.optic, args.start, args.duration)
+    elif args.connect:
+        sen, rate = _served_ringdown(args, optic, duration)
     else:
-        print(f"twind freeswing: {optic.name} kicked, damping off, {args.duration:g} s of "
+        print(f"twind freeswing: {optic.name} kicked, damping off, {duration:g} s of "
               "ringdown on the twin ...", file=sys.stderr, flush=True)
-        sen, rate = ringdown(optic, args.duration, seed=args.seed)
+        sen, rate = ringdown(optic, duration, seed=args.seed)
     result = analyse(optic, sen, rate)
     _show(result, args.json)
     if args.output:
@@ -429,30 +433,35 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
     return 0
 
 
-def _recorded_osems(path: str, optic: str):  # noqa: ANN202 - (ndarray, float)
-    """The five OSEM signals of `optic` from a recording, for freeswing."""
+def _served_ringdown(args: argparse.Namespace, optic, duration: float):  # noqa: ANN001, ANN202
+    """A ringdown of `optic` on the served twin at ``--connect``."""
+    from twind.bus.session import zenoh_config
+    from twind.service.ringdown import served_ringdown
+
+    def progress(line: str) -> None:
+        print(f"twind freeswing: {line}", file=sys.stderr, flush=True)
+
+    bus = zenoh_config(connect=args.connect, mode="client", config_file=args.zenoh_config)
+    with _client(args) as twin:
+        return served_ringdown(twin, optic, duration, bus, progress)
+
+
+def _recorded_osems(paths: list[str], ifo: str, optic: str, start: float | None,
+                    duration: float | None):  # noqa: ANN202 - (ndarray, float)
+    """The five OSEM signals of `optic` from a recording (a session's files), from GPS
+    `start` (default: where every OSEM has data) for `duration` (default: to the end)."""
     import numpy as np
 
+    from twind.channels import osem_channel
     from twind.model.osem import OSEMS
-    from twind.recording.fastread import read_channels
+    from twind.recording.reader import as_array, getdata, session_files
 
-    if not Path(path).exists():
-        msg = f"no such input: {path}"
-        raise TwindError(msg)
-    wanted = {f"-{optic}_{o}SEN_OUT": o for o in OSEMS}
-    session = read_channels(path, lambda name: any(name.endswith(w) for w in wanted))
-    channels = {o: ch for name, ch in session.channels.items()
-                for w, o in wanted.items() if name.endswith(w)}
-    missing = [o for o in OSEMS if o not in channels]
-    if missing:
-        msg = f"{path}: no {optic} {', '.join(missing)} OSEM readings (..._<OSEM>SEN_OUT)"
-        raise TwindError(msg)
-    n = min(len(channels[o].samples) for o in OSEMS)
-    sen = np.array([channels[o].samples[:n] for o in OSEMS])
+    names = [osem_channel(ifo, optic, o) for o in OSEMS]
+    sen, rate = as_array(getdata(names, duration, start, source=session_files(paths)))
     if not np.all(np.isfinite(sen)):
-        msg = f"{path}: the OSEM readings have gaps; freeswing needs an unbroken ringdown"
+        msg = f"{paths[0]}: the OSEM readings have gaps; freeswing needs an unbroken ringdown"
         raise TwindError(msg)
-    return sen, channels[OSEMS[0]].rate
+    return sen, rate
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
@@ -545,8 +554,9 @@ def _bench_freeswing(args: argparse.Namespace) -> int:
     from twind.analysis.freeswing import benchmark
 
     duration = 1000.0 if args.duration is None else args.duration
-    print("\n".join(benchmark(_optic(args, args.optic), n=args.realisations or 8,
-                              duration_s=duration)), flush=True)
+    for line in benchmark(_optic(args, args.optic), n=args.realisations or 8,
+                          duration_s=duration):
+        print(line, flush=True)
     return 0
 
 
@@ -707,16 +717,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     free = sub.add_parser("freeswing", help="free-swinging health check: modes, Qs, OSEM "
                                             "gains, diagonalising input matrix")
-    free.add_argument("input", nargs="?", help="a recording (MCAP) of a ringdown; default: "
-                                               "make one on the twin in process")
+    free.add_argument("input", nargs="*", help="a recording of a ringdown (MCAP; a session's "
+                                               "files); default: ring the twin down, in "
+                                               "process or at --connect")
     free.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
     free.add_argument("--config", help="twin config (TOML) holding the optic's model")
-    free.add_argument("--duration", type=float, default=1000.0,
-                      help="seconds of ringdown made on the twin (default 1000)")
+    free.add_argument("--start", type=float, metavar="GPS",
+                      help="a recording: GPS start of the ringdown (default: its start)")
+    free.add_argument("--duration", type=float,
+                      help="seconds of ringdown: made on the twin (default 1000), or read from "
+                           "a recording (default: to its end)")
     free.add_argument("--seed", type=int, default=0, help="noise seed of the twin's ringdown")
     free.add_argument("--json", action="store_true", help="the numbers as JSON")
     free.add_argument("-o", "--output", help="PNG: OSEM spectra with the modes, and both "
                                              "input matrices")
+    _bus_arguments(free)
     free.set_defaults(func=cmd_freeswing)
 
     diag = sub.add_parser("diagnose", help="where the model misses, which physics it left "

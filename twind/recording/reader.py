@@ -646,7 +646,7 @@ def _as_series(parts: dict[str, tuple[NDArray[np.float64], float, Channel]]) -> 
     return out
 
 
-def getdata(channels: str | Sequence[str], duration: float, start: float | None = None,
+def getdata(channels: str | Sequence[str], duration: float | None, start: float | None = None,
             source: Any = None, timeout: float | None = None) -> Any:
     """A GPS span of some channels, from a recording or from the bus.
 
@@ -654,8 +654,8 @@ def getdata(channels: str | Sequence[str], duration: float, start: float | None 
     ----------
     channels : str or sequence of str
         Channel names, e.g. ``"C1:SUS-ETMX_SUSPOS_IN1"``.
-    duration : float
-        Seconds.
+    duration : float or None
+        Seconds; None (a recording only): up to the end of the span every channel covers.
     start : float, optional
         GPS start. Default: the first time every channel has data (a recording's start, or
         the first block received from the bus).
@@ -681,7 +681,7 @@ def getdata(channels: str | Sequence[str], duration: float, start: float | None 
     if not names:
         msg = "getdata: no channels given"
         raise RecordingError(msg)
-    if not (duration > 0 and math.isfinite(duration)):
+    if duration is not None and not (duration > 0 and math.isfinite(duration)):
         msg = f"getdata: duration must be positive and finite, got {duration}"
         raise RecordingError(msg)
     import zenoh
@@ -691,16 +691,39 @@ def getdata(channels: str | Sequence[str], duration: float, start: float | None 
 
         source = zenoh_config(connect=[DEFAULT_ENDPOINT], mode="client")
     if isinstance(source, zenoh.Config):
+        if duration is None:
+            msg = "getdata: reading from the bus needs a duration"
+            raise RecordingError(msg)
         joined = _collect_from_bus(source, names, duration, start, timeout)
     else:
         joined = read_session(source, names).channels
     if start is None:
         start = max(joined[n].t0 for n in names)
+    if duration is None:
+        duration = min(joined[n].t_end for n in names) - start
     parts = {}
     for n in names:
         x, t0 = _slice(joined[n], start, duration)
         parts[n] = (x, t0, joined[n])
     return _as_series(parts)
+
+
+def as_array(data: Any) -> tuple[NDArray[np.float64], float]:
+    """The channels of a :func:`getdata` result as the rows of one array (in its order), and
+    their common sample rate (Hz).
+
+    Raises
+    ------
+    RecordingError
+        If the channels' rates or lengths differ.
+    """
+    series = list(data.values())
+    rates = {float(getattr(s.sample_rate, "value", s.sample_rate)) for s in series}
+    if len(rates) != 1 or len({len(s) for s in series}) != 1:
+        msg = (f"{', '.join(data)}: rates {sorted(rates)} Hz and lengths differ; resample "
+               "them to one rate first")
+        raise RecordingError(msg)
+    return np.array([np.asarray(s.value, dtype=float) for s in series]), rates.pop()
 
 
 def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float | None,
