@@ -7,6 +7,7 @@ naming the file, key and problem, and exit status 2; never a traceback.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twind import DOFS, strictjson
+from twind import DOFS, __version__, strictjson
 from twind.errors import TwindError, TwindWarning
 
 
@@ -222,8 +223,9 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 def _bus_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--ifo", default="C1")
-    p.add_argument("--timeout", type=float, default=5.0)
+    p.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
+    p.add_argument("--timeout", type=float, default=5.0,
+                   help="seconds to wait for the twin's reply (default 5)")
     p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
 
 
@@ -257,6 +259,7 @@ def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
     """The TFs of ``args.inputs``: all diaggui XML or all MCAP sessions."""
     from twind.analysis.tf import from_diaggui, from_session
 
+    _check_band(args)
     paths = [Path(p) for p in args.inputs]
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
@@ -277,6 +280,29 @@ def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
     raise TwindError(msg)
 
 
+CONFIG_HELP = "twin config (TOML); default: the 40m file shipped with twind"
+SEED_HELP = "seed of the twin's noise (default 0)"
+
+
+def _frequency(text: str) -> float:
+    """A frequency argument (Hz): a finite number, zero or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        msg = f"not a frequency in Hz: {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def _check_band(args: argparse.Namespace) -> None:
+    """``--band LO HI``, if given, has LO below HI."""
+    if args.band is not None and not args.band[0] < args.band[1]:
+        msg = f"--band {args.band[0]:g} {args.band[1]:g}: LO must be below HI"
+        raise TwindError(msg)
+
+
 def _input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF) or MCAP")
     p.add_argument("--bw", type=float, default=0.01, help="MCAP: Welch resolution (Hz)")
@@ -285,8 +311,9 @@ def _input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
                    help="MCAP: Welch (diaggui's) or Pintelon-Schoukens' local polynomial "
                         "method over each whole excitation (leakage removed; --bw unused)")
-    p.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"))
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--band", type=_frequency, nargs=2, metavar=("LO", "HI"),
+                   help="only the frequencies from LO to HI Hz")
+    p.add_argument("--json", action="store_true", help="the numbers as JSON")
 
 
 def cmd_tf(args: argparse.Namespace) -> int:
@@ -588,38 +615,45 @@ def _seed(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
-    p = argparse.ArgumentParser(prog="twind", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="twind", description="twind: a digital twin of the LIGO 40m's suspended optics. "
+                                  "'twind COMMAND --help' tells a command's options.")
+    p.add_argument("--version", action="version", version=f"twind {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     model = sub.add_parser("model", help="suspension model responses").add_subparsers(
         dest="model_command", required=True)
     resp = model.add_parser("response", help="plant, controller and closed-loop responses")
     resp.add_argument("--config", help="config file (default: the 40m file shipped with twind)")
-    resp.add_argument("--optic", default="ETMX")
-    resp.add_argument("--fmin", type=float, default=0.05)
-    resp.add_argument("--fmax", type=float, default=50.0)
-    resp.add_argument("--n", type=int, default=201)
+    resp.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
+    resp.add_argument("--fmin", type=_frequency, default=0.05,
+                      help="lowest frequency, Hz (default 0.05)")
+    resp.add_argument("--fmax", type=_frequency, default=50.0,
+                      help="highest frequency, Hz (default 50)")
+    resp.add_argument("--n", type=int, default=201,
+                      help="frequencies, log-spaced from --fmin to --fmax (default 201)")
     resp.add_argument("--freqs", help="comma-separated frequencies (Hz) instead of a log grid")
     resp.add_argument("--json", action="store_true", help="print golden_tf.json layout")
     resp.add_argument("-o", "--output", help="PNG to write (default <OPTIC>_response.png)")
     resp.set_defaults(func=cmd_model_response)
     comp = model.add_parser("compare", help="geometric vs analytical model, with a plot")
-    comp.add_argument("--config")
-    comp.add_argument("--optic", default="ETMX")
-    comp.add_argument("-o", "--output", default="geometric_vs_analytical.png")
+    comp.add_argument("--config", help=CONFIG_HELP)
+    comp.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
+    comp.add_argument("-o", "--output", default="geometric_vs_analytical.png",
+                      help="PNG of both models' responses (default geometric_vs_analytical.png)")
     comp.set_defaults(func=cmd_model_compare)
 
     sim = sub.add_parser("simulate", help="run the twin as fast as possible")
-    sim.add_argument("--config")
+    sim.add_argument("--config", help=CONFIG_HELP)
     sim.add_argument("--optics", default="ETMX", help="comma-separated names, or 'all'")
     sim.add_argument("--duration", type=float, required=True, help="simulated seconds")
-    sim.add_argument("--seed", type=_seed, default=0)
+    sim.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     sim.add_argument("--block", type=float, default=1.0, help="seconds per engine block")
     sim.add_argument("--record", help="MCAP file to record every block to")
     sim.set_defaults(func=cmd_simulate)
 
     serve = sub.add_parser("serve", help="run the twin on Zenoh (embedded session)")
-    serve.add_argument("--config")
+    serve.add_argument("--config", help=CONFIG_HELP)
     serve.add_argument("--optics", default="all", help="comma-separated names, or 'all'")
     serve.add_argument("--listen", action="append", help="endpoint (default tcp/127.0.0.1:7447)")
     serve.add_argument("--connect", action="append", help="endpoint of a router or peer")
@@ -632,13 +666,14 @@ def build_parser() -> argparse.ArgumentParser:
                             "deploy/acl/recorder.json5)")
     serve.add_argument("--speed", type=float, default=1.0, help="twin seconds per wall second")
     serve.add_argument("--block", type=float, default=1 / 16, help="seconds per block")
-    serve.add_argument("--seed", type=_seed, default=0)
+    serve.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     serve.add_argument("--duration", type=float, help="stop after this many twin seconds")
     serve.set_defaults(func=cmd_serve)
 
     inject = sub.add_parser("inject", help="start an excitation on a running twin")
     inject.add_argument("channel", help="e.g. C1:SUS-ETMX_SUSPOS_EXC")
-    inject.add_argument("waveform", choices=("sine", "sweep", "noise", "multisine", "stream"))
+    inject.add_argument("waveform", choices=("sine", "sweep", "noise", "multisine", "stream"),
+                        help="the waveform (a stream's samples come from --file)")
     inject.add_argument("--freq", type=float, help="Hz (sweep, multisine: lowest)")
     inject.add_argument("--f-stop", type=float, help="Hz: sweep end, multisine highest")
     inject.add_argument("--n-tones", type=int, help="multisine tones")
@@ -648,17 +683,17 @@ def build_parser() -> argparse.ArgumentParser:
     inject.add_argument("--start", type=float, help="GPS start (default: next block)")
     inject.add_argument("--shape", help="noise: foton design shaping white noise")
     inject.add_argument("--file", help="stream: text file of samples at the model rate")
-    inject.add_argument("--seed", type=_seed)
+    inject.add_argument("--seed", type=_seed, help="noise: the seed of its random numbers")
     _bus_arguments(inject)
     inject.set_defaults(func=cmd_inject)
 
     stop = sub.add_parser("stop", help="stop an excitation by id, or 'all'")
-    stop.add_argument("id")
+    stop.add_argument("id", help="the excitation's id (as inject printed it), or 'all'")
     _bus_arguments(stop)
     stop.set_defaults(func=cmd_stop)
 
     status = sub.add_parser("status", help="status of a running twin")
-    status.add_argument("--json", action="store_true")
+    status.add_argument("--json", action="store_true", help="the status as JSON")
     _bus_arguments(status)
     status.set_defaults(func=cmd_status)
 
@@ -746,9 +781,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     soak_p = sub.add_parser("soak", help="serve, record, inject and attack; print the figures")
     soak_p.add_argument("--duration", type=float, default=3600.0, help="seconds of serving")
-    soak_p.add_argument("--optics", default="all")
+    soak_p.add_argument("--optics", default="all", help="comma-separated names, or 'all'")
     soak_p.add_argument("--hostile", type=int, default=1000, help="malformed requests to send")
-    soak_p.add_argument("--port", type=int, default=17461)
+    soak_p.add_argument("--port", type=int, default=17461,
+                        help="loopback port the soak's twin listens on (default 17461)")
     soak_p.add_argument("--config", help="twin config (TOML); default the shipped one with its "
                                          "watchdogs at 20 um, so that one drive trips one")
     soak_p.add_argument("--load", type=int, default=0, metavar="N",
@@ -759,10 +795,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="a 'real' twin with a concealed effect beside a "
                                        "nominal one: excited, recorded, diagnosed")
-    demo.add_argument("--config")
+    demo.add_argument("--config", help=CONFIG_HELP)
     demo.add_argument("--effect", default="actuator_pole",
                       choices=["coil_imbalance", "osem_imbalance", "loop_delay",
-                               "actuator_pole", "wire_asymmetry", "bounce_roll"])
+                               "actuator_pole", "wire_asymmetry", "bounce_roll"],
+                      help="the effect the 'real' twin hides (default actuator_pole)")
     demo.add_argument("-o", "--output", default="twind-demo",
                       help="directory for the recordings and reports (default twind-demo)")
     demo.set_defaults(func=cmd_demo)
@@ -774,7 +811,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "excitation against white noise on the twin; diagnose: twind "
                             "diagnose on the proof corpus (--route, --per-effect, --nulls); "
                             "freeswing: twind freeswing on random drifted optics")
-    bench.add_argument("--config")
+    bench.add_argument("--config", help=CONFIG_HELP)
     bench.add_argument("--duration", type=float, default=None,
                        help="engine: simulated seconds per run (default 20); tf: seconds of "
                             "recording (default 3600)")
@@ -837,7 +874,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except Exception as err:
         if type(err).__module__.startswith("zenoh"):  # e.g. an endpoint that cannot be bound
-            print(f"twind: error: {err}", file=sys.stderr)
+            from twind.bus.session import zenoh_message
+
+            print(f"twind: error: {zenoh_message(err)}", file=sys.stderr)
             return 2
         raise
     except KeyboardInterrupt:

@@ -16,7 +16,7 @@ from types import TracebackType
 import zenoh
 
 from twind.bus.keys import ROOT, control_key
-from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
+from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config, zenoh_message
 from twind.errors import TwindError
 
 
@@ -57,7 +57,8 @@ class TwinClient:
             self._session = zenoh.open(zenoh_config(connect=connect, mode="client",
                                                     config_file=config_file))
         except zenoh.ZError as err:
-            msg = f"cannot reach a twin at {', '.join(connect)}: {err}"
+            msg = (f"cannot reach a twin at {', '.join(connect)} ({zenoh_message(err)}): is "
+                   "`twind serve` running there? Start one, or give its endpoint with --connect")
             raise TwinUnreachable(msg) from None
 
     @classmethod

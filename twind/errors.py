@@ -29,6 +29,9 @@ class FotonError(TwindError):
     """A foton design string or filter file cannot be understood."""
 
 
+class BusError(TwindError):
+    """An endpoint or a Zenoh configuration that cannot be used."""
+
 
 class TwindWarning(UserWarning):
     """Base class of the warnings twind gives a user: something was read or done, but not

@@ -117,9 +117,7 @@ class BusTwin:
     def push(self, values: dict[str, float]) -> None:
         if self.updated is None:
             return
-        q = {k[2:]: v for k, v in values.items() if k.startswith("Q_")}
-        changes = {k: v for k, v in values.items() if not k.startswith("Q_")}
-        self.updated.params(self.optic, **changes, **({"Q": q} if q else {}))
+        self.updated.params(self.optic, **values)
 
 
 def _highpass(design: InformationDesign) -> float:
@@ -260,23 +258,27 @@ def add_arguments(parser) -> None:  # noqa: ANN001 - argparse.ArgumentParser
     parser.add_argument("--update", action="append", metavar="ENDPOINT",
                         help="push each round's fit into the twin at this endpoint")
     parser.add_argument("--config", help="twin config (TOML): the nominal model")
-    parser.add_argument("--optic", default="ETMX")
-    parser.add_argument("--ifo", default="C1")
+    parser.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
+    parser.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
     parser.add_argument("--dof", action="append", choices=DOFS, metavar="DOF",
                         help="excited DOF, repeatable (default POS, PIT, YAW)")
-    parser.add_argument("--band", type=float, nargs=2, default=(0.1, 10.0), metavar=("LO", "HI"))
+    parser.add_argument("--band", type=float, nargs=2, default=(0.1, 10.0), metavar=("LO", "HI"),
+                        help="band of the multisines, Hz (default 0.1 10)")
     parser.add_argument("--rms", type=float, default=10.0, help="RMS at each EXC")
     parser.add_argument("--period", type=float, default=20.0, help="multisine period (s)")
     parser.add_argument("--averages", type=int, default=5, help="periods per DOF per round")
-    parser.add_argument("--params", nargs="+", metavar="NAME", default=list(FIT_PARAMS))
+    parser.add_argument("--params", nargs="+", metavar="NAME", default=list(FIT_PARAMS),
+                        help=f"parameters to identify (default {' '.join(FIT_PARAMS)})")
     parser.add_argument("--target", type=float, default=0.01,
                         help="relative sigma to reach on every identifiable parameter")
-    parser.add_argument("--max-rounds", type=int, default=8)
+    parser.add_argument("--max-rounds", type=int, default=8,
+                        help="rounds at most, if the target is not reached (default 8)")
     parser.add_argument("--drift", type=float, default=1.0,
                         help="in-process twin: scale of the built-in drift of the 'real' optic")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="in-process twin: seed of its noise (default 0)")
     parser.add_argument("--workdir", help="running twin: where the rounds' MCAP files go")
-    parser.add_argument("--json", action="store_true")
+    parser.add_argument("--json", action="store_true", help="the result as JSON")
     parser.add_argument("-o", "--output", help=".png: relative sigma per round")
 
 

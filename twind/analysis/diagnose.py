@@ -788,15 +788,13 @@ def push(diagnosis: Diagnosis, connect: Sequence[str], ifo: str = "C1") -> str:
 
     final = diagnosis.final
     nominal = {n: v for n, v in final.identified().items() if n in FIT_PARAMS}
-    q = {n[2:]: v for n, v in nominal.items() if n.startswith("Q_")}
-    changes = {n: v for n, v in nominal.items() if not n.startswith("Q_")}
     effect = None
     if diagnosis.effects:
         best = diagnosis.effects[0]
         effect = {"id": best.effect, "values": best.values()[0]}
     client = TwinClient(list(connect), ifo=ifo)
     try:
-        client.params(final.optic, effect=effect, **changes, **({"Q": q} if q else {}))
+        client.params(final.optic, effect=effect, **nominal)
     finally:
         client.close()
     return f"{len(changes) + len(q)} nominal parameter(s)" + (

@@ -108,9 +108,7 @@ def read_truth(path: str | Path) -> dict[str, float]:
 
 def with_params(sus: SOSParams, values: Mapping[str, float]) -> SOSParams:
     """A copy of `sus` with fit parameters set (``Q_POS`` etc. go into ``Q``)."""
-    q = {k[2:]: v for k, v in values.items() if k.startswith("Q_")}
-    other = {k: v for k, v in values.items() if not k.startswith("Q_")}
-    return sus.updated(**other, Q=q) if q else sus.updated(**other)
+    return sus.updated(**values)
 
 
 def check_names(names: Sequence[str]) -> list[str]:
@@ -534,8 +532,11 @@ class FitResult:
                f"(noise scale {self.noise_scale:.2f}, bin correlation "
                f"{', '.join(f'{c:+.2f}' for c in self.bin_correlation)})"]
         for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal, strict=True):
-            err = "unidentifiable" if math.isnan(s) else f"+- {s:.4g} ({100 * s / v:.2g} %)"
-            out.append(f"  {n:15s} {v:12.6g} {err:26s} start {p0:.6g}")
+            if math.isnan(s):  # held at its start: no fitted value to show
+                out.append(f"  {n:15s} {'':12s} {'unidentifiable, held at':26s} start {p0:.6g}")
+            else:
+                out.append(f"  {n:15s} {v:12.6g} {f'+- {s:.4g} ({100 * s / v:.2g} %)':26s} "
+                           f"start {p0:.6g}")
         for combo, d in self.determined.items():
             out.append(f"  determined: {combo} = {d['value']:.6g} +- {d['sigma']:.3g}")
         if self.unidentifiable:

@@ -103,8 +103,18 @@ class TFSet:
         return P, np.sqrt(var)
 
     def band(self, lo: float, hi: float) -> TFSet:
-        """Only the frequencies in [lo, hi]."""
+        """Only the frequencies in [lo, hi].
+
+        Raises
+        ------
+        TFError
+            If no measured frequency is in the band.
+        """
         keep = (self.frequency_hz >= lo) & (self.frequency_hz <= hi)
+        if not keep.any():
+            msg = (f"no measured frequency in {lo:g}-{hi:g} Hz; the measurement covers "
+                   f"{self.frequency_hz.min():g}-{self.frequency_hz.max():g} Hz")
+            raise TFError(msg)
         return TFSet(self.optic, self.frequency_hz[keep], self.excited, self.responses,
                      {k: v[keep] for k, v in self.tf.items()},
                      {k: v[keep] for k, v in self.coherence.items()}, self.averages,

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Sequence
 
 import zenoh
+
+from twind.errors import BusError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -41,6 +44,8 @@ def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (),
     conf.insert_json5("transport/shared_memory/enabled", "false")
     if mode is not None or not config_file:
         conf.insert_json5("mode", json.dumps(mode or "peer"))
+    for endpoint in (*listen, *connect):
+        _check_endpoint(endpoint)
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
@@ -48,3 +53,26 @@ def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (),
     if scouting is not None or not config_file:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
     return conf
+
+
+ENDPOINT = re.compile(r"^[a-z][a-z0-9-]*/[^\s/]\S*$")
+"""A Zenoh endpoint: ``<protocol>/<address>[?<metadata>][#<config>]``."""
+
+
+def _check_endpoint(endpoint: str) -> None:
+    """Refuse what is not a Zenoh endpoint, in words (Zenoh's own message is a JSON5 error
+    with a Rust source path)."""
+    if not ENDPOINT.match(endpoint):
+        msg = (f"{endpoint!r} is not a Zenoh endpoint: <protocol>/<address>, e.g. "
+               f"{DEFAULT_ENDPOINT}")
+        raise BusError(msg)
+
+
+def zenoh_message(err: BaseException) -> str:
+    """Zenoh's error text for a person: without the Rust source location it ends with and
+    the JSON5 wrapper around a configuration error."""
+    text = str(err)
+    wrapped = re.search(r'msg: "(.*?)"', text)
+    if wrapped:
+        text = wrapped.group(1)
+    return re.sub(r"\s*at \S+\.rs:\d+\.?", "", text).strip()

@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=tuple(MODES), default="coherence",
                         help="what the excitation is designed for (default coherence)")
     parser.add_argument("--config", help="config file (default: the 40m file shipped with twind)")
-    parser.add_argument("--optic", default="ETMX")
+    parser.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
     parser.add_argument("--dof", action="append", choices=DOFS, metavar="DOF",
                         help=f"DOF to excite, one of {', '.join(DOFS)}; repeat for several "
                              "(each measured on its own); default POS")

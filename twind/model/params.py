@@ -48,9 +48,11 @@ class SOSParams:
     g_mps2: float = G_MPS2
 
     def updated(self, **changes: Any) -> SOSParams:
-        """Return a copy with some parameters changed (``Q`` may be a partial dict)."""
-        if "Q" in changes:
-            changes["Q"] = {**self.Q, **changes["Q"]}
+        """Return a copy with some parameters changed: ``Q`` may be a partial dict, and
+        ``Q_POS`` etc. (the names ``twind fit`` reports) set one DOF's Q."""
+        q = {k[2:]: changes.pop(k) for k in [k for k in changes if k.startswith("Q_")]}
+        if q or "Q" in changes:
+            changes["Q"] = {**self.Q, **changes.get("Q", {}), **q}
         return replace(self, **changes)
 
     def uncoupled_frequencies_hz(self) -> dict[str, float]:

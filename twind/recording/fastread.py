@@ -42,6 +42,7 @@ from twind.recording.reader import (
     indexed_chunks,
     indexed_summary,
     report_truncation,
+    require_header,
     scan_sample_block,
     session_files,
     truncation_reason,
@@ -675,6 +676,7 @@ def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolE
     from mcap.records import DataEnd, Footer
 
     size = path.stat().st_size
+    require_header(path, size)
     reader = _FileReader(path, state)
     state.metadata = {}
     state.config_seen = False

@@ -34,6 +34,7 @@ from mcap.exceptions import EndOfFile, InvalidMagic, McapError
 from mcap.records import Channel as McapChannel
 from mcap.records import Chunk, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import MCAP0_MAGIC
 from numpy.typing import NDArray
 
 from twind.errors import TwindError, TwindWarning
@@ -127,6 +128,20 @@ class RawMessage:
     schema_data: bytes = b""
 
 
+def require_header(path: Path, size: int) -> None:
+    """Refuse an empty file, or one too short for the MCAP magic that does not begin it: not
+    a recording (a file cut inside the magic is a recording killed at once, read as cut)."""
+    if size == 0:
+        msg = (f"{path}: not an MCAP file (empty); give a recording twind record or twind "
+               "serve --record wrote")
+        raise RecordingError(msg)
+    if size < len(MCAP0_MAGIC):
+        with open(path, "rb") as fh:
+            if not MCAP0_MAGIC.startswith(fh.read()):
+                msg = f"{path}: not an MCAP file ({size} bytes, no MCAP magic)"
+                raise RecordingError(msg)
+
+
 def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
                       topics: Callable[[str], bool] | None = None,
                       metadata: dict[str, dict[str, str]] | None = None,
@@ -154,6 +169,7 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
     """
     path = Path(path)
     size = path.stat().st_size
+    require_header(path, size)
     schemas: dict[int, Schema] = {}
     channels: dict[int, McapChannel] = {}
     chunks = 0
@@ -618,6 +634,13 @@ class Series:
     def __len__(self) -> int:
         return len(self.value)
 
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> NDArray:
+        """The samples, so that numpy takes a series as an array (as gwpy's)."""
+        return np.array(self.value, dtype=dtype, copy=copy)
+
+    def __getitem__(self, index: Any) -> Any:  # noqa: ANN401 - a sample or an array
+        return self.value[index]
+
 
 def _slice(ch: Channel, start: float, duration: float) -> tuple[NDArray[np.float64], float]:
     i0 = round((start - ch.t0) * ch.rate)
@@ -659,9 +682,10 @@ def getdata(channels: str | Sequence[str], duration: float | None, start: float 
     start : float, optional
         GPS start. Default: the first time every channel has data (a recording's start, or
         the first block received from the bus).
-    source : path, list of paths or zenoh.Config
+    source : path, list of paths, endpoint or zenoh.Config
         A recording (see :func:`session_files`), or the bus to subscribe to for `duration`
-        seconds. Default: the bus at ``tcp/127.0.0.1:7447``.
+        seconds: a Zenoh endpoint such as ``"tcp/127.0.0.1:7447"`` (the default) or a
+        configuration.
     timeout : float, optional
         Bus only: wall-clock seconds to wait for the data; default ``2 * duration + 10`` plus
         the wait until `start`.
@@ -686,10 +710,12 @@ def getdata(channels: str | Sequence[str], duration: float | None, start: float 
         raise RecordingError(msg)
     import zenoh
 
-    if source is None:
-        from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
+    from twind.bus.session import DEFAULT_ENDPOINT, ENDPOINT, zenoh_config
 
-        source = zenoh_config(connect=[DEFAULT_ENDPOINT], mode="client")
+    if source is None:
+        source = DEFAULT_ENDPOINT
+    if isinstance(source, str) and ENDPOINT.match(source) and not Path(source).exists():
+        source = zenoh_config(connect=[source], mode="client")
     if isinstance(source, zenoh.Config):
         if duration is None:
             msg = "getdata: reading from the bus needs a duration"
@@ -732,6 +758,7 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
     import zenoh
 
     from twind.bus.keys import data_key
+    from twind.bus.session import zenoh_message
     from twind.timeutil import now_gps
 
     if timeout is None:
@@ -742,7 +769,13 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
     first: dict[str, float] = {}
     last: dict[str, float] = {}
     deadline = time.monotonic() + timeout
-    with zenoh.open(conf) as session:
+    try:
+        opened = zenoh.open(conf)
+    except zenoh.ZError as err:
+        msg = (f"getdata: cannot reach the bus at {conf.get_json('connect/endpoints')} "
+               f"({zenoh_message(err)}): is a twin (twind serve) running there?")
+        raise RecordingError(msg) from None
+    with opened as session:
         subs = [session.declare_subscriber(
             data_key(n), lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes())))
             for n in names]

@@ -204,7 +204,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "tcp/127.0.0.1:7447 unless --listen)")
     parser.add_argument("--listen", action="append", metavar="EP",
                         help="Zenoh endpoint to listen on (repeatable)")
-    parser.add_argument("--mode", choices=("peer", "client"), default="peer")
+    parser.add_argument("--mode", choices=("peer", "client"), default="peer",
+                        help="Zenoh mode (default peer)")
     parser.add_argument("--ifo", help="interferometer of the events key (default the "
                                       "recording's)")
     parser.add_argument("--no-events", action="store_true", help="do not publish events")

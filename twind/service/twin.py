@@ -45,9 +45,10 @@ from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
 
 VERBS = ("status", "inject", "stop", "params", "filter")
-# parameters a running twin may change (rate, delay and identity need a restart)
-LIVE_PARAMS = frozenset(f.name for f in fields(SOSParams)) - {"name", "sample_rate_hz",
-                                                             "loop_delay_s"}
+# parameters a running twin may change (rate, delay and identity need a restart); a DOF's
+# Q also under the name twind fit reports (Q_POS)
+LIVE_PARAMS = (frozenset(f.name for f in fields(SOSParams))
+               - {"name", "sample_rate_hz", "loop_delay_s"}) | {f"Q_{d}" for d in DOFS}
 
 
 @dataclass

@@ -31,7 +31,7 @@ def add_view_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append",
                    help="Zenoh endpoint of the twin or its router (default tcp/127.0.0.1:7447)")
     p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (credentials, TLS)")
-    p.add_argument("--ifo", default="C1")
+    p.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
     p.add_argument("--channels", help="comma-separated shell patterns, e.g. 'C1:SUS-ETMX_*' "
                                       "(default: every channel)")
     p.add_argument("--rate", type=float, default=64.0, help="plotted rate in Hz (default 64)")

@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 
 from twind.bus.codec import SampleBlock
 from twind.errors import TwindError
+from twind.recording.reader import iter_raw_messages
 from twind.timeutil import GPS_EPOCH_UNIX, LEAP_SECONDS
 from twind.viz.bode import measure
 from twind.viz.decimate import NS, Decimated, Decimator
@@ -200,21 +201,18 @@ BLOCK_SCHEMA = "twind.v1.SampleBlock"
 
 
 def _messages(path: Path) -> Iterator[tuple[str, str, bytes]]:
-    """``(topic, kind, data)`` of every message in log-time order; kind is ``"block"``,
-    ``"event"`` or ``""`` (anything else, e.g. the ``twin/@config`` snapshot)."""
-    from mcap.reader import make_reader
-
-    with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        for schema, channel, message in reader.iter_messages(log_time_order=True):
-            if is_events_topic(channel.topic):
-                kind = "event"
-            elif (channel.message_encoding == "protobuf" and channel.topic.startswith("twin/")
-                  and (schema is None or schema.name == BLOCK_SCHEMA)):
-                kind = "block"
-            else:
-                kind = ""
-            yield channel.topic, kind, message.data
+    """``(topic, kind, data)`` of every message in file order (the order it was written), up
+    to the last complete chunk of a cut recording; kind is ``"block"``, ``"event"`` or ``""``
+    (anything else, e.g. the ``twin/@config`` snapshot)."""
+    for m in iter_raw_messages(path):
+        if is_events_topic(m.topic):
+            kind = "event"
+        elif (m.message_encoding == "protobuf" and m.topic.startswith("twin/")
+              and m.schema_name in ("", BLOCK_SCHEMA)):
+            kind = "block"
+        else:
+            kind = ""
+        yield m.topic, kind, m.data
 
 
 class _Exporter:
@@ -395,8 +393,15 @@ def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path,
             elif kind == "block":
                 exporter.block(SampleBlock.decode(data))
         exporter.finish()
+        if not exporter.rows and not exporter.events:
+            msg = f"{mcap_path}: no sample block or event to export (a recording cut early?)"
+            raise TwindError(msg)
         optics = sorted({p[1] for n in exporter.decimators if (p := parse_dof_channel(n))})
         rec.send_blueprint(blueprint(optics, exporter.bode_entities))
+    except BaseException:
+        rec.disconnect()
+        rrd_path.unlink(missing_ok=True)  # half an export is no export
+        raise
     finally:
         rec.flush()
         rec.disconnect()
