@@ -10,6 +10,7 @@ import io
 import json
 from contextlib import redirect_stdout
 from dataclasses import replace
+from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from conftest import REFERENCE
 
 from twind.analysis.corpus import FACES, key_z
 from twind.analysis.diagnose import ALPHA, diagnose
+from twind.analysis.report import report_page
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.loop.plant import Plant
@@ -49,11 +51,48 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
     assert {p.name for p in (tmp_path / "report").iterdir()} == {
         "nominal.png", "diagnosis.json", "index.html", "diagnosis.rrd"}
     assert main(["diagnose", *NULL, "-o", str(tmp_path / "report")]) == 2  # never overwrites
+    page = _tables((tmp_path / "report" / "index.html").read_text())
+    assert page["verdict"][0][0].startswith("consistent with the nominal model")
+    assert [row[0] for row in page["nominal"][1:]] == list(obj["nominal_params"])
+    assert page["located"] == [["none: no band stands out"]]
     from rerun.chunk import RrdReader
 
     entities = {c.entity_path for c in RrdReader(tmp_path / "report" / "diagnosis.rrd").stream()}
     assert "/diagnose/POS_POS/measured_db" in entities
     assert "/diagnose/YAW_YAW/nominal_residual_sigma" in entities
+
+
+class _Page(HTMLParser):
+    """The text of each element with an id, tables row by row: ``{id: [[cell, ...], ...]}``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.found: dict[str, list[list[str]]] = {}
+        self._id: str | None = None
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        given = dict(attrs).get("id")
+        if given:
+            self._id = given
+            self.found[given] = [] if tag == "table" else [[""]]
+        elif tag == "tr" and self._id:
+            self.found[self._id].append([])
+        elif tag in ("td", "th") and self._id:
+            self.found[self._id][-1].append("")
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag in ("table", "p"):
+            self._id = None
+
+    def handle_data(self, data: str) -> None:
+        if self._id and self.found[self._id] and self.found[self._id][-1]:
+            self.found[self._id][-1][-1] += data
+
+
+def _tables(page: str) -> dict[str, list[list[str]]]:
+    parser = _Page()
+    parser.feed(page)
+    return parser.found
 
 
 def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:  # noqa: ANN001
@@ -71,6 +110,12 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     assert all(d.p_values[e.effect] == e.p_value < ALPHA for e in d.effects)
     assert set(d.p_values) - {e.effect for e in d.effects}
     assert all(0 <= p <= 1 for p in d.p_values.values())
+    # the report: every hypothesis with its p-value, the chosen first; what separates rivals
+    page = _tables(report_page(d, []))
+    rows = page["hypotheses"][1:]
+    assert {r[0] for r in rows} == set(d.p_values) | {e.effect for e in d.effects}
+    assert rows[0][:2] == [best.effect, "chosen"]
+    assert {(r[0], r[1]) for r in page["separations"][1:]} == set(d.separations)
 
 
 def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa: ANN001

@@ -427,3 +427,17 @@ def test_non_finite_bins_are_named_left_out_and_written_as_null(tmp_path: Path,
     obj = json.loads(captured.out, parse_constant=no_nan)
     pit = obj["responses"].index("PIT")
     assert all(obj["IN1_per_EXC"]["re"][k][pit][0] is None for k in range(10, 20))
+
+
+def test_the_coherent_band_is_where_some_excited_dof_is_coherent() -> None:
+    """What ``twind tf`` keeps of a recording by default: no excited DOF's IN1 reaches
+    coherence 0.5 with its EXC outside it, and no threshold met gives the whole span."""
+    tfs = from_diaggui(NULL)
+    lo, hi = tfs.coherent_band()
+    f = tfs.frequency_hz
+    assert f[0] <= lo < hi <= f[-1]
+    rows = [tfs.responses.index(d) for d in tfs.excited]
+    g2 = tfs.coherence["IN1"][:, rows, np.arange(len(rows))]
+    outside = (f < lo) | (f > hi)
+    assert not (g2[outside] >= 0.5).any() and (g2[f == lo] >= 0.5).any()
+    assert tfs.coherent_band(min_coherence=2.0) == (f[0], f[-1])

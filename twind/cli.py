@@ -13,11 +13,12 @@ import sys
 import time
 import warnings
 from collections.abc import Sequence
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
 
-from twind import DOFS, __version__, strictjson
+from twind import DOFS, __version__, progress, strictjson
 from twind.errors import TwindError, TwindWarning
 
 
@@ -329,6 +330,12 @@ def cmd_tf(args: argparse.Namespace) -> int:
         return _show_transfers(args, str(err))
     if args.band:
         tfs = tfs.band(*args.band)
+    elif all(Path(p).suffix.lower() == ".mcap" for p in args.inputs):
+        # a recording's bins reach Nyquist: 800 000 at 0.01 Hz, most of them noise
+        lo, hi = tfs.coherent_band()
+        tfs = tfs.band(lo, hi)
+        print(f"twind tf: {lo:g}-{hi:g} Hz, where IN1 is coherent with EXC (--band for "
+              "others)", file=sys.stderr)
     if args.json:
         strictjson.dump(tfs.to_json(), sys.stdout)
         sys.stdout.write("\n")
@@ -862,11 +869,19 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
         _DEFAULT_SHOWWARNING(message, category, filename, lineno, file, line)
 
 
+PROGRESS_UNITS = {"tf": "segment", "fit": "evaluation", "diagnose": "evaluation",
+                  "demo": "evaluation"}
+"""Commands that show a progress bar on a terminal, and what it counts (Welch segments
+summed, model evaluations of the fits)."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``twind`` console script."""
     args = build_parser().parse_args(argv)
+    unit = PROGRESS_UNITS.get(args.command)
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), \
+                progress.shown(f"twind {args.command}", unit) if unit else nullcontext():
             warnings.showwarning = _show_warning
             return args.func(args)
     except (TwindError, OSError) as err:

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from twind import strictjson
+from twind import progress, strictjson
 from twind.analysis import narrow
 from twind.analysis.fit import (
     FIT_PARAMS,
@@ -408,6 +408,7 @@ def _step(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
     left = _candidates(chosen)
     tried = []
     for e in left:
+        progress.note(f"step {len(chosen) + 1}: {e}")
         if e in FAMILIES:
             tried += _try_family(tfs, cfg, params, chosen, e, current, whole, unit, len(left))
         else:
@@ -728,9 +729,8 @@ def _sets(tfs: TFSet | Sequence[TFSet]) -> list[TFSet]:
 def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path) -> Path:
     """Bode matrices before and after (measured, model, residual/sigma per bin), the JSON,
     and an HTML page with both, in directory `out` (created; existing files are refused)."""
-    import html
-
     from twind.analysis.fit import plot_fit
+    from twind.analysis.report import report_page  # report builds on this module
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -744,14 +744,10 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
         plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))
     (out / "diagnosis.json").write_text(strictjson.dumps(diagnosis.to_json(), indent=1))
     _write_rrd(diagnosis, tfs, cfg, out / "diagnosis.rrd")
-    images = "".join(f'<h2>{n[:-4]}</h2><img src="{n}" style="max-width:100%">'
-                     for n in names[:2] if (out / n).exists())
-    page = (f"<html><head><title>twind diagnose: {html.escape(diagnosis.nominal.optic)}"
-            f"</title></head><body><h1>twind diagnose: {html.escape(diagnosis.nominal.optic)}"
-            f"</h1><pre>{html.escape(chr(10).join(diagnosis.lines()))}</pre>{images}"
-            '<p><a href="diagnosis.json">diagnosis.json</a>; <code>rerun diagnosis.rrd</code>'
-            " (timeline frequency_hz)</p></body></html>")
-    (out / "index.html").write_text(page)
+    titles = {"nominal.png": "The nominal model refitted: measured, model, residual / sigma",
+              "augmented.png": "With the effects chosen"}
+    images = [(t, n) for n, t in titles.items() if (out / n).exists()]
+    (out / "index.html").write_text(report_page(diagnosis, images))
     return out / "index.html"
 
 
@@ -797,5 +793,5 @@ def push(diagnosis: Diagnosis, connect: Sequence[str], ifo: str = "C1") -> str:
         client.params(final.optic, effect=effect, **nominal)
     finally:
         client.close()
-    return f"{len(changes) + len(q)} nominal parameter(s)" + (
+    return f"{len(nominal)} nominal parameter(s)" + (
         f" and {effect['id']}" if effect else "")

@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.optimize import least_squares
 
-from twind import DOFS
+from twind import DOFS, progress
 from twind.analysis.tf import Kernel, TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
@@ -594,6 +594,7 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     size = sum(2 * d.bins for d in datas)
 
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        progress.tick()
         values = dict(zip(names, coords.values(x), strict=True))
         try:
             # a trial step far out overflows the loop's matrices: rejected below, not warned

@@ -102,6 +102,16 @@ class TFSet:
         var = (s1**2) @ (np.abs(inv) ** 2) + (np.abs(P) ** 2) @ (so**2) @ (np.abs(inv) ** 2)
         return P, np.sqrt(var)
 
+    def coherent_band(self, min_coherence: float = 0.5) -> tuple[float, float]:
+        """From the lowest to the highest frequency where some excited DOF's IN1 is coherent
+        with its own EXC (at least `min_coherence`): where the excitation reached the optic.
+        The whole span when no frequency is."""
+        rows = [self.responses.index(d) for d in self.excited]
+        g2 = self.coherence["IN1"][:, rows, np.arange(len(rows))]
+        hit = np.flatnonzero((g2 >= min_coherence).any(axis=1))
+        f = self.frequency_hz
+        return (float(f[hit[0]]), float(f[hit[-1]])) if hit.size else (float(f[0]), float(f[-1]))
+
     def band(self, lo: float, hi: float) -> TFSet:
         """Only the frequencies in [lo, hi].
 

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
+from twind import progress
 from twind.errors import TwindError
 
 LAG_S = 10.0
@@ -165,6 +166,7 @@ class _Transforms(threading.local):
         with sums.lock:
             _accumulate_auto(X, sums.sxx)
             sums.count += 1
+        progress.tick()
         for i, buf in enumerate(bufs[1:]):
             Y = self.fft(buf, self.Y)
             with sums.lock:

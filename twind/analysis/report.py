@@ -1,0 +1,109 @@
+"""The page ``twind diagnose -o DIR`` writes: the verdict first, then the tables a
+commissioner reads (the nominal parameters, every hypothesis, the rivals and what tells them
+apart, the bands located and left), then the figures."""
+
+from __future__ import annotations
+
+import html
+import math
+from collections.abc import Sequence
+
+from twind.analysis.diagnose import Diagnosis
+from twind.analysis.locate import Located
+
+STYLE = """
+body { font-family: sans-serif; max-width: 70em; margin: 1em auto; color: #222 }
+.verdict { font-size: 1.3em; padding: .6em; background: #eef3fb; border-left: .4em solid #36c }
+table { border-collapse: collapse; margin: .5em 0 1.2em }
+th, td { border: 1px solid #ccc; padding: .2em .6em; text-align: right }
+th { background: #f2f2f2 } td:first-child, th:first-child { text-align: left }
+tr.claimed td { font-weight: bold }
+img { max-width: 100% }
+"""
+
+
+def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
+    """The HTML page of `diagnosis`, with `images` as ``(title, file)`` pairs (relative to
+    the page)."""
+    d = diagnosis
+    optic = html.escape(d.nominal.optic)
+    parts = [f"<h1>twind diagnose: {optic}</h1>",
+             f'<p class="verdict" id="verdict">{html.escape(d.summary())}</p>',
+             f"<p>chi2/nu {d.nominal.chi2_nu:.3f} with the nominal model refitted, "
+             f"{d.final.chi2_nu:.3f} with the final one ({d.final.bins} bins).</p>",
+             "<h2>Nominal parameters, refitted</h2>", _nominal(d),
+             "<h2>Hypotheses</h2>", _hypotheses(d)]
+    if d.separations:
+        parts += ["<h2>Rivals and the measurement that separates them</h2>", _separations(d)]
+    parts += ["<h2>Where the nominal model misses</h2>",
+              _bands("located", d.located, "none: no band stands out"),
+              "<h2>Unexplained by the final model</h2>",
+              _bands("unexplained", d.unexplained, "nothing")]
+    parts += [f'<h2>{html.escape(title)}</h2><img src="{html.escape(src)}" '
+              f'alt="{html.escape(title)}">' for title, src in images]
+    parts.append('<p><a href="diagnosis.json">diagnosis.json</a>; '
+                 "<code>rerun diagnosis.rrd</code> (timeline frequency_hz)</p>")
+    return (f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>twind diagnose: "
+            f"{optic}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>")
+
+
+def _table(table_id: str, header: Sequence[str], rows: Sequence[Sequence[str]],
+           classes: Sequence[str] | None = None) -> str:
+    """An HTML table; cells are escaped, `classes` (one per row) mark rows."""
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join(
+        f'<tr class="{c}">' + "".join(f"<td>{html.escape(x)}</td>" for x in row) + "</tr>"
+        for row, c in zip(rows, classes or [""] * len(rows), strict=True))
+    return f'<table id="{table_id}"><tr>{head}</tr>{body}</table>'
+
+
+def _number(x: float | None, digits: int = 4) -> str:
+    return "—" if x is None or not math.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _nominal(d: Diagnosis) -> str:
+    params = d.nominal.to_json()["params"]
+    rows = [(n, _number(p["value"], 6), _number(p["sigma"], 3),
+             "unidentifiable" if p["sigma"] is None else
+             f"{100 * p['sigma'] / abs(p['value']):.2g} %", _number(p["start"], 6))
+            for n, p in params.items()]
+    return _table("nominal", ("parameter", "value", "sigma", "relative", "start"), rows)
+
+
+def _hypotheses(d: Diagnosis) -> str:
+    """Every hypothesis of the first step, then the effects chosen later, with their
+    p-values, delta BIC and parameters; the claimed ones in bold."""
+    chosen = {e.effect: e for e in d.effects}
+    tried = {e.effect: e for e in d.first_step}
+    tried.update(chosen)
+    order = sorted(tried.values(), key=lambda e: (e.effect not in chosen, e.p_value))
+    rows, classes = [], []
+    for e in order:
+        own = chosen.get(e.effect, e)
+        values, sigma = own.values()
+        params = ", ".join(f"{n} {_number(v)} ± {_number(sigma.get(n), 2)}"
+                           for n, v in values.items())
+        role = ("rival of " + own.rival_of if own.rival_of else
+                "chosen" + (" (partial)" if own.partial else "")) if e.effect in chosen else (
+            "not claimed")
+        rows.append((e.effect, role, _number(own.p_value, 2), _number(own.delta_bic, 3),
+                     params))
+        classes.append("claimed" if e.effect in chosen else "")
+    return _table("hypotheses", ("hypothesis", "verdict", "p-value", "delta BIC",
+                                 "parameters ± sigma"), rows, classes)
+
+
+def _separations(d: Diagnosis) -> str:
+    rows = [(a, b, dof, f"{response}/{dof}", f"{f:.3g}")
+            for (a, b), (dof, response, f) in d.separations.items()]
+    return _table("separations", ("effect", "rival", "excite", "measure", "around (Hz)"),
+                  rows)
+
+
+def _bands(table_id: str, bands: Sequence[Located], empty: str) -> str:
+    if not bands:
+        return f'<p id="{table_id}">{html.escape(empty)}</p>'
+    rows = [(x.element, f"{x.band_hz[0]:.3g}-{x.band_hz[1]:.3g}", f"{x.significance:.1f}",
+             f"{x.excess:.2f}") for x in bands]
+    return _table(table_id, ("element", "band (Hz)", "significance (sigma)",
+                             "residual power / expected"), rows)

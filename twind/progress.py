@@ -1,0 +1,43 @@
+"""Progress of long work: a bar (tqdm) on a terminal's stderr, nothing in a pipe or a log.
+
+Work far down reports with :func:`tick` (a model evaluated, a Welch segment summed) and
+:func:`note` (which hypothesis a diagnosis is on); the command that started it decides with
+:func:`shown` whether anyone sees it. As with logging, nothing is passed down the calls, and
+worker threads report to the same bar.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from tqdm import tqdm
+
+_bar: tqdm | None = None
+
+
+@contextmanager
+def shown(label: str, unit: str = "it") -> Iterator[None]:
+    """Show the work done inside the block as a bar labelled `label`, counting `unit`:
+    on stderr when it is a terminal, not at all otherwise; gone when the block ends."""
+    global _bar
+    outer, _bar = _bar, tqdm(desc=label, unit=f" {unit}s", file=sys.stderr, disable=None,
+                             leave=False, mininterval=0.5, dynamic_ncols=True)
+    try:
+        yield
+    finally:
+        _bar.close()
+        _bar = outer
+
+
+def tick(n: int = 1) -> None:
+    """Count `n` units of work on the bar shown, if any."""
+    if _bar is not None:
+        _bar.update(n)
+
+
+def note(text: str) -> None:
+    """Say on the bar shown, if any, what the work is on now."""
+    if _bar is not None:
+        _bar.set_postfix_str(text, refresh=False)
