@@ -64,11 +64,14 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     from twind.plotting import bode_matrix
 
     path = Path(args.output or f"{cfg.name}_response.png")
-    bode_matrix(f, {"plant IN1/OUT": r["plant_IN1_per_OUT"],
-                    "closed loop IN1/EXC": r["closed_loop_IN1_per_EXC"],
-                    "closed loop IN2/EXC": r["closed_loop_IN2_per_EXC"]},
-                path, DOFS, title=f"C1:SUS-{cfg.name} ({cfg.model} model)")
-    print(f"wrote {path}")
+    plant = path.with_name(f"{path.stem}_plant{path.suffix}")
+    name = f"C1:SUS-{cfg.name} ({cfg.model} model)"
+    bode_matrix(f, path, DOFS, DOFS, {"IN1/EXC": r["closed_loop_IN1_per_EXC"],
+                                      "IN2/EXC": r["closed_loop_IN2_per_EXC"]},
+                title=f"{name}: closed loop")
+    bode_matrix(f, plant, DOFS, DOFS, {"IN1/OUT": r["plant_IN1_per_OUT"]}, per="ct",
+                title=f"{name}: plant")
+    print(f"wrote {path} and {plant}")
     return 0
 
 
@@ -342,20 +345,34 @@ def cmd_tf(args: argparse.Namespace) -> int:
     if args.output and not args.output.lower().endswith(".png"):
         print(f"wrote {tfs.write(args.output)}", file=sys.stderr)
     elif args.output:
-        from twind.plotting import bode_matrix
-
-        P, _ = tfs.plant()
-        rows = [tfs.responses.index(d) for d in tfs.excited]
-        bode_matrix(tfs.frequency_hz[1:], {"IN1/EXC": tfs.tf["IN1"][1:, rows],
-                                           "IN2/EXC": tfs.tf["IN2"][1:, rows],
-                                           "plant IN1/OUT": P[1:]},
-                    args.output, tfs.excited, title=f"{tfs.optic}: measured transfer functions")
-        print(f"wrote {args.output}", file=sys.stderr)
+        print(f"wrote {' and '.join(map(str, _plot_tfs(tfs, Path(args.output))))}",
+              file=sys.stderr)
     if not args.json and not args.output:
         print(f"{tfs.optic}: excited {', '.join(tfs.excited)}; {len(tfs.frequency_hz)} bins "
               f"from {tfs.frequency_hz[0]:g} to {tfs.frequency_hz[-1]:g} Hz, {tfs.averages} "
               "averages; --json for the numbers, -o FILE.png for a plot")
     return 0
+
+
+def _plot_tfs(tfs, path: Path) -> tuple[Path, Path]:  # noqa: ANN001 - TFSet
+    """``twind tf -o``: the measured IN1/EXC matrix, and the plant beside it (``_plant``)."""
+    from twind.plotting import MIN_COHERENCE, Measured, bode_matrix
+
+    f = tfs.frequency_hz
+    keep = f > 0
+    P, sigma = tfs.plant()
+    rows = [tfs.responses.index(d) for d in tfs.excited]
+    # the inverse mixes every excitation: a plant bin is as good as the worst excited DOF's
+    own = tfs.coherence["IN1"][:, rows, np.arange(len(rows))].min(axis=1) >= MIN_COHERENCE
+    closed = Measured.coherent(tfs.tf["IN1"][keep], tfs.sigma("IN1")[keep],
+                               tfs.coherence["IN1"][keep])
+    plant = Measured(P[keep], sigma[keep], np.broadcast_to(own[keep, None, None], P[keep].shape))
+    done = bode_matrix(f[keep], path, tfs.responses, tfs.excited, measured={"IN1/EXC": closed},
+                       title=f"{tfs.optic}: measured IN1/EXC ({tfs.averages} averages)")
+    other = bode_matrix(f[keep], path.with_name(f"{path.stem}_plant{path.suffix}"),
+                        tfs.excited, tfs.excited, measured={"plant IN1/OUT": plant}, per="ct",
+                        title=f"{tfs.optic}: the plant (IN1/EXC)(OUT/EXC)^-1")
+    return done, other
 
 
 def _show_transfers(args: argparse.Namespace, why: str) -> int:
@@ -631,7 +648,7 @@ def build_parser() -> argparse.ArgumentParser:
     model = sub.add_parser("model", help="suspension model responses").add_subparsers(
         dest="model_command", required=True)
     resp = model.add_parser("response", help="plant, controller and closed-loop responses")
-    resp.add_argument("--config", help="config file (default: the 40m file shipped with twind)")
+    resp.add_argument("--config", help=CONFIG_HELP)
     resp.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
     resp.add_argument("--fmin", type=_frequency, default=0.05,
                       help="lowest frequency, Hz (default 0.05)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -15,64 +16,163 @@ if TYPE_CHECKING:
     from twind.model.compare import ModelComparison
 
 
-def bode_matrix(f_hz: NDArray[np.float64], curves: Mapping[str, NDArray[np.complex128]],
-                path: str | Path, labels: Sequence[str], title: str = "") -> Path:
-    """Write a grid of magnitude and phase panels, one per matrix element.
+@dataclass(frozen=True)
+class Measured:
+    """Measured points of a transfer-function matrix, as a Bode matrix draws them.
+
+    Attributes
+    ----------
+    h : ndarray, shape (nf, rows, cols)
+    sigma : ndarray, optional
+        Standard error of the real and imaginary parts (error bars; residuals in sigma).
+    good : ndarray of bool, optional
+        The points to trust (coherent ones, or those a fit used; :meth:`coherent`); the
+        others are faded, with no error bar and no residual. Default: all.
+    """
+
+    h: NDArray[np.complex128]
+    sigma: NDArray[np.float64] | None = None
+    good: NDArray[np.bool_] | None = None
+
+    @classmethod
+    def coherent(cls, h: NDArray, sigma: NDArray | None, coherence: NDArray) -> Measured:
+        """Points trusted where the coherence reaches :data:`MIN_COHERENCE`."""
+        return cls(h, sigma, coherence >= MIN_COHERENCE)
+
+    def trusted(self, i: int, j: int) -> NDArray[np.bool_]:
+        """The trusted points of element (i, j)."""
+        finite = np.isfinite(self.h[:, i, j])
+        return finite if self.good is None else finite & self.good[:, i, j]
+
+
+def dof_unit(dof: str) -> str:
+    """The unit of a DOF's signals in the damping loop: urad for the angles, um else."""
+    return "µrad" if dof in ("PIT", "YAW") else "µm"
+
+
+def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str],
+                cols: Sequence[str], models: Mapping[str, NDArray[np.complex128]] | None = None,
+                measured: Mapping[str, Measured] | None = None, per: str | None = None,
+                residuals: bool = False, title: str = "") -> Path:
+    """Write a Bode matrix: per element (response row / excitation column) magnitude and
+    phase, and with `residuals` the measured minus the first model over sigma.
 
     Parameters
     ----------
     f_hz : ndarray
-        Frequencies (Hz).
-    curves : mapping of str to ndarray, shape (nf, n, n)
-        Named responses drawn over each other.
+        Frequencies (Hz); every axis spans these and no more.
     path : str or Path
         PNG to write.
-    labels : sequence of str
-        Row and column names (response / excitation).
+    rows, cols : sequence of str
+        The DOFs of the responses and of the excitations.
+    models : mapping of str to ndarray, shape (nf, rows, cols), optional
+        Named model curves. An element that is zero in a model (its largest magnitude below
+        1e-9 of the model's largest: zero by symmetry, round-off left) is not drawn.
+    measured : mapping of str to Measured, optional
+        Named measurements: points with error bars, faded where incoherent.
+    per : str, optional
+        The unit of the denominator ("ct" for a plant IN1/OUT); default the excited DOF's.
+    residuals : bool
+        A third panel per element: ``|measured - model| / sigma`` of the first measurement
+        against every model.
     title : str
-        Figure title.
 
     Returns
     -------
     Path
-        The file written.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    n = len(labels)
-    fig, axes = plt.subplots(2 * n, n, figsize=(3.2 * n, 4.2 * n), sharex=True, squeeze=False)
-    drawn = np.zeros((n, n), dtype=bool)
-    for name, h in curves.items():
-        for i in range(n):
-            for j in range(n):
-                mag = np.abs(h[:, i, j])
-                if not np.any(mag > 1e-12 * np.abs(h).max()):
-                    continue  # zero by symmetry; round-off is not worth a curve
-                drawn[i, j] = True
-                axes[2 * i, j].loglog(f_hz, mag, label=name)
-                axes[2 * i + 1, j].semilogx(f_hz, np.degrees(np.angle(h[:, i, j])), label=name)
-    for i in range(n):
-        for j in range(n):
-            axes[2 * i, j].set_title(f"{labels[i]} / {labels[j]}", fontsize=9)
-            if not drawn[i, j]:
-                axes[2 * i, j].text(0.5, 0.5, "zero", ha="center", va="center",
-                                    transform=axes[2 * i, j].transAxes, color="gray")
-            axes[2 * i + 1, j].set_ylim(-180, 180)
-            axes[2 * i + 1, j].set_yticks([-180, -90, 0, 90, 180])
-            for ax in axes[2 * i : 2 * i + 2, j]:
+    models, measured = models or {}, measured or {}
+    panels = 3 if residuals else 2
+    fig, axes = plt.subplots(panels * len(rows), len(cols), sharex=True, squeeze=False,
+                             figsize=(3.3 * len(cols), (2.0 * panels + 0.4) * len(rows)))
+    for i, r in enumerate(rows):
+        for j, c in enumerate(cols):
+            unit = f"{dof_unit(r)}/{per or dof_unit(c)}"
+            cell = axes[panels * i: panels * (i + 1), j]
+            drawn = _models(cell, f_hz, models, i, j)
+            drawn |= _measured(cell, f_hz, measured, i, j)
+            if residuals and measured and next(iter(measured.values())).sigma is not None:
+                _residuals(cell[2], f_hz, next(iter(measured.values())), models, i, j)
+            cell[0].set_title(f"{r} / {c}", fontsize=9)
+            cell[0].set_ylabel(f"|{r}/{c}| [{unit}]", fontsize=8)
+            if not drawn:
+                cell[0].text(0.5, 0.5, "zero in the model", ha="center", va="center",
+                             transform=cell[0].transAxes, color="gray", fontsize=8)
+                cell[0].set_yticks([])
+            cell[1].set_ylabel("phase [deg]", fontsize=8)
+            cell[1].set(ylim=(-180, 180), yticks=[-180, -90, 0, 90, 180])
+            for ax in cell:
                 ax.grid(True, which="both", alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("frequency [Hz]")
-    axes[0, 0].legend(fontsize=8)
+    axes[0, 0].set_xlim(f_hz[f_hz > 0].min(), f_hz.max())  # shared by every panel
+    axes[0, 0].legend(fontsize=7)
     fig.suptitle(title)
     fig.tight_layout(rect=(0, 0, 1, 0.98))
     path = Path(path)
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
+
+
+def _models(cell: Sequence[Axes], f: NDArray, models: Mapping[str, NDArray], i: int,
+            j: int) -> bool:
+    """Each model's element (i, j) on the cell's magnitude and phase; True if any drawn."""
+    drawn = False
+    for k, (name, h) in enumerate(models.items()):
+        mag, top = np.abs(h[:, i, j]), np.abs(h).max()
+        if not mag.max() > 1e-9 * top:
+            continue  # zero by symmetry: round-off is not worth a curve
+        there = mag > 1e-13 * top  # points where the model is exactly zero: not drawn
+        drawn = True
+        cell[0].loglog(f, np.where(there, mag, np.nan), color=f"C{k}", lw=1, label=name)
+        cell[1].semilogx(f, _phase(np.where(there, h[:, i, j], np.nan)), color=f"C{k}", lw=1)
+    return drawn
+
+
+def _phase(h: NDArray[np.complex128]) -> NDArray[np.float64]:
+    """Phase in degrees, broken (NaN) where it wraps, so that no line crosses the panel."""
+    deg = np.degrees(np.angle(h))
+    deg[1:][np.abs(np.diff(deg)) > 180] = np.nan
+    return deg
+
+
+def _measured(cell: Sequence[Axes], f: NDArray, measured: Mapping[str, Measured], i: int,
+              j: int) -> bool:
+    """Each measurement's element (i, j): coherent points with error bars, the others
+    faded; True if any drawn."""
+    for k, (name, m) in enumerate(measured.items()):
+        h, good = m.h[:, i, j], m.trusted(i, j)
+        color = f"{0.15 + 0.25 * k:.2f}"
+        err = None if m.sigma is None else m.sigma[good, i, j]
+        cell[0].errorbar(f[good], np.abs(h[good]), yerr=err, fmt=".", ms=2, elinewidth=0.5,
+                         color=color, label=name)
+        cell[0].plot(f[~good], np.abs(h[~good]), ".", ms=2, color=color, alpha=0.2)
+        cell[1].plot(f[good], np.degrees(np.angle(h[good])), ".", ms=2, color=color)
+        cell[1].plot(f[~good], np.degrees(np.angle(h[~good])), ".", ms=2, color=color,
+                     alpha=0.2)
+        cell[0].set(xscale="log", yscale="log")
+    return bool(measured)
+
+
+def _residuals(ax: Axes, f: NDArray, m: Measured, models: Mapping[str, NDArray], i: int,
+               j: int) -> None:
+    """``|measured - model| / sigma`` of element (i, j) against every model, coherent
+    points only, with the 3-sigma line."""
+    good = m.trusted(i, j)
+    if not good.any():
+        ax.text(0.5, 0.5, "no bin fitted", ha="center", va="center", transform=ax.transAxes,
+                color="gray", fontsize=8)
+    for k, h in enumerate(models.values()):
+        z = np.abs(m.h[good, i, j] - h[good, i, j]) / m.sigma[good, i, j]
+        ax.semilogx(f[good], z, ".", ms=2, color=f"C{k}")
+    ax.axhline(3, color="k", lw=0.5, ls="--")
+    ax.set_ylabel("|residual| / sigma", fontsize=8)
 
 
 MIN_COHERENCE = 0.5

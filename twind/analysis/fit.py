@@ -830,46 +830,19 @@ def _monomial(names: list[str], powers: NDArray) -> str:
 
 
 def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
-    """Per element: measured ``IN1/EXC`` with the nominal and fitted models, and beneath it
-    the residual of each in units of the measurement's sigma (what the fit minimised)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Per element: measured ``IN1/EXC`` (the bins the fit used with their errors, the
+    others faded) with the starting and fitted models, and beneath it the residual of each
+    in units of the measurement's sigma (what the fit minimised)."""
+    from twind.plotting import Measured, bode_matrix
 
     data = FitData.from_tfset(tfs, min_coherence=0.0)
     model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
     used = FitData.from_tfset(tfs, result.min_coherence).mask
     curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
               model(result.as_dict())}
-    n_r, n_e = len(data.responses), len(data.excited)
-    fig, axes = plt.subplots(2 * n_r, n_e, figsize=(3.4 * n_e, 3.0 * n_r), sharex=True,
-                             squeeze=False)
-    f = data.frequency_hz
-    for i, r in enumerate(data.responses):
-        for j, e in enumerate(data.excited):
-            top, bottom = axes[2 * i, j], axes[2 * i + 1, j]
-            k = used[:, i, j]
-            top.set_title(f"{r} / {e}: {int(k.sum())} bins", fontsize=9)
-            if not k.any():
-                top.text(0.5, 0.5, "not coherent", ha="center", transform=top.transAxes)
-                continue
-            top.loglog(f[k], np.abs(data.H[k, i, j]), ".", ms=2, color="0.4", label="measured")
-            for c, (name, h) in zip(("C0", "C1"), curves.items(), strict=True):
-                top.loglog(f[k], np.abs(h[k, i, j]), color=c, lw=1, label=name)
-                z = np.abs(data.H[k, i, j] - h[k, i, j]) / data.sigma[k, i, j]
-                bottom.semilogx(f[k], z, ".", ms=2, color=c)
-            bottom.axhline(3, color="k", lw=0.5, ls="--")
-            bottom.set_ylabel("|res|/sigma", fontsize=8)
-            for ax in (top, bottom):
-                ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
-    for ax in axes[-1]:
-        ax.set_xlabel("frequency [Hz]")
-    fig.suptitle(f"{result.optic} IN1/EXC"
-                 + (f", nominal + {result.effect}" if result.effect else ", nominal model")
-                 + f": chi2/nu {result.chi2_nu:.3g} after the fit")
-    fig.tight_layout(rect=(0, 0, 1, 0.98))
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    title = (f"{result.optic} IN1/EXC" + (f", nominal + {result.effect}" if result.effect
+                                          else ", nominal model")
+             + f": chi2/nu {result.chi2_nu:.3g} after the fit")
+    bode_matrix(data.frequency_hz, path, data.responses, data.excited, curves,
+                {"measured": Measured(data.H, data.sigma, used)}, residuals=True, title=title)
     return path

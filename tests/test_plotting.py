@@ -1,0 +1,61 @@
+"""Every command's Bode figure, inspected through matplotlib: labelled axes with units, the
+frequency axis spanning the data and no more, models' structural zeros not drawn (the
+diagnosis report draws with fit's figure)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
+
+from twind.cli import main
+
+from conftest import REFERENCE
+
+XML = sorted(str(p) for p in (REFERENCE / "example_null").glob("*.xml"))
+
+
+@pytest.fixture
+def figures(monkeypatch: pytest.MonkeyPatch) -> list[Figure]:
+    """The figures saved while a test runs."""
+    saved: list[Figure] = []
+    original = Figure.savefig
+
+    def keep(self: Figure, *args: object, **kwargs: object) -> None:
+        saved.append(self)
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
+    return saved
+
+
+@pytest.mark.parametrize("command", [["model", "response"], ["tf", *XML], ["fit", *XML]],
+                         ids=["model-response", "tf", "fit"])
+def test_bode_figures_are_labelled_and_span_their_data(command, figures, tmp_path: Path,  # noqa: ANN001
+                                                       capsys) -> None:  # noqa: ANN001
+    assert main([*command, "-o", str(tmp_path / "bode.png")]) == 0
+    capsys.readouterr()
+    assert figures
+    for fig in figures:
+        axes = fig.get_axes()
+        f = np.concatenate([np.asarray(line.get_xdata(), float) for ax in axes
+                            for line in ax.get_lines()])
+        f = f[np.isfinite(f) & (f > 0)]
+        for ax in axes:
+            lo, hi = ax.get_xlim()
+            assert f.min() * (1 - 1e-9) <= lo and hi <= f.max() * (1 + 1e-9), ax.get_title()
+            assert ax.get_ylabel(), ax.get_title()
+        magnitudes = [ax for ax in axes if ax.get_ylabel().startswith("|")
+                      and "residual" not in ax.get_ylabel()]
+        assert magnitudes and all(ax.get_ylabel().endswith("]") for ax in magnitudes)
+        units = {ax.get_ylabel().rsplit("[", 1)[1] for ax in magnitudes}
+        assert units <= {"µm/µm]", "µrad/µm]", "µm/µrad]", "µrad/µrad]", "µm/ct]", "µrad/ct]"}
+        bottom = [ax for ax in axes if ax.get_xlabel()]
+        assert bottom and all(ax.get_xlabel() == "frequency [Hz]" for ax in bottom)
+    if command[0] == "model":  # the plant has no POS-YAW coupling: said, and no curve
+        plant = next(f for f in figures if "plant" in f.texts[0].get_text())
+        panel = next(ax for ax in plant.get_axes() if ax.get_title() == "POS / YAW")
+        assert not panel.get_lines() and "zero in the model" in panel.texts[0].get_text()
+
