@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from twind.analysis.freeswing import analyse, eigenmodes, ringdown
+from twind.analysis.freeswing import HALVES_SIGMA, analyse, eigenmodes, ringdown
 from twind.analysis.modes import modes_hz, with_params
 from twind.cli import main
 from twind.client import TwinClient
@@ -110,9 +110,19 @@ def test_the_standard_errors_hold_the_errors_of_twin_ringdowns() -> None:
     f_true, q_true = eigenmodes(optic)
     pulls = []
     for seed in (30, 31, 32):
-        found = analyse(optic, *ringdown(optic, 600.0, seed=seed))
+        sen, rate = ringdown(optic, 600.0, seed=seed)
+        found = analyse(optic, sen, rate)
         for dof in f_true:
             assert found.frequency_sigma_hz[dof] > 0 and found.q_sigma[dof] > 0
             pulls += [(found.frequency_hz[dof] - f_true[dof]) / found.frequency_sigma_hz[dof],
                       (found.q[dof] - q_true[dof]) / found.q_sigma[dof]]
+        # the two halves agree: the modes held still
+        assert max(abs(x) for pair in found.halves.values() for x in pair) < HALVES_SIGMA
     assert 0.5 < np.sqrt(np.mean(np.square(pulls))) < 2.0, np.round(pulls, 2)
+    # the last one with its time scale drifting by 1e-4 over the span (83 uHz of YAW):
+    # the halves tell, and the lines say the standard errors understate
+    t = np.arange(sen.shape[1]) / rate
+    drifting = np.array([np.interp(t * (1 + 0.5e-4 * t / t[-1]), t, x) for x in sen])
+    found = analyse(optic, drifting, rate)
+    assert abs(found.halves["YAW"][0]) > HALVES_SIGMA
+    assert any("understate" in line for line in found.lines())

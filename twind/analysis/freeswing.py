@@ -43,6 +43,12 @@ REALISATIONS = 400
 """Simulated noise realisations the standard errors of the frequencies and Qs come from
 (their own relative precision is about ``1 / sqrt(2 * REALISATIONS)``, 3.5 %)."""
 
+HALF_S = 200.0
+"""The shortest half of a ringdown fitted apart to check that the modes held still (s)."""
+
+HALVES_SIGMA = 3.0
+"""A difference between the halves beyond this many standard errors is reported."""
+
 LINE_WIDTHS = 10.0
 """Half-width of a mode's line, in line widths ``f / Q``, for the standard errors: where its
 noise-driven motion is measured, and what the sensor noise's spectrum bridges."""
@@ -76,6 +82,11 @@ class FreeSwing:
         SIDE OSEM sees one mode only, so its gain and that mode's amplitude are one number).
     model_hz : dict of str to float
         The configured model's eigenfrequencies.
+    halves : dict of str to (float, float), or None
+        Per mode, the first half's frequency and Q minus the second's, in their combined
+        standard errors: beyond :data:`HALVES_SIGMA` the modes moved during the ringdown
+        (drift, amplitude dependence, a glitch) and the standard errors understate the
+        errors. None for a ringdown too short to halve.
     """
 
     optic: str
@@ -88,6 +99,7 @@ class FreeSwing:
     configured: NDArray[np.float64]
     osem_gains: dict[str, float]
     model_hz: dict[str, float]
+    halves: dict[str, tuple[float, float]] | None = None
 
     def lines(self) -> list[str]:
         """The modes, the OSEM gains and both input matrices, for a person."""
@@ -98,6 +110,13 @@ class FreeSwing:
             rows.append(f"  {d:4} {f:.6f} +- {1e3 * self.frequency_sigma_hz[d]:<7.2g} "
                         f"Q {self.q[d]:4.0f} +- {self.q_sigma[d]:<5.2g} model {model:.6f} "
                         f"({1e3 * (f - model):+.4f})")
+        if self.halves is not None:
+            rows.append("  first half - second, in sigma: " + ", ".join(
+                f"{d} f {x[0]:+.1f} Q {x[1]:+.1f}" for d, x in self.halves.items()))
+            if max(abs(x) for pair in self.halves.values() for x in pair) > HALVES_SIGMA:
+                rows.append(f"  the halves differ beyond {HALVES_SIGMA:g} sigma: the modes "
+                            "moved during the ringdown (drift, amplitude dependence, a "
+                            "glitch); the standard errors understate the errors")
         rows.append("  OSEM gains (face mean = 1): " + ", ".join(
             f"{o} {g:.3f}" for o, g in self.osem_gains.items()))
         rows.append("  input matrix, diagonalising | configured, each row over the configured "
@@ -113,6 +132,8 @@ class FreeSwing:
         return {"optic": self.optic, "frequency_hz": self.frequency_hz, "q": self.q,
                 "frequency_sigma_hz": self.frequency_sigma_hz, "q_sigma": self.q_sigma,
                 "model_hz": self.model_hz,
+                "halves_sigma": None if self.halves is None else {
+                    d: {"frequency": x[0], "q": x[1]} for d, x in self.halves.items()},
                 "osem_gains": self.osem_gains, "osems": list(OSEMS), "dofs": list(DOFS),
                 "input_matrix": self.input_matrix.tolist(),
                 "configured_input_matrix": self.configured.tolist()}
@@ -192,7 +213,23 @@ def analyse(optic: OpticConfig, sen: NDArray[np.float64], rate_hz: float) -> Fre
     gains = _osem_gains(amp, shapes)
     return FreeSwing(optic.name, f, q, f_sigma, q_sigma, amp,
                      _input_matrix(amp, plant.input_matrix), plant.input_matrix, gains,
-                     model)
+                     model, _halves(scaled, poles, dt))
+
+
+def _halves(y: NDArray, z: NDArray, dt: float) -> dict[str, tuple[float, float]] | None:
+    """Each mode's frequency and Q fitted on the first and on the second half of `y` apart:
+    their differences in combined standard errors (None when a half is shorter than
+    :data:`HALF_S`)."""
+    n = y.shape[1] // 2
+    if n * dt < HALF_S:
+        return None
+    fits = []
+    for half in (y[:, :n], y[:, n:]):
+        poles = _refine(half, z)
+        fits.append((*_modes(poles, dt), *_sigmas(half, poles, dt)))
+    (f1, q1, sf1, sq1), (f2, q2, sf2, sq2) = fits
+    pulls = zip((f1 - f2) / np.hypot(sf1, sf2), (q1 - q2) / np.hypot(sq1, sq2), strict=True)
+    return {d: (float(a), float(b)) for d, (a, b) in zip(DOFS, pulls, strict=True)}
 
 
 def _decimate(sen: NDArray, rate_hz: float) -> tuple[NDArray, float]:
