@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from twind.channels import UNITS
+
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
@@ -46,8 +48,9 @@ class Measured:
 
 
 def dof_unit(dof: str) -> str:
-    """The unit of a DOF's signals in the damping loop: urad for the angles, um else."""
-    return "µrad" if dof in ("PIT", "YAW") else "µm"
+    """The unit of a DOF's signals in the damping loop (:data:`twind.channels.UNITS`), as
+    printed: µm, µrad."""
+    return UNITS[dof].replace("u", "µ")
 
 
 def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str],
