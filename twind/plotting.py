@@ -91,8 +91,9 @@ def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str]
 
     models, measured = models or {}, measured or {}
     panels = 3 if residuals else 2
+    width, height = 3.3 * len(cols), (2.0 * panels + 0.4) * len(rows)
     fig, axes = plt.subplots(panels * len(rows), len(cols), sharex=True, squeeze=False,
-                             figsize=(3.3 * len(cols), (2.0 * panels + 0.4) * len(rows)))
+                             figsize=(width, height))
     for i, r in enumerate(rows):
         for j, c in enumerate(cols):
             unit = f"{dof_unit(r)}/{per or dof_unit(c)}"
@@ -110,13 +111,15 @@ def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str]
             cell[1].set_ylabel("phase [deg]", fontsize=8)
             cell[1].set(ylim=(-180, 180), yticks=[-180, -90, 0, 90, 180])
             for ax in cell:
-                ax.grid(True, which="both", alpha=0.3)
+                ax.grid(True, alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("frequency [Hz]")
     axes[0, 0].set_xlim(f_hz[f_hz > 0].min(), f_hz.max())  # shared by every panel
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout(rect=(0, 0, 1, 0.98))
+    fig.suptitle(title, y=1 - 0.25 / height)
+    # fixed margins (inches): tight_layout measures every tick label, seconds for a matrix
+    fig.subplots_adjust(left=1.05 / width, right=1 - 0.15 / width, bottom=0.6 / height,
+                        top=1 - 0.9 / height, wspace=0.6, hspace=0.3)
     path = Path(path)
     fig.savefig(path, dpi=80)
     plt.close(fig)
