@@ -18,6 +18,10 @@ if TYPE_CHECKING:
     from twind.model.compare import ModelComparison
 
 
+MIN_COHERENCE = 0.5
+"""Points below this coherence are drawn faded: their phase is mostly noise."""
+
+
 @dataclass(frozen=True)
 class Measured:
     """Measured points of a transfer-function matrix, as a Bode matrix draws them.
@@ -179,10 +183,6 @@ def _residuals(ax: Axes, f: NDArray, m: Measured, models: Mapping[str, NDArray],
         ax.semilogx(f[good], z, ".", ms=2, color=f"C{k}")
     ax.axhline(3, color="k", lw=0.5, ls="--")
     ax.set_ylabel("|residual| / sigma", fontsize=8)
-
-
-MIN_COHERENCE = 0.5
-"""Points below this coherence are drawn faded: their phase is mostly noise."""
 
 
 def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Path:

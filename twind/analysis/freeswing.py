@@ -455,9 +455,10 @@ def benchmark(optic: OpticConfig, n: int = 8, duration_s: float = 1000.0, seed: 
     (wire length +-4 %, break-off +-20 %, clamp separation +-10 %, Qs 250-800) with face
     OSEM gains off by up to +-10 %, analysed with the nominal model. Lines: per optic, the
     worst frequency error against the drifted optic's eigenfrequencies (mHz), the worst Q
-    error (%), the worst OSEM gain error (% of each imbalance) and the largest error in
-    standard errors, as each optic is done; then the worst of all and the RMS of the errors in standard errors
-    (1 when the standard errors are right)."""
+    error (%), the worst OSEM gain error (% of each imbalance), the largest error in
+    standard errors and the largest difference of the two halves (:attr:`FreeSwing.halves`),
+    as each optic is done; then the worst of all and the RMS of the errors in standard
+    errors (1 when the standard errors are right)."""
     rng = np.random.default_rng(seed)
     worst, pulls = np.zeros(3), []
     for k in range(n):
@@ -484,8 +485,9 @@ def benchmark(optic: OpticConfig, n: int = 8, duration_s: float = 1000.0, seed: 
         gap = 1e3 * abs(f_true["POS"] - f_true["SIDE"])
         yield (f"optic {k + 1}: frequencies within {1e3 * df:.3f} mHz, Qs within "
                     f"{100 * q_err[worst_q]:.1f} % ({worst_q}), OSEM gain imbalances within "
-                    f"{100 * dg:.0f} %, errors within {np.max(np.abs(pulls[-1])):.1f} sigma; "
-                    f"POS-SIDE {gap:.1f} mHz apart")
+                    f"{100 * dg:.0f} %, errors within {np.max(np.abs(pulls[-1])):.1f} sigma, "
+                    f"halves within {max(abs(x) for p in found.halves.values() for x in p):.1f} "
+                    f"sigma; POS-SIDE {gap:.1f} mHz apart")
     pulls_f, pulls_q = np.array(pulls)[:, :4], np.array(pulls)[:, 4:]
     yield (f"worst of {n}: {1e3 * worst[0]:.3f} mHz (target 1), Q {100 * worst[1]:.1f} % "
                 f"(target 20), OSEM gains {100 * worst[2]:.0f} % (target 35)")
