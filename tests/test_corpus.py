@@ -4,8 +4,11 @@ concealed to the issue's size, scored as the issue asks; the MCAP route's record
 from __future__ import annotations
 
 import math
+import os
+import re
 from pathlib import Path
 
+import browser
 import numpy as np
 import pytest
 
@@ -29,6 +32,7 @@ from twind.analysis.corpus import (
 from twind.analysis.diagnose import MIN_COHERENCE
 from twind.analysis.fit import FitData
 from twind.analysis.tf import from_session
+from twind.cli import main
 from twind.config import load_config
 from twind.loop.plant import Plant
 from twind.model.effects import CATALOGUE, model_names, with_effect
@@ -169,7 +173,8 @@ def test_a_failed_diagnosis_scores_as_a_miss(etmx) -> None:  # noqa: ANN001
     assert not s.named and s.claimed == ["(failed)"]
 
 
-def test_the_mcap_route_records_what_measure_tfs_measures(etmx, tmp_path: Path) -> None:  # noqa: ANN001
+def test_the_mcap_route_records_what_measure_tfs_measures(etmx, tmp_path: Path,  # noqa: ANN001
+                                                         capsys: pytest.CaptureFixture) -> None:
     """record_measurement writes the test points and injection events of a twin session;
     twind tf reads back the excitations, skipping the settling."""
     base = Plant.from_params(etmx.sus, etmx.mechanics())
@@ -181,6 +186,11 @@ def test_the_mcap_route_records_what_measure_tfs_measures(etmx, tmp_path: Path) 
     assert tfs.responses == ["POS", "PIT", "YAW", "SIDE"]
     k = np.argmin(np.abs(tfs.frequency_hz - 1.0))
     assert tfs.coherence["IN1"][k, 0, 0] > 0.5  # POS excited, POS responds
+    # twind tf shows where the excitation drove the optic, and says when nothing stands out
+    assert main(["tf", str(path), "--bw", "0.5"]) == 0
+    assert "where IN1 is driven by EXC" in capsys.readouterr().err
+    assert main(["tf", str(path), "--bw", "0.05"]) == 2
+    assert "2 averages at 0.05 Hz; --bw 0.2 gives about 10" in capsys.readouterr().err
 
 
 def test_the_xml_route_is_a_diaggui_set_up_to_its_stop_frequency(etmx, tmp_path: Path  # noqa: ANN001
@@ -196,21 +206,48 @@ def test_the_xml_route_is_a_diaggui_set_up_to_its_stop_frequency(etmx, tmp_path:
     assert '<Param Name="StopFrequency" Type="double" Unit="Hz">30.0<' in files[0].read_text()
 
 
-def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
-        etmx, tmp_path: Path) -> None:  # noqa: ANN001
-    """twind demo: the "real" twin's recording is diagnosed with its hidden driver pole (or
-    the delay it cannot be told from) and a better fit; the nominal twin's is consistent."""
+@pytest.fixture(scope="module")
+def demo(etmx, tmp_path_factory: pytest.TempPathFactory) -> tuple:  # noqa: ANN001
+    """twind demo's directory and its diagnoses of the "real" twin and the nominal one."""
     from twind.analysis.corpus import run_demo
 
-    real, nominal = run_demo(etmx, tmp_path, "actuator_pole", say=lambda _line: None)
+    out = tmp_path_factory.mktemp("demo")
+    return (out, *run_demo(etmx, out, "actuator_pole", say=lambda _line: None))
+
+
+def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
+        demo) -> None:  # noqa: ANN001
+    """twind demo: the "real" twin's recording is diagnosed with its hidden driver pole (or
+    the delay it cannot be told from) and a better fit; the nominal twin's is consistent."""
+    out, real, nominal = demo
     named = real.to_json()
     assert {"actuator_pole", "loop_delay"} & {e["effect"] for e in named["effects"]}
     assert named["chi2_nu_final"] < named["chi2_nu_nominal"]
     assert nominal.consistent
     for name in ("real", "nominal"):
-        assert (tmp_path / f"{name}.mcap").exists()
-        assert (tmp_path / name / "index.html").exists()
-    assert (tmp_path / "real" / "augmented.png").exists()
+        assert (out / f"{name}.mcap").exists()
+        assert (out / name / "index.html").exists()
+    assert (out / "real" / "augmented.png").exists()
+
+
+def test_the_demo_s_report_reads_in_a_browser(demo, tmp_path: Path) -> None:  # noqa: ANN001
+    """The real twin's report as Chromium builds it: the verdict first, then every table,
+    the figures it names beside it. ``TWIND_FIGURES=DIR`` keeps the screenshot there as
+    ``report.png`` (the README's)."""
+    out, real, _ = demo
+    shot = Path(os.environ.get("TWIND_FIGURES", tmp_path)) / "report.png"
+    dom = browser.load(out / "real" / "index.html", shot, height=1800)
+    page = browser.tables(dom)
+    assert page["verdict"][0][0] == real.summary()
+    assert [row[0] for row in page["nominal"][1:]] == list(real.to_json()["nominal_params"])
+    rows = {row[0]: row[1] for row in page["hypotheses"][1:]}
+    claimed = {e["effect"]: f"rival of {e['rival_of']}" if e["rival_of"] else "chosen"
+               for e in real.to_json()["effects"]}
+    assert claimed and claimed.items() <= rows.items()
+    assert {"located", "unexplained"} <= set(page)
+    images = re.findall(r'<img src="([^"]+)"', dom)
+    assert images and all((out / "real" / src).is_file() for src in images)
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.mark.parametrize(("option", "value", "named"), [
@@ -218,8 +255,6 @@ def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
     ("--optic", "ETMZ", "ETMZ")])
 def test_the_corpus_benchmark_names_an_effect_or_dof_it_cannot_use(
         option: str, value: str, named: str, capsys: pytest.CaptureFixture) -> None:
-    from twind.cli import main
-
     assert main(["bench", "--suite", "diagnose", option, value]) == 2
     assert named in capsys.readouterr().err
 

@@ -10,11 +10,11 @@ import io
 import json
 from contextlib import redirect_stdout
 from dataclasses import replace
-from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
 import pytest
+from browser import tables
 from conftest import REFERENCE
 
 from twind.analysis.corpus import FACES, key_z
@@ -51,48 +51,16 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
     assert {p.name for p in (tmp_path / "report").iterdir()} == {
         "nominal.png", "diagnosis.json", "index.html", "diagnosis.rrd"}
     assert main(["diagnose", *NULL, "-o", str(tmp_path / "report")]) == 2  # never overwrites
-    page = _tables((tmp_path / "report" / "index.html").read_text())
+    page = tables((tmp_path / "report" / "index.html").read_text())
     assert page["verdict"][0][0].startswith("consistent with the nominal model")
     assert [row[0] for row in page["nominal"][1:]] == list(obj["nominal_params"])
+    assert {row[0]: row[1] for row in page["nominal"][1:]}["Q_SIDE"] == "held at start"
     assert page["located"] == [["none: no band stands out"]]
     from rerun.chunk import RrdReader
 
     entities = {c.entity_path for c in RrdReader(tmp_path / "report" / "diagnosis.rrd").stream()}
     assert "/diagnose/POS_POS/measured_db" in entities
     assert "/diagnose/YAW_YAW/nominal_residual_sigma" in entities
-
-
-class _Page(HTMLParser):
-    """The text of each element with an id, tables row by row: ``{id: [[cell, ...], ...]}``."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.found: dict[str, list[list[str]]] = {}
-        self._id: str | None = None
-
-    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-        given = dict(attrs).get("id")
-        if given:
-            self._id = given
-            self.found[given] = [] if tag == "table" else [[""]]
-        elif tag == "tr" and self._id:
-            self.found[self._id].append([])
-        elif tag in ("td", "th") and self._id:
-            self.found[self._id][-1].append("")
-
-    def handle_endtag(self, tag: str) -> None:
-        if tag in ("table", "p"):
-            self._id = None
-
-    def handle_data(self, data: str) -> None:
-        if self._id and self.found[self._id] and self.found[self._id][-1]:
-            self.found[self._id][-1][-1] += data
-
-
-def _tables(page: str) -> dict[str, list[list[str]]]:
-    parser = _Page()
-    parser.feed(page)
-    return parser.found
 
 
 def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:  # noqa: ANN001
@@ -103,6 +71,8 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     best = d.effects[0]
     assert {best.effect, *best.equivalent} >= {"loop_delay", "actuator_pole"}
     assert len(d.separations) == len(d.effects) - 1  # and what would tell them apart
+    rival = d.effects[1]
+    assert f"{rival.effect} fits nearly as well as {best.effect}" in d.summary()
     delay = next(e for e in d.effects if e.effect == "loop_delay")
     assert delay.to_json()["params"]["extra_s"] == pytest.approx(extra, rel=0.35)
     assert d.final.chi2_nu < 1.4 < d.nominal.chi2_nu
@@ -111,7 +81,7 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     assert set(d.p_values) - {e.effect for e in d.effects}
     assert all(0 <= p <= 1 for p in d.p_values.values())
     # the report: every hypothesis with its p-value, the chosen first; what separates rivals
-    page = _tables(report_page(d, []))
+    page = tables(report_page(d, []))
     rows = page["hypotheses"][1:]
     assert {r[0] for r in rows} == set(d.p_values) | {e.effect for e in d.effects}
     assert rows[0][:2] == [best.effect, "chosen"]

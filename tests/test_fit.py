@@ -153,7 +153,7 @@ def test_pull_test_side_by_side_is_the_same_test() -> None:
     from twind.analysis.calibration import pull_test
 
     cfg = load_config(None, ["ETMX"]).optics["ETMX"]
-    kw = {"n": 2, "bw": 0.2, "estimator": "lpm", "verbose": False}
+    kw = {"n": 2, "bw": 0.2, "estimator": "lpm"}
     one, two = pull_test(cfg, workers=1, **kw), pull_test(cfg, workers=2, **kw)
     assert np.array_equal(one.pulls, two.pulls, equal_nan=True)
     assert np.isfinite(one.pulls).sum() >= 8

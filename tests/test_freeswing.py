@@ -126,3 +126,11 @@ def test_the_standard_errors_hold_the_errors_of_twin_ringdowns() -> None:
     found = analyse(optic, drifting, rate)
     assert abs(found.halves["YAW"][0]) > HALVES_SIGMA
     assert any("understate" in line for line in found.lines())
+
+
+def test_the_benchmark_reads_a_ringdown_too_short_to_halve(capsys) -> None:  # noqa: ANN001
+    assert main(["bench", "--suite", "freeswing", "--realisations", "1", "--duration",
+                 "300"]) == 0
+    out = capsys.readouterr().out
+    assert "optic 1: frequencies within" in out and "too short to halve" in out
+    assert "errors in standard errors over 4 modes" in out

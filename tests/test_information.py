@@ -92,7 +92,7 @@ def _drifted(etmx):  # noqa: ANN001, ANN202
 def test_campaign_on_a_local_twin_converges_on_the_truth(etmx) -> None:  # noqa: ANN001
     real = _drifted(etmx)
     rounds = run_campaign(etmx, LocalTwin(real), ["POS", "PIT"], (0.2, 5.0), rms=10.0,
-                          period_s=10.0, averages=5, max_rounds=2, target=1e-9, verbose=False)
+                          period_s=10.0, averages=5, max_rounds=2, target=1e-9)
     assert len(rounds) == 2 and rounds[1].twin_s == 2 * rounds[0].twin_s
     first, last = rounds[0].relative_sigma, rounds[1].relative_sigma
     assert all(last[n] < first[n] for n in set(first) & set(last))
@@ -111,7 +111,7 @@ def test_campaign_against_a_running_twin_pushes_its_fit(tmp_path: Path) -> None:
         twin = BusTwin([real], "ETMX", update=[model], workdir=tmp_path)
         rounds = run_campaign(served, twin, ["POS"], (0.3, 3.0), rms=5.0, period_s=5.0,
                               averages=5, params=["wire_length_m", "coil_N_per_ct"],
-                              max_rounds=1, verbose=False)
+                              max_rounds=1)
         pushed = twin.updated.params("ETMX")["params"]
     fit = rounds[0].fit
     assert np.all(np.isfinite(fit.sigma)) and fit.chi2_nu < 3

@@ -59,3 +59,34 @@ def test_bode_figures_are_labelled_and_span_their_data(command, figures, tmp_pat
         panel = next(ax for ax in plant.get_axes() if ax.get_title() == "POS / YAW")
         assert not panel.get_lines() and "zero in the model" in panel.texts[0].get_text()
 
+
+
+def test_a_fit_figure_spans_the_bins_fitted_not_the_recording(figures, tmp_path: Path) -> None:
+    """A recording's TFs reach Nyquist; past the excitation they are noise over nothing."""
+    from dataclasses import replace
+
+    from twind.analysis.fit import fit, plot_fit
+    from twind.analysis.tf import from_diaggui
+    from twind.config import load_config
+
+    tfs = from_diaggui(XML)
+    cfg = load_config(None, tfs.optic).select(tfs.optic)[0]
+    result = fit(tfs, cfg)
+    df = tfs.frequency_hz[1] - tfs.frequency_hz[0]
+    beyond = tfs.frequency_hz[-1] + df * np.arange(1, 2000)
+    rng = np.random.default_rng(0)
+
+    def padded(a: np.ndarray, noise: bool) -> np.ndarray:
+        shape = (beyond.size, *a.shape[1:])
+        more = (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)) * 1e6 if noise \
+            else rng.uniform(0, 0.05, shape)
+        return np.concatenate([a, more.astype(a.dtype)])
+
+    recording = replace(tfs, frequency_hz=np.concatenate([tfs.frequency_hz, beyond]),
+                        tf={k: padded(v, True) for k, v in tfs.tf.items()},
+                        coherence={k: padded(v, False) for k, v in tfs.coherence.items()})
+    plot_fit(recording, cfg, result, str(tmp_path / "fit.png"))
+    for ax in figures[0].get_axes():
+        assert ax.get_xlim()[1] <= tfs.frequency_hz[-1], ax.get_title()
+        drawn = [np.max(line.get_xdata()) for line in ax.get_lines() if len(line.get_xdata())]
+        assert not drawn or max(drawn) <= tfs.frequency_hz[-1], ax.get_title()

@@ -6,6 +6,7 @@ import glob
 import io
 import json
 from contextlib import redirect_stdout
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -430,14 +431,32 @@ def test_non_finite_bins_are_named_left_out_and_written_as_null(tmp_path: Path,
 
 
 def test_the_coherent_band_is_where_some_excited_dof_is_coherent() -> None:
-    """What ``twind tf`` keeps of a recording by default: no excited DOF's IN1 reaches
-    coherence 0.5 with its EXC outside it, and no threshold met gives the whole span."""
+    """What ``twind tf`` keeps of a recording by default: no excited DOF's IN1 is driven by
+    its EXC outside it, and a threshold no bin meets gives no band."""
     tfs = from_diaggui(NULL)
     lo, hi = tfs.coherent_band()
     f = tfs.frequency_hz
     assert f[0] <= lo < hi <= f[-1]
     rows = [tfs.responses.index(d) for d in tfs.excited]
-    g2 = tfs.coherence["IN1"][:, rows, np.arange(len(rows))]
+    driven = tfs.coherent()[:, rows, np.arange(len(rows))]
     outside = (f < lo) | (f > hi)
-    assert not (g2[outside] >= 0.5).any() and (g2[f == lo] >= 0.5).any()
-    assert tfs.coherent_band(min_coherence=2.0) == (f[0], f[-1])
+    assert not driven[outside].any() and driven[f == lo].any()
+    g2 = tfs.coherence["IN1"][:, rows, np.arange(len(rows))]
+    assert (g2[driven] >= 0.5).all() and (g2[~driven] < 0.9).all()
+    assert tfs.coherent_band(at_least=2.0) is None
+
+
+def test_noise_over_few_averages_is_not_taken_for_a_driven_band() -> None:
+    """Three averages, 200 000 bins: undriven bins pass 0.5 a quarter of the time (their
+    coherence is Beta(1, 2)); only the driven band counts."""
+    tfs = from_diaggui(NULL)
+    f = 0.01 * np.arange(200_000)
+    shape = (f.size, *tfs.coherence["IN1"].shape[1:])
+    rng = np.random.default_rng(1)
+    g2 = rng.beta(1, 2, shape)
+    g2[100:1000] = 0.999999
+    noisy = replace(tfs, frequency_hz=f, averages=3,
+                    tf={k: np.ones(shape, complex) for k in tfs.tf},
+                    coherence={k: g2 for k in tfs.coherence})
+    assert (g2[1000:] >= 0.5).any()
+    assert noisy.coherent_band() == (f[100], f[999])

@@ -221,7 +221,9 @@ def cmd_status(args: argparse.Namespace) -> int:
           f"(max {1e3 * status['max_lag_s']:.1f}), {status['late_blocks']} late blocks, "
           f"busy {100 * status['cpu_fraction']:.1f} %")
     for exc in status["excitations"]:
-        print(f"  {exc['id']}: {exc['waveform']} on {exc['channel']}")
+        when = "waits for" if exc["scheduled"] else "since"
+        print(f"  {exc['id']}: {exc['waveform']} on {exc['channel']}, {when} GPS "
+              f"{exc['start_gps']:.3f}")
     return 0
 
 
@@ -320,6 +322,14 @@ def _input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="the numbers as JSON")
 
 
+def _coarser(bw: float, averages: int, wanted: int = 10) -> str:
+    """The finest resolution among 1, 2, 5 x 10^k Hz at which the excitations that gave
+    `averages` Welch averages (half-overlapped) at `bw` give at least `wanted`."""
+    need = bw * (wanted + 1) / (averages + 1)
+    k = math.floor(math.log10(need))
+    return f"{min(m * 10.0**e for e in (k, k + 1) for m in (1, 2, 5) if m * 10.0**e >= need):g}"
+
+
 def cmd_tf(args: argparse.Namespace) -> int:
     """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs;
     any other diaggui measurement's transfer functions as they were measured."""
@@ -335,9 +345,15 @@ def cmd_tf(args: argparse.Namespace) -> int:
         tfs = tfs.band(*args.band)
     elif all(Path(p).suffix.lower() == ".mcap" for p in args.inputs):
         # a recording's bins reach Nyquist: 800 000 at 0.01 Hz, most of them noise
-        lo, hi = tfs.coherent_band()
-        tfs = tfs.band(lo, hi)
-        print(f"twind tf: {lo:g}-{hi:g} Hz, where IN1 is coherent with EXC (--band for "
+        band = tfs.coherent_band()
+        if band is None:
+            msg = (f"no bin of IN1/EXC stands above the coherence of noise with "
+                   f"{tfs.averages} averages at {args.bw:g} Hz; --bw "
+                   f"{_coarser(args.bw, tfs.averages)} gives about 10, --band LO HI shows the "
+                   "bins anyway")
+            raise TwindError(msg)
+        tfs = tfs.band(*band)
+        print(f"twind tf: {band[0]:g}-{band[1]:g} Hz, where IN1 is driven by EXC (--band for "
               "others)", file=sys.stderr)
     if args.json:
         strictjson.dump(tfs.to_json(), sys.stdout)
@@ -356,16 +372,16 @@ def cmd_tf(args: argparse.Namespace) -> int:
 
 def _plot_tfs(tfs, path: Path) -> tuple[Path, Path]:  # noqa: ANN001 - TFSet
     """``twind tf -o``: the measured IN1/EXC matrix, and the plant beside it (``_plant``)."""
-    from twind.plotting import MIN_COHERENCE, Measured, bode_matrix
+    from twind.plotting import Measured, bode_matrix
 
     f = tfs.frequency_hz
     keep = f > 0
     P, sigma = tfs.plant()
     rows = [tfs.responses.index(d) for d in tfs.excited]
+    driven = tfs.coherent()
     # the inverse mixes every excitation: a plant bin is as good as the worst excited DOF's
-    own = tfs.coherence["IN1"][:, rows, np.arange(len(rows))].min(axis=1) >= MIN_COHERENCE
-    closed = Measured.coherent(tfs.tf["IN1"][keep], tfs.sigma("IN1")[keep],
-                               tfs.coherence["IN1"][keep])
+    own = driven[:, rows, np.arange(len(rows))].all(axis=1)
+    closed = Measured(tfs.tf["IN1"][keep], tfs.sigma("IN1")[keep], driven[keep])
     plant = Measured(P[keep], sigma[keep], np.broadcast_to(own[keep, None, None], P[keep].shape))
     done = bode_matrix(f[keep], path, tfs.responses, tfs.excited, measured={"IN1/EXC": closed},
                        title=f"{tfs.optic}: measured IN1/EXC ({tfs.averages} averages)")
@@ -887,15 +903,18 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 
 PROGRESS_UNITS = {"tf": "segment", "fit": "evaluation", "diagnose": "evaluation",
-                  "demo": "evaluation"}
-"""Commands that show a progress bar on a terminal, and what it counts (Welch segments
-summed, model evaluations of the fits)."""
+                  "demo": "evaluation", "campaign": "evaluation", "bench tf": "segment",
+                  "bench pull": "evaluation", "bench information": "evaluation",
+                  "bench diagnose": "evaluation", "bench freeswing": "optic"}
+"""Commands (``bench`` by suite) that show a progress bar on a terminal, and what it counts
+(Welch segments summed, model evaluations of the fits, optics rung down); the engine
+benchmark shows none, so that nothing runs beside what it times."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``twind`` console script."""
     args = build_parser().parse_args(argv)
-    unit = PROGRESS_UNITS.get(args.command)
+    unit = PROGRESS_UNITS.get(f"bench {args.suite}" if args.command == "bench" else args.command)
     try:
         with warnings.catch_warnings(), \
                 progress.shown(f"twind {args.command}", unit) if unit else nullcontext():

@@ -19,7 +19,8 @@ if TYPE_CHECKING:
 
 
 MIN_COHERENCE = 0.5
-"""Points below this coherence are drawn faded: their phase is mostly noise."""
+"""Points of a diaggui transfer function below this coherence are drawn faded: their phase
+is mostly noise."""
 
 
 @dataclass(frozen=True)
@@ -32,18 +33,13 @@ class Measured:
     sigma : ndarray, optional
         Standard error of the real and imaginary parts (error bars; residuals in sigma).
     good : ndarray of bool, optional
-        The points to trust (coherent ones, or those a fit used; :meth:`coherent`); the
+        The points to trust (those driven by the excitation, or those a fit used); the
         others are faded, with no error bar and no residual. Default: all.
     """
 
     h: NDArray[np.complex128]
     sigma: NDArray[np.float64] | None = None
     good: NDArray[np.bool_] | None = None
-
-    @classmethod
-    def coherent(cls, h: NDArray, sigma: NDArray | None, coherence: NDArray) -> Measured:
-        """Points trusted where the coherence reaches :data:`MIN_COHERENCE`."""
-        return cls(h, sigma, coherence >= MIN_COHERENCE)
 
     def trusted(self, i: int, j: int) -> NDArray[np.bool_]:
         """The trusted points of element (i, j)."""
@@ -119,7 +115,9 @@ def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str]
     for ax in axes[-1]:
         ax.set_xlabel("frequency [Hz]")
     axes[0, 0].set_xlim(f_hz[f_hz > 0].min(), f_hz.max())  # shared by every panel
-    axes[0, 0].legend(fontsize=7)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", ncol=len(labels) or 1, fontsize=8,
+               frameon=False, bbox_to_anchor=(0.5, 1 - 0.45 / height))  # above the panels
     fig.suptitle(title, y=1 - 0.25 / height)
     # fixed margins (inches): tight_layout measures every tick label, seconds for a matrix
     fig.subplots_adjust(left=1.05 / width, right=1 - 0.15 / width, bottom=0.6 / height,

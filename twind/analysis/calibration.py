@@ -8,7 +8,6 @@ standard deviation 1 (the issue asks 1.0 +- 0.1 over at least 100 realisations).
 from __future__ import annotations
 
 import multiprocessing
-import sys
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -19,6 +18,7 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
+from twind import progress
 from twind.analysis.fit import FIT_PARAMS, fit, param_value, with_params
 from twind.config import OpticConfig
 from twind.simulation.measurement import SETTLE_S, measure_tfs
@@ -76,8 +76,8 @@ class PullReport:
 
 def pull_test(cfg: OpticConfig, n: int = 100, drift: Mapping[str, float] = DRIFT,
               params: Sequence[str] = FIT_PARAMS, *, bw: float = 0.1, averages: int = 10,
-              rms: float = 2.0, seed: int = 0, estimator: str = "welch", workers: int = 1,
-              verbose: bool = True) -> PullReport:
+              rms: float = 2.0, seed: int = 0, estimator: str = "welch", workers: int = 1
+              ) -> PullReport:
     """Fit `n` noise realisations of `cfg`'s optic drifted by the factors `drift`.
 
     Parameters
@@ -121,10 +121,7 @@ def pull_test(cfg: OpticConfig, n: int = 100, drift: Mapping[str, float] = DRIFT
             pulls[i] = (values - truth) / sigma
             rel[i] = sigma / values
             log_pulls[i] = np.log(values / truth) / rel[i]
-            if verbose:
-                _progress(pulls[: i + 1], n, time.perf_counter() - t0)
-    if verbose:
-        sys.stderr.write("\n")
+            _progress(pulls[: i + 1], n)
     return PullReport(names, pulls, log_pulls, rel, time.perf_counter() - t0)
 
 
@@ -135,13 +132,11 @@ def _realisation(real: OpticConfig, cfg: OpticConfig, names: list[str], measurem
     return r.values, r.sigma
 
 
-def _progress(pulls: NDArray[np.float64], n: int, seconds: float) -> None:
-    done = len(pulls)
+def _progress(pulls: NDArray[np.float64], n: int) -> None:
+    """Realisations done and the pulls' spread so far, on the progress bar."""
     so_far = pulls[np.isfinite(pulls)]
-    std = f"pull std so far {so_far.std(ddof=1):.3f}" if so_far.size > 1 else ""
-    sys.stderr.write(f"\rpull test [{'#' * int(30 * done / n):30s}] {done}/{n} "
-                     f"{seconds:5.0f} s  {std}")
-    sys.stderr.flush()
+    std = f", pull std so far {so_far.std(ddof=1):.3f}" if so_far.size > 1 else ""
+    progress.note(f"realisation {len(pulls)}/{n}{std}")
 
 
 def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,

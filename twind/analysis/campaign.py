@@ -21,7 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
-from twind import strictjson
+from twind import progress, strictjson
 from twind.analysis.fit import FIT_PARAMS, FitResult, fit, with_params
 from twind.analysis.tf import TFSet, from_session
 from twind.config import OpticConfig
@@ -150,8 +150,7 @@ class Round:
 def run_campaign(nominal: OpticConfig, twin: Twin, dofs: Sequence[str] = ("POS", "PIT", "YAW"),
                  band: tuple[float, float] = (0.1, 10.0), rms: float = 10.0,
                  period_s: float = 20.0, averages: int = 5, params: Sequence[str] = FIT_PARAMS,
-                 target: float = 0.01, max_rounds: int = 8, verbose: bool = True
-                 ) -> list[Round]:
+                 target: float = 0.01, max_rounds: int = 8) -> list[Round]:
     """Measure and fit until every identifiable parameter is known to `target` (relative).
 
     Parameters
@@ -178,24 +177,21 @@ def run_campaign(nominal: OpticConfig, twin: Twin, dofs: Sequence[str] = ("POS",
                "coherence-based errors worth fitting with")
         raise TwindError(msg)
     current, measured, rounds, twin_s = nominal, [], [], 0.0
-    t0 = time.perf_counter()
     for k in range(1, max_rounds + 1):
         design = design_information(current, dofs, band, rms, averages * period_s, period_s,
                                     params)
-        _progress(verbose, k, "measuring", twin_s, rounds, t0)
+        _progress(k, "measuring", twin_s, rounds)
         measured.append(tones_only(twin.measure(design, averages), design))
         twin_s += len(dofs) * (SETTLE_S + averages * period_s)
-        _progress(verbose, k, "fitting", twin_s, rounds, t0)
+        _progress(k, "fitting", twin_s, rounds)
         result = fit(measured, current, params)
         values = result.identified()
         current = replace(current, sus=with_params(current.sus, values))
         twin.push(values)
         rounds.append(Round(k, twin_s, design, result))
-        _progress(verbose, k, "done", twin_s, rounds, t0)
+        _progress(k, "done", twin_s, rounds)
         if rounds[-1].worst[1] <= target:
             break
-    if verbose:
-        sys.stderr.write("\n")
     return rounds
 
 
@@ -212,14 +208,11 @@ def tones_only(tfs: TFSet, design: InformationDesign) -> TFSet:
     return replace(tfs, coherence=coherence)
 
 
-def _progress(verbose: bool, k: int, what: str, twin_s: float, rounds: list[Round],
-              t0: float) -> None:
-    if not verbose:
-        return
-    worst = f"worst {rounds[-1].worst[0]} {100 * rounds[-1].worst[1]:.3g} %" if rounds else ""
-    sys.stderr.write(f"\rround {k} {what:9s} twin {twin_s / 60:5.1f} min  {worst:32s} "
-                     f"wall {time.perf_counter() - t0:5.0f} s")
-    sys.stderr.flush()
+def _progress(k: int, what: str, twin_s: float, rounds: list[Round]) -> None:
+    """The round, what it is doing, the twin time spent and the worst parameter so far, on
+    the progress bar."""
+    worst = f", worst {rounds[-1].worst[0]} {100 * rounds[-1].worst[1]:.3g} %" if rounds else ""
+    progress.note(f"round {k} {what}, twin {twin_s / 60:.1f} min{worst}")
 
 
 def plot_rounds(rounds: list[Round], target: float, path: str | Path) -> Path:

@@ -258,9 +258,12 @@ class Diagnosis:
             return f"consistent with the nominal model (chi2/nu {self.nominal.chi2_nu:.3f})"
         if not self.chosen:
             return f"no hypothesis explains the misfit; it lies in {rest}"
+        rivals = "".join(f"; {r.effect} fits nearly as well as {r.rival_of}: these data "
+                         "cannot tell them apart" for r in self.effects if r.rival_of)
         if rest:
-            return f"{names} explain(s) part of the misfit ({chi2}); a residual remains in {rest}"
-        return f"explained by {names} ({chi2}); nothing remains"
+            return (f"{names} explain(s) part of the misfit ({chi2}); a residual remains in "
+                    f"{rest}{rivals}")
+        return f"explained by {names} ({chi2}); nothing remains{rivals}"
 
     def to_json(self) -> dict:
         """The object of the issue, exactly."""

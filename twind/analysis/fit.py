@@ -533,7 +533,7 @@ class FitResult:
                f"{', '.join(f'{c:+.2f}' for c in self.bin_correlation)})"]
         for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal, strict=True):
             if math.isnan(s):  # held at its start: no fitted value to show
-                out.append(f"  {n:15s} {'':12s} {'unidentifiable, held at':26s} start {p0:.6g}")
+                out.append(f"  {n:15s} {'':12s} {'unidentifiable, held':26s} start {p0:.6g}")
             else:
                 out.append(f"  {n:15s} {v:12.6g} {f'+- {s:.4g} ({100 * s / v:.2g} %)':26s} "
                            f"start {p0:.6g}")
@@ -832,12 +832,17 @@ def _monomial(names: list[str], powers: NDArray) -> str:
 def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     """Per element: measured ``IN1/EXC`` (the bins the fit used with their errors, the
     others faded) with the starting and fitted models, and beneath it the residual of each
-    in units of the measurement's sigma (what the fit minimised)."""
+    in units of the measurement's sigma (what the fit minimised), over the span of the bins
+    the fit used: a recording reaches Nyquist, its excitation does not."""
     from twind.plotting import Measured, bode_matrix
 
+    used = FitData.from_tfset(tfs, result.min_coherence).mask
+    f_used = tfs.frequency_hz[used.any(axis=(1, 2))]
+    if f_used.size:
+        tfs = tfs.band(f_used[0], f_used[-1])
+        used = FitData.from_tfset(tfs, result.min_coherence).mask
     data = FitData.from_tfset(tfs, min_coherence=0.0)
     model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
-    used = FitData.from_tfset(tfs, result.min_coherence).mask
     curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
               model(result.as_dict())}
     title = (f"{result.optic} IN1/EXC" + (f", nominal + {result.effect}" if result.effect

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from scipy import ndimage, signal
 from scipy.optimize import least_squares, minimize_scalar
 
-from twind import DOFS
+from twind import DOFS, progress
 from twind.analysis.modes import FITTED, fit_modes, modes_hz, normal_modes, with_params
 from twind.config import OpticConfig
 from twind.loop.plant import Plant
@@ -483,17 +483,19 @@ def benchmark(optic: OpticConfig, n: int = 8, duration_s: float = 1000.0, seed: 
         dg = np.max(np.abs((got - 1) - (true_g - 1)) / np.abs(true_g - 1))
         worst = np.maximum(worst, [df, q_err[worst_q], dg])
         gap = 1e3 * abs(f_true["POS"] - f_true["SIDE"])
+        halves = ("too short to halve" if found.halves is None else "halves within "
+                  f"{max(abs(x) for p in found.halves.values() for x in p):.1f} sigma")
+        progress.tick()
         yield (f"optic {k + 1}: frequencies within {1e3 * df:.3f} mHz, Qs within "
-                    f"{100 * q_err[worst_q]:.1f} % ({worst_q}), OSEM gain imbalances within "
-                    f"{100 * dg:.0f} %, errors within {np.max(np.abs(pulls[-1])):.1f} sigma, "
-                    f"halves within {max(abs(x) for p in found.halves.values() for x in p):.1f} "
-                    f"sigma; POS-SIDE {gap:.1f} mHz apart")
+               f"{100 * q_err[worst_q]:.1f} % ({worst_q}), OSEM gain imbalances within "
+               f"{100 * dg:.0f} %, errors within {np.max(np.abs(pulls[-1])):.1f} sigma, "
+               f"{halves}; POS-SIDE {gap:.1f} mHz apart")
     pulls_f, pulls_q = np.array(pulls)[:, :4], np.array(pulls)[:, 4:]
     yield (f"worst of {n}: {1e3 * worst[0]:.3f} mHz (target 1), Q {100 * worst[1]:.1f} % "
-                f"(target 20), OSEM gains {100 * worst[2]:.0f} % (target 35)")
+           f"(target 20), OSEM gains {100 * worst[2]:.0f} % (target 35)")
     yield (f"errors in standard errors over {pulls_f.size} modes, RMS (1 if the standard "
-                f"errors are right): frequencies {np.sqrt(np.mean(pulls_f**2)):.2f}, "
-                f"Qs {np.sqrt(np.mean(pulls_q**2)):.2f}")
+           f"errors are right): frequencies {np.sqrt(np.mean(pulls_f**2)):.2f}, "
+           f"Qs {np.sqrt(np.mean(pulls_q**2)):.2f}")
 
 
 def eigenmodes(optic: OpticConfig, plant: Plant | None = None

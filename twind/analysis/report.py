@@ -62,9 +62,10 @@ def _number(x: float | None, digits: int = 4) -> str:
 
 
 def _nominal(d: Diagnosis) -> str:
+    """The refitted nominal parameters; what the data cannot fix is held at its start."""
     params = d.nominal.to_json()["params"]
-    rows = [(n, _number(p["value"], 6), _number(p["sigma"], 3),
-             "unidentifiable" if p["sigma"] is None else
+    rows = [(n, "held at start" if p["sigma"] is None else _number(p["value"], 6),
+             _number(p["sigma"], 3), "unidentifiable" if p["sigma"] is None else
              f"{100 * p['sigma'] / abs(p['value']):.2g} %", _number(p["start"], 6))
             for n, p in params.items()]
     return _table("nominal", ("parameter", "value", "sigma", "relative", "start"), rows)

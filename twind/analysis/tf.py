@@ -12,6 +12,7 @@ with scipy.signal). The standard error of a Welch estimate is Bendat & Piersol's
 
 from __future__ import annotations
 
+import math
 import re
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -49,6 +50,20 @@ class Kernel:
 
     offsets_hz: NDArray[np.float64]  # (K,)
     weights: NDArray[np.complex128]  # (nf, K, n_excited)
+
+
+def coherence_floor(averages: int, tests: int, at_least: float = 0.5,
+                    false_alarm: float = 0.01) -> float:
+    """The coherence a bin must reach to count as driven: `at_least`, and more than an
+    undriven bin reaches in any of `tests` bins but with probability `false_alarm`.
+
+    With ``n`` averages an undriven bin's estimate exceeds ``x`` with probability
+    ``(1 - x)^(n - 1)`` (Carter, Knapp and Nuttall 1973): with 3 averages a quarter of the
+    noise passes 0.5, and a recording's 800 000 bins reach it up to Nyquist.
+    """
+    if averages < 2:
+        return math.inf  # one average's coherence is 1, whatever the signals
+    return max(at_least, 1.0 - (false_alarm / max(tests, 1)) ** (1.0 / (averages - 1)))
 
 
 @dataclass
@@ -102,15 +117,22 @@ class TFSet:
         var = (s1**2) @ (np.abs(inv) ** 2) + (np.abs(P) ** 2) @ (so**2) @ (np.abs(inv) ** 2)
         return P, np.sqrt(var)
 
-    def coherent_band(self, min_coherence: float = 0.5) -> tuple[float, float]:
-        """From the lowest to the highest frequency where some excited DOF's IN1 is coherent
-        with its own EXC (at least `min_coherence`): where the excitation reached the optic.
-        The whole span when no frequency is."""
+    def coherent(self, point: str = "IN1", at_least: float = 0.5) -> NDArray[np.bool_]:
+        """The elements of ``point``/EXC driven by their excitation, bin by bin: coherence of
+        at least `at_least` and beyond what noise alone reaches (:func:`coherence_floor`
+        over every element)."""
+        g2 = self.coherence[point]
+        return g2 >= coherence_floor(self.averages, g2.size, at_least)
+
+    def coherent_band(self, at_least: float = 0.5) -> tuple[float, float] | None:
+        """From the lowest to the highest frequency where some excited DOF's IN1 is driven by
+        its own EXC (:meth:`coherent`): where the excitation reached the optic. None when no
+        frequency is."""
         rows = [self.responses.index(d) for d in self.excited]
-        g2 = self.coherence["IN1"][:, rows, np.arange(len(rows))]
-        hit = np.flatnonzero((g2 >= min_coherence).any(axis=1))
+        own = self.coherent("IN1", at_least)[:, rows, np.arange(len(rows))]
+        hit = np.flatnonzero(own.any(axis=1))
         f = self.frequency_hz
-        return (float(f[hit[0]]), float(f[hit[-1]])) if hit.size else (float(f[0]), float(f[-1]))
+        return (float(f[hit[0]]), float(f[hit[-1]])) if hit.size else None
 
     def band(self, lo: float, hi: float) -> TFSet:
         """Only the frequencies in [lo, hi].
