@@ -73,7 +73,7 @@ def test_an_effect_is_scaled_to_the_concealed_size(etmx, reference: FitData,  # 
 @pytest.mark.parametrize("rise", [1e-4, -1e-4])
 def test_a_raised_clamp_is_model_md_wire_asymmetry_from_the_geometry(etmx, rise: float
                                                                      ) -> None:  # noqa: ANN001
-    """The geometric rigid body's change of POS<->YAW stiffness is MODEL.md's
+    """The geometric rigid body's change of POS<->YAW stiffness is docs/model.md's
     ``-m g delta / l`` for the geometry's own pendulum-centre offset ``delta``, which is
     ``R2 d / (2 l + d)`` for a clamp raised by ``d``; the other loop's clamp flips it.
     Nothing but the stiffness changes, and POS<->PIT keeps the plant's sign convention."""
@@ -123,7 +123,7 @@ def test_a_pitched_optic_is_model_md_bounce_roll_from_3d_kinematics(etmx, pitch:
 
 def test_a_yawed_optic_reads_side_as_model_md_side_coupling(etmx) -> None:  # noqa: ANN001
     """Tilted towards SIDE by a, each face head reads a SIDE and its coil pushes a along
-    SIDE: MODEL.md's side_coupling with sensing = actuation = a (away from the roll mode,
+    SIDE: docs/model.md's side_coupling with sensing = actuation = a (away from the roll mode,
     which the same tilt couples at second order)."""
     p = etmx.sus
     base = Plant.from_params(p, etmx.mechanics())

@@ -1,4 +1,4 @@
-"""The catalogue of physics left out (MODEL.md): each effect against an identity it must obey."""
+"""The catalogue of physics left out (docs/model.md): each effect against an identity it must obey."""
 
 from __future__ import annotations
 

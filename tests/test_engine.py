@@ -204,7 +204,7 @@ def test_discrete_loop_matches_golden_below_10_hz(etmx, golden) -> None:
 
     H = np.moveaxis(np.asarray(control.frequency_response(discrete_closed_loop(loop, R),
                                                           2 * np.pi * f).complex), -1, 0)
-    # the engine's loop has MODEL.md's one cycle of delay and nothing more: the same model
+    # the engine's loop has docs/model.md's one cycle of delay and nothing more: the same model
     # with half a cycle more (what a zero-order-hold plant would add) is far off
     late_loop = etmx.loop()
     late_loop.plant = dataclasses.replace(late_loop.plant,
@@ -343,7 +343,7 @@ def test_welch_transfer_functions_match_golden(etmx, golden) -> None:
 
 
 def _predicted_in1_psd(loop, spec: NoiseSpec, f: np.ndarray) -> np.ndarray:
-    """One-sided PSD (f, 4) of IN1 with no excitation: every noise source of MODEL.md through
+    """One-sided PSD (f, 4) of IN1 with no excitation: every noise source of docs/model.md through
     the continuous closed loop, IN1 = (I - P K)^-1 N."""
     s = 2j * np.pi * f
     P = loop.plant.response(f)
@@ -361,7 +361,7 @@ def _predicted_in1_psd(loop, spec: NoiseSpec, f: np.ndarray) -> np.ndarray:
 
 def test_noise_spectra(etmx) -> None:
     spec, loop = etmx.noise, etmx.loop()
-    assert spec.enabled and spec.osem_m == 1e-10  # the default twin noise of MODEL.md
+    assert spec.enabled and spec.osem_m == 1e-10  # the default twin noise of docs/model.md
     eng = Engine([loop], noise=spec, seed=21)
     n, seconds = BLOCK_S * RI, 512
     blk = eng.new_block(n)

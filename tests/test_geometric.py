@@ -151,7 +151,7 @@ def test_com_off_wire_plane_along_beam_pitches_without_pos_yaw_coupling():
     assert pose["PIT"] == pytest.approx(np.arctan(delta / B), rel=1e-6)
     assert abs(pose["POS"]) < 1e-12 and abs(pose["YAW"]) < 1e-12
     # y -> -y mirror symmetry survives (POS even, YAW odd): no POS<->YAW coupling at any order,
-    # contrary to a literal reading of MODEL.md's wire_asymmetry (delta along the beam)
+    # contrary to a literal reading of docs/model.md's wire_asymmetry (delta along the beam)
     assert abs(_k(mod, "POS", "YAW")) < 1e-9 * M_KG * G * delta / L
     # the break-off line now sits sqrt(b^2 + delta^2) above the centre of mass
     assert _k(mod, "POS", "PIT") == pytest.approx(M_KG * G * np.hypot(B, delta) / L, rel=1e-6)
@@ -161,7 +161,7 @@ def test_com_off_wire_plane_along_beam_pitches_without_pos_yaw_coupling():
 
 
 def test_wire_asymmetry_pos_yaw_coupling():
-    """MODEL.md ``K_xphi = K_phix = -m g delta / l`` with delta the sideways CoM offset.
+    """docs/model.md ``K_xphi = K_phix = -m g delta / l`` with delta the sideways CoM offset.
 
     Raising the +y clamp by ``d`` (wire cut to fit) makes the +y wire longer, hence softer along
     the beam: the pendulum centre (T/L-weighted mean of the break-off y) moves to -y, i.e. the

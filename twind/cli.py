@@ -770,7 +770,7 @@ def build_parser() -> argparse.ArgumentParser:
     _input_arguments(fitp)
     fitp.add_argument("--config", help="twin config (TOML) holding the optic's nominal model")
     fitp.add_argument("--params", nargs="+", metavar="NAME",
-                      help="parameters to fit (default: all nine of MODEL.md)")
+                      help="parameters to fit (default: all nine of docs/model.md)")
     fitp.add_argument("--min-coherence", type=float, default=0.5,
                       help="IN1/EXC bins less coherent (averaged over neighbours) are unused")
     fitp.add_argument("-o", "--output", help=".png: measured, nominal and fitted Bode matrix")

@@ -140,7 +140,7 @@ class TwinClient:
 
     def params(self, optic: str, effect: dict | None = None, **changes: float) -> dict:
         """An optic's parameters and filter modules; with `changes` (nominal parameters)
-        or `effect` (``{"id": "coil_imbalance", "values": {...}}``, MODEL.md's catalogue;
+        or `effect` (``{"id": "coil_imbalance", "values": {...}}``, the catalogue of docs/model.md;
         ``{"id": None}`` removes it), set them live first."""
         body = {"optic": optic, **({"set": changes} if changes else {}),
                 **({"effect": effect} if effect is not None else {})}

@@ -23,7 +23,7 @@ from twind.analysis.fit import FIT_PARAMS, fit, param_value, with_params
 from twind.config import OpticConfig
 from twind.simulation.measurement import SETTLE_S, measure_tfs
 
-# a few-percent drift of every nominal parameter, as MODEL.md describes a real optic
+# a few-percent drift of every nominal parameter, as docs/model.md describes a real optic
 DRIFT = {"wire_length_m": 0.983, "b_m": 1.027, "R1_m": 0.975, "coil_N_per_ct": 0.968,
          "osem_lever_m": 1.012, "Q_POS": 0.87, "Q_PIT": 1.3, "Q_YAW": 1.1, "Q_SIDE": 0.8}
 

@@ -2,7 +2,7 @@
 (``twind bench --suite diagnose``).
 
 Each case is an optic whose nominal parameters drifted at random (:data:`SPREAD`) and,
-except for the nulls, that carries one effect of MODEL.md's catalogue, put into the plant
+except for the nulls, that carries one effect of the catalogue of docs/model.md, put into the plant
 the twin runs *by hand here*: the coil or OSEM columns of the actuation and sensing
 matrices, the loop delay, the coil-driver pole, the SIDE column of the face OSEMs; a wire
 asymmetry is one loop's clamp raised in the geometric rigid-body model (:func:`raised_clamp`);
@@ -104,7 +104,7 @@ class Case:
     plant : Plant
         The plant the twin runs.
     truth : dict
-        The effect's parameters in MODEL.md's names.
+        The effect's parameters in the names of docs/model.md.
     largest_sigma : float
         Largest change of one bin of IN1/EXC the effect makes, in standard errors.
     present : float
@@ -129,11 +129,11 @@ def drifted(cfg: OpticConfig, rng: np.random.Generator) -> OpticConfig:
 
 def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64],
            sus: SOSParams | None = None, shape: dict | None = None) -> tuple[Plant, dict]:
-    """`plant` with `effect` of `size` put in by hand, and its parameters in MODEL.md's names.
+    """`plant` with `effect` of `size` put in by hand, and its parameters in the names of docs/model.md.
 
     `direction` (4 values) spreads an imbalance over the face coils or OSEMs.
     ``wire_asymmetry`` is one wire loop's clamp raised by `size` (m) in the geometric
-    rigid-body model of `sus` (the suspension's parameters), not MODEL.md's formula.
+    rigid-body model of `sus` (the suspension's parameters), not docs/model.md's formula.
     ``resonance`` is a body of mass `size` (kg) attached as `shape` says (``f_hz``, ``q``,
     ``point_m``, ``axis``: :func:`attached_body`); ``channel_filter`` one channel's stage
     with its zero `size` (a fraction) above its pole (``kind``, ``channel``, ``pole_hz``:
@@ -143,7 +143,7 @@ def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64
     if effect == "channel_filter":
         return one_stage(plant, size, **(shape or {}))
     if effect == "coil_imbalance":
-        gains = size * direction  # MODEL.md's g_i: F_i (1 + g_i)
+        gains = size * direction  # docs/model.md's g_i: F_i (1 + g_i)
         act = plant.actuation.copy()
         act[:, :4] *= 1 + gains
         return replace(plant, actuation=act), {"gains": dict(zip(FACES, gains.tolist(),
@@ -181,7 +181,7 @@ def raised_clamp(plant: Plant, sus: SOSParams, rise_m: float) -> tuple[Plant, di
 
     The change it makes to the POS/PIT/YAW stiffness comes from the geometric rigid body
     (equilibrium and Hessian of the wires), so the longer wire's softer pull, and with it
-    the POS<->YAW coupling, is not MODEL.md's formula put back; MODEL.md's ``delta_m`` is
+    the POS<->YAW coupling, is not docs/model.md's formula put back; docs/model.md's ``delta_m`` is
     the geometry's pendulum-centre offset."""
     from twind.model.geometric import WireGeometry, geometric_model, pendulum_centre_offset
 
@@ -214,7 +214,7 @@ def tilted_heads(plant: Plant, sus: SOSParams, towards_side: float, towards_vert
     point ``r``: ``n . (t + theta x r)``, with ``t = (POS, SIDE, VERT)`` and ``theta`` =
     (ROLL, PIT, -YAW) in the plant's sign convention; the modes' mass, stiffness and damping
     are the geometric model's (its roll a little above ``sqrt(k_v R2^2 / I_roll)``).
-    Nothing goes through the catalogue's ``bounce_roll``; MODEL.md's parameters come out of
+    Nothing goes through the catalogue's ``bounce_roll``; docs/model.md's parameters come out of
     the geometry: ``vertical`` = (sensing x actuation of VERT per face head), ``roll`` the
     same of ROLL per unit lever, and the modes' frequencies."""
     from twind.model.geometric import WireGeometry, geometric_mechanics

@@ -1,7 +1,7 @@
 """Fit an optic's nominal physical parameters to its measured closed-loop transfer functions.
 
 The data are the ``IN1/EXC`` columns of the excited DOFs, each bin weighted by its
-Bendat-Piersol error (a local-polynomial estimate by its own); the model is MODEL.md's
+Bendat-Piersol error (a local-polynomial estimate by its own); the model is docs/model.md's
 ``IN1/EXC = (I - P K)^-1 - I`` with the optic's configured mechanics (analytical or
 geometric) and controller. ``IN1/EXC`` is fitted rather than the recovered plant because its
 errors are those of one estimate, while the plant's mix the correlated errors of IN1 and OUT;

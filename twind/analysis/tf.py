@@ -1,6 +1,6 @@
 """Transfer functions from the damping loop's test points: IN1/EXC, IN2/EXC, OUT/EXC, each
 with its coherence and standard error, assembled into [response DOF x excited DOF] matrices,
-and the open-loop plant recovered from them (seed eq. 14, MODEL.md's sign convention):
+and the open-loop plant recovered from them (docs/model.md's sign convention):
 
     P = (IN1/EXC) (IN2/EXC)^-1 K^-1 = (IN1/EXC) (OUT/EXC)^-1
 

@@ -1,6 +1,6 @@
 """One optic's damping loop: the plant the loop sees and a filter module per DOF.
 
-Closed-loop test-point responses follow MODEL.md: ``IN2/EXC = (I - P K)^-1``,
+Closed-loop test-point responses follow docs/model.md: ``IN2/EXC = (I - P K)^-1``,
 ``IN1/EXC = IN2/EXC - I``, ``OUT/EXC = K IN2/EXC``.
 """
 

@@ -1,4 +1,4 @@
-"""CDS input and output matrices between OSEM basis and DOF basis (MODEL.md)."""
+"""CDS input and output matrices between OSEM basis and DOF basis (docs/model.md)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The suspension as the damping loop sees it: coil drive counts in, OSEM metres out.
 
-``P(s) = IN1/OUT = InMat . Sens . (M s^2 + C s + K)^-1 . Act . OutMat . exp(-s tau)`` (MODEL.md).
+``P(s) = IN1/OUT = InMat . Sens . (M s^2 + C s + K)^-1 . Act . OutMat . exp(-s tau)`` (docs/model.md).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ class Plant:
     delay_s : float
         Pure delay in the drive path.
     drive_pole_hz : float
-        A real pole in every coil-driver chain (``inf``: none; MODEL.md's ``actuator_pole``).
+        A real pole in every coil-driver chain (``inf``: none; docs/model.md's ``actuator_pole``).
     channel_filters : tuple of (str, int, float, float)
         Stages on single channels: ``("coil" or "osem", channel index, pole Hz, zero Hz)``
         multiply that coil's drive (that OSEM's reading) by ``(1 + s/2 pi zero) /
@@ -54,7 +54,7 @@ class Plant:
 
     @classmethod
     def from_params(cls, p: SOSParams, mech: Mechanics) -> Plant:
-        """The nominal OSEM geometry and CDS matrices of MODEL.md around `mech`."""
+        """The nominal OSEM geometry and CDS matrices of docs/model.md around `mech`."""
         return cls(mech, sensing_matrix(p, mech), actuation_matrix(p, mech),
                    input_matrix(p.osem_lever_m), output_matrix(), p.loop_delay_s)
 

@@ -1,4 +1,4 @@
-"""The LIGO-T000134 analytical SOS model in the form MODEL.md states it (POS, PIT, YAW, SIDE)."""
+"""The LIGO-T000134 analytical SOS model in the form docs/model.md states it (POS, PIT, YAW, SIDE)."""
 
 from __future__ import annotations
 

@@ -1,10 +1,10 @@
-"""Physics the nominal model leaves out: MODEL.md's catalogue, each entry a change to the plant.
+"""Physics the nominal model leaves out: the catalogue of docs/model.md, each entry a change to the plant.
 
 Every effect is zero at zero parameters, so "nominal + effect" nests the nominal model (what
-a likelihood-ratio test needs).  Parameters carry MODEL.md's names, flattened for fitting:
+a likelihood-ratio test needs).  Parameters carry the names of docs/model.md, flattened for fitting:
 ``gains`` {UL, UR, LL, LR} become ``gain_UL`` ... ``gain_LR``.
 
-| id               | physics (MODEL.md)                                          | parameters              |
+| id               | physics (docs/model.md)                                        | parameters              |
 | ---------------- | ----------------------------------------------------------- | ----------------------- |
 | coil_imbalance   | face coil i pushes F_i (1 + g_i)                             | gain_UL .. gain_LR      |
 | osem_imbalance   | face OSEM i reads s_i (1 + g_i)                              | gain_UL .. gain_LR      |
@@ -68,7 +68,7 @@ class Effect:
     Attributes
     ----------
     id : str
-        MODEL.md's identifier.
+        the identifier in docs/model.md.
     params : tuple of str
         Its parameters (all zero: the nominal model).
     physics : str
@@ -353,7 +353,7 @@ def with_effect(plant: Plant, sus: SOSParams, effect: str, values: Mapping[str, 
 
 def model_names(effect: str, values: Mapping[str, float], sigma: Mapping[str, float | None]
                 ) -> tuple[dict, dict]:
-    """An effect's fitted parameters and their sigmas in MODEL.md's names: the face gains
+    """An effect's fitted parameters and their sigmas in the names of docs/model.md: the face gains
     as ``{"gains": {"UL": ...}}``, a driver pole as ``f_hz`` (fitted as 1/f, which is
     linear near the nominal model; its sigma propagated to first order)."""
     if effect in ("coil_imbalance", "osem_imbalance"):

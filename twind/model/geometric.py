@@ -31,7 +31,7 @@ Potential energy (wires only pull, so a segment shorter than ``L0_i`` stores not
    ``m g b`` of pitch and the ``-T (R2 - R1) R2 / L`` that turns ``R2^2`` into ``R1 R2`` in yaw).
    Gravity acts at the centre of mass, so it contributes no second derivative in these
    coordinates. Mass matrix: ``m 1`` for ``t`` and ``R I R^T`` for ``w``.
-3. **Coordinates** (MODEL.md OSEM convention, x along the beam, y sideways, z up):
+3. **Coordinates** (the OSEM convention of docs/model.md, x along the beam, y sideways, z up):
    ``POS = t_x, PIT = w_y, YAW = -w_z, SIDE = t_y, VERT = t_z, ROLL = w_x``, so a face point at
    ``(y, z)`` moves along x by ``POS + z PIT + y YAW`` and the face-coil torques are
    ``tau_PIT = sum z F``, ``tau_YAW = sum y F`` exactly as in :mod:`twind.model.osem`.
@@ -53,7 +53,7 @@ form one coupled pair: SIDE comes out 0.23 % below ``g/(l+b)`` (the roll inertia
 
 Sign quirk of the analytical model
 ----------------------------------
-MODEL.md (after T000134) writes ``K_x_theta = -m g b / l``. With the OSEM kinematics above
+docs/model.md (after T000134) writes ``K_x_theta = -m g b / l``. With the OSEM kinematics above
 (PIT positive moves the top of the face toward +x) a consistent rigid body gives
 ``K_POS,PIT = +m g b / l``: the break-off point at height ``b`` moves by ``x + b PIT`` and the
 wire pulls it back with ``-(m g / l)(x + b PIT)``. T000134's ``theta`` is therefore the opposite
@@ -61,12 +61,12 @@ pitch sign from the OSEM kinematics. This model stays physically consistent in t
 convention; magnitudes and eigenfrequencies agree with the analytical model, only the sign of the
 POS<->PIT off-diagonal (stiffness and admittance) differs.
 
-``wire_asymmetry`` of MODEL.md
+``wire_asymmetry`` of docs/model.md
 -------------------------------
 For near-vertical wires the POS<->YAW stiffness is ``K_POS,YAW = sum_i (T_i / L_i) y_i``
 (``y_i`` the lab-frame lateral lever arm of break-off ``i``), i.e. ``-(m g / l) delta`` with
 ``delta`` the sideways offset of the centre of mass from the wires' pendulum centre (the
-``T/L``-weighted mean of the ``y_i``). That is MODEL.md's ``K_xphi = -m g delta / l`` in the OSEM
+``T/L``-weighted mean of the ``y_i``). That is docs/model.md's ``K_xphi = -m g delta / l`` in the OSEM
 convention, with ``delta`` measured along SIDE. Two consequences of a consistent rigid body:
 
 - a centre of mass off the wire plane *along x* cannot couple POS and YAW at all (the geometry
@@ -94,7 +94,7 @@ from twind.model.params import ALL_DOFS, SOSParams
 DOFS: tuple[str, ...] = ALL_DOFS  # POS, PIT, YAW, SIDE, VERT, ROLL
 
 # q = S x with x = (t_x, t_y, t_z, w_x, w_y, w_z): POS=t_x, PIT=w_y, YAW=-w_z, SIDE=t_y, VERT=t_z,
-# ROLL=w_x. The minus on YAW makes a face point at +y move toward +x for positive YAW (MODEL.md).
+# ROLL=w_x. The minus on YAW makes a face point at +y move toward +x for positive YAW (docs/model.md).
 _S = np.zeros((6, 6))
 for _row, (_col, _sign) in enumerate([(0, 1), (4, 1), (5, -1), (1, 1), (2, 1), (3, 1)]):
     _S[_row, _col] = _sign
@@ -332,7 +332,7 @@ def geometric_mechanics(geom: WireGeometry) -> Mechanics:
 
 
 def pendulum_centre_offset(model: GeometricModel) -> float:
-    """MODEL.md's ``wire_asymmetry`` delta (m): how far the centre of mass lies along SIDE from
+    """docs/model.md's ``wire_asymmetry`` delta (m): how far the centre of mass lies along SIDE from
     the wires' pendulum centre, the ``T/L``-weighted mean lateral position of the break-offs.
 
     With it the POS<->YAW stiffness of near-vertical wires is ``-m g delta / l``

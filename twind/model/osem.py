@@ -1,7 +1,7 @@
 """Where the OSEMs sit on the optic and what they see and push (rigid-body kinematics).
 
 Face OSEMs look along the beam axis (POS) at (y, z) = (+-h, +-h) on the optic face; the SIDE
-OSEM looks along y at the centre-of-mass height (MODEL.md, "Sensors and coils").
+OSEM looks along y at the centre-of-mass height (docs/model.md, "OSEMs and coils").
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ FACE_POSITION = {"UL": (1, 1), "UR": (-1, 1), "LL": (1, -1), "LR": (-1, -1)}  # 
 
 
 def _face_row(dofs: tuple[str, ...], y: float, z: float) -> NDArray[np.float64]:
-    # displacement along x of the face point (y, z): x + z*PIT + y*YAW (MODEL.md convention)
+    # displacement along x of the face point (y, z): x + z*PIT + y*YAW (docs/model.md convention)
     lever = {"POS": 1.0, "PIT": z, "YAW": y}
     return np.array([lever.get(d, 0.0) for d in dofs])
 

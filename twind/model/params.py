@@ -1,6 +1,6 @@
 """Physical parameters of one small optic suspension (SOS), pygwinc style.
 
-Sources: LIGO-T000134 (SOS analytical model, Table 1), and ../shared/reference/MODEL.md for the
+Sources: LIGO-T000134 (SOS analytical model, Table 1), and docs/model.md for the
 C1 ETMX nominal numbers.
 """
 
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-G_MPS2 = 9.81  # m/s^2, the value MODEL.md and the golden TFs use
+G_MPS2 = 9.81  # m/s^2, the value docs/model.md and the golden TFs use
 
 ALL_DOFS = ("POS", "PIT", "YAW", "SIDE", "VERT", "ROLL")
 

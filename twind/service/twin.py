@@ -385,7 +385,7 @@ class TwinService:
     def params(self, request: dict) -> dict:
         """Get (``{"optic": "ETMX"}``) or set parameters: ``"set": {name: value}`` the
         nominal ones, ``"effect": {"id": ..., "values": {...}}`` physics the nominal model
-        leaves out (MODEL.md's catalogue; ``{"id": null}`` removes it), kept across later
+        leaves out (the catalogue of docs/model.md; ``{"id": null}`` removes it), kept across later
         changes of the nominal parameters; ``"watchdog": "rearm"`` re-arms a tripped
         watchdog."""
         name = request.get("optic", self.optics[0].name)

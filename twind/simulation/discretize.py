@@ -1,6 +1,6 @@
 """Discrete-time pieces shared by the engine and its checks.
 
-The plant is discretised with the bilinear (trapezoidal) rule. MODEL.md's loop has exactly one
+The plant is discretised with the bilinear (trapezoidal) rule. docs/model.md's loop has exactly one
 cycle of delay, ``exp(-s T)``, and nothing for the DAC's hold; a zero-order-hold plant would
 add half a cycle (1.9e-3 rad at 10 Hz), enough to pass for a ``loop_delay`` effect in a
 diagnosis. The bilinear plant behind a whole-cycle delay reproduces the model to ~(wT)^2/12.

@@ -1,4 +1,4 @@
-"""Noise the sensors see without excitation (MODEL.md "Noise"), as shaped white noise.
+"""Noise the sensors see without excitation (docs/model.md "Noise"), as shaped white noise.
 
 Each channel is white Gaussian noise through one second-order section, discretised with the
 bilinear transform so the shape holds up to a few kHz at the model rate.
@@ -20,7 +20,7 @@ class NoiseSpec:
     """Amplitude spectral densities (one-sided, per rtHz) of the default twin noise.
 
     OSEM: ``osem * sqrt(1 + (corner/f)^2)``; suspension point: ``sp * (1 Hz / f)^2`` (m, or rad
-    for yaw). MODEL.md floors f at ``floor_hz``; the twin realises the floor with poles there,
+    for yaw). docs/model.md floors f at ``floor_hz``; the twin realises the floor with poles there,
     so its spectra are ``osem * |(f + i corner)/(f + i floor)|`` and ``sp / |f - i floor|^2``
     (the same well above the floor, flat below it).
     """
