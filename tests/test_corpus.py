@@ -12,7 +12,7 @@ import browser
 import numpy as np
 import pytest
 
-from twind.analysis.corpus import (
+from twind.lab.corpus import (
     CONCEAL_SIGMA,
     FACES,
     STOP_HZ,
@@ -34,9 +34,9 @@ from twind.analysis.fit import FitData
 from twind.analysis.tf import from_session
 from twind.cli import main
 from twind.config import load_config
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.effects import CATALOGUE, model_names, with_effect
-from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
+from twind.lab.measurement import SETTLE_S, measure_tfs, record_measurement
 
 
 @pytest.fixture(scope="module")
@@ -209,7 +209,7 @@ def test_the_xml_route_is_a_diaggui_set_up_to_its_stop_frequency(etmx, tmp_path:
 @pytest.fixture(scope="module")
 def demo(etmx, tmp_path_factory: pytest.TempPathFactory) -> tuple:  # noqa: ANN001
     """twind demo's directory and its diagnoses of the "real" twin and the nominal one."""
-    from twind.analysis.corpus import run_demo
+    from twind.lab.corpus import run_demo
 
     out = tmp_path_factory.mktemp("demo")
     return (out, *run_demo(etmx, out, "actuator_pole", say=lambda _line: None))

@@ -17,13 +17,13 @@ import pytest
 from browser import tables
 from conftest import REFERENCE
 
-from twind.analysis.corpus import FACES, key_z
+from twind.lab.corpus import FACES, key_z
 from twind.analysis.diagnose import ALPHA, diagnose
-from twind.analysis.report import report_page
+from twind.viz.report import report_page
 from twind.cli import main
-from twind.config import NOMINAL_ETMX, load_config, load_optic
-from twind.loop.plant import Plant
-from twind.simulation.measurement import measure_tfs
+from twind.config import NOMINAL_ETMX, load_optic
+from twind.model.plant import Plant
+from twind.lab.measurement import measure_tfs
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 KEYS = {"consistent", "chi2_nu_nominal", "chi2_nu_final", "located", "effects",
@@ -110,7 +110,7 @@ def test_a_pitched_optic_s_bounce_is_named_from_its_compliance(etmx) -> None:  #
     geometric body's VERT and ROLL: corpus.tilted_heads): the BounceRoll notches keep the
     modes' peaks out of IN1/EXC, but the bounce's compliance, rising as f^2 against the
     optic's above the pendulum modes, names bounce_roll with its coupling."""
-    from twind.analysis.corpus import tilted_heads
+    from twind.lab.corpus import tilted_heads
 
     plant, truth = tilted_heads(Plant.from_params(etmx.sus, etmx.mechanics()), etmx.sus,
                                 0.0, 0.15)
@@ -152,7 +152,7 @@ def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  
     (corpus.attached_body: 3-D kinematics, a new coordinate of the mechanics), ringing in
     PIT/POS: a ``resonance`` anywhere in the band, not a catalogue effect, read as a body
     pulling along the beam at its point, with its mass."""
-    from twind.analysis.corpus import attached_body
+    from twind.lab.corpus import attached_body
 
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     body, truth = attached_body(plant, etmx.sus, 6e-5, 7.0, 30.0, (0.0, 0.02))
@@ -187,15 +187,16 @@ def test_one_readback_with_its_own_stage_is_named_with_its_corners(etmx) -> None
 def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noqa: ANN001
     from servicekit import serving
 
-    from twind.analysis.diagnose import push
     from twind.analysis.tf import from_diaggui
     from twind.client import TwinClient
     from twind.errors import TwindError
 
     d = diagnose(from_diaggui(NULL), etmx)
+    nominal, effect = d.final_model()
+    assert len(nominal) == 6 and effect is None  # example_null: the drift alone
     with serving("--optics", "ETMX") as endpoint:
-        assert push(d, [endpoint]).startswith("6 nominal parameter(s)")
         client = TwinClient([endpoint])
+        client.params("ETMX", effect=effect, **nominal)
         reply = client.params("ETMX")
         assert reply["params"]["wire_length_m"] == pytest.approx(d.final.as_dict()["wire_length_m"])
         gains = {"gain_UL": 0.01, "gain_LR": -0.01}
@@ -215,7 +216,7 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
                                                                     etmx) -> None:  # noqa: ANN001
     """A drifted optic with a concealed coil imbalance, measured on the twin and saved as
     diaggui files like example_null: from the files alone, the imbalance is named."""
-    from twind.analysis.calibration import DRIFT
+    from twind.lab.calibration import DRIFT
     from twind.analysis.diaggui import write_measurement_set
     from twind.analysis.fit import param_value, with_params
     from twind.analysis.tf import from_diaggui

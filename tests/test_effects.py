@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twind import DOFS
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.analytical import analytical_mechanics
 from twind.model.effects import CATALOGUE, CHANNEL_FILTERS, EffectError, with_effect
 from twind.model.params import SOSParams
@@ -89,7 +89,7 @@ def test_bad_effects_are_named(plant: Plant, sus: SOSParams) -> None:
 def test_a_resonance_is_the_body_the_corpus_attaches(plant: Plant, sus: SOSParams) -> None:
     """Two paths to one physics: the catalogue's unit-mass body pulling along g, and the
     corpus's body of mass m on a spring at a face point in 3-D kinematics."""
-    from twind.analysis.corpus import attached_body
+    from twind.lab.corpus import attached_body
 
     m, y, z = 2e-4, 0.012, -0.02
     real, truth = attached_body(plant, sus, m, 7.0, 30.0, (y, z))

@@ -17,6 +17,7 @@ from scipy import signal
 
 from twind import DOFS
 from twind.cli import main
+from twind.analysis.noise import in1_noise_asd
 from twind.config import load_config
 from twind.excitation import ExcitationRequest, Limits, check, make_waveform
 from twind.excitation.coherence import (
@@ -24,7 +25,6 @@ from twind.excitation.coherence import (
     coherence_cdf,
     design_coherence,
     design_coherent,
-    in1_noise_asd,
 )
 from twind.excitation.design import noise_shape
 from twind.loop.foton import parse_design

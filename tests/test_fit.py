@@ -125,8 +125,8 @@ def test_a_left_out_coil_imbalance_is_fitted_and_worth_its_parameters(etmx) -> N
     """The twin runs a plant whose face coils differ by a few % (its actuation matrix scaled
     here, not through the effects module); nominal + coil_imbalance explains it, the nominal
     model alone does not."""
-    from twind.loop.plant import Plant
-    from twind.simulation.measurement import measure_tfs
+    from twind.model.plant import Plant
+    from twind.lab.measurement import measure_tfs
 
     gains = np.array([0.03, -0.02, 0.01, -0.025])
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
@@ -150,7 +150,7 @@ def test_a_left_out_coil_imbalance_is_fitted_and_worth_its_parameters(etmx) -> N
 def test_pull_test_side_by_side_is_the_same_test() -> None:
     """Realisation i is seed + i whichever process runs it: two workers give the pulls one
     gives, and the report prints the pooled figure."""
-    from twind.analysis.calibration import pull_test
+    from twind.lab.calibration import pull_test
 
     cfg = load_config(None, ["ETMX"]).optics["ETMX"]
     kw = {"n": 2, "bw": 0.2, "estimator": "lpm"}

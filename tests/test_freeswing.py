@@ -74,7 +74,7 @@ def test_twind_freeswing_rings_a_served_twin_down_and_puts_its_damping_back(caps
 def test_twind_freeswing_on_a_recorded_ringdown(tmp_path, capsys) -> None:  # noqa: ANN001
     from twind.bus.codec import SampleBlock
     from twind.channels import osem_channel
-    from twind.model.osem import OSEMS
+    from twind import OSEMS
     from twind.bus.session import zenoh_config
     from twind.recording.reader import RecordingError, as_array, getdata
     from twind.recording.writer import McapSession

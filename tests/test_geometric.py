@@ -23,7 +23,7 @@ from twind.model.geometric import (
     wire_stiffness,
 )
 from twind.model.params import SOSParams
-from twind.plotting import plot_comparison
+from twind.viz.plotting import plot_comparison
 
 P = SOSParams()
 M_KG, G, L, B, R1, R2 = P.mass_kg, P.g_mps2, P.wire_length_m, P.b_m, P.R1_m, P.R2_m

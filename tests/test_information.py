@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from servicekit import serving
 
-from twind.analysis.calibration import DRIFT
-from twind.analysis.campaign import BusTwin, LocalTwin, run_campaign
+from twind.lab.calibration import DRIFT
+from twind.lab.campaign import BusTwin, LocalTwin, run_campaign
 from twind.analysis.fit import param_value, with_params
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_config, load_optic

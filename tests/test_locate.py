@@ -13,8 +13,8 @@ from twind.analysis.fit import fit
 from twind.analysis.locate import locate
 from twind.analysis.tf import from_diaggui
 from twind.config import load_config
-from twind.loop.plant import Plant
-from twind.simulation.measurement import measure_tfs
+from twind.model.plant import Plant
+from twind.lab.measurement import measure_tfs
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 

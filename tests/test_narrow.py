@@ -12,7 +12,7 @@ from twind import DOFS
 from twind.analysis.fit import ClosedLoopModel, FitData
 from twind.analysis.narrow import Scan, _columns, p_value, search
 from twind.config import load_config
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.effects import MODE_SEARCH, with_effect
 
 RES = 0.05

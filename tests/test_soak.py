@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from servicekit import free_port
 
-from twind.service.soak import soak
+from twind.lab.soak import soak
 
 
 @pytest.mark.slow

@@ -24,7 +24,7 @@ from twind.analysis.tf import (
 )
 from twind.cli import main
 from twind.config import load_config
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.analytical import analytical_mechanics
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
@@ -237,7 +237,7 @@ def test_welch_tfs_equal_scipy_csd_welch_coherence(n: int, nperseg: int, overlap
 
 def test_fast_reader_equals_read_session(tmp_path: Path) -> None:
     """read_channels gives read_session's channels, events and configuration."""
-    from twind.analysis.benchmark import session_channels, write_session
+    from twind.lab.tf_speed import session_channels, write_session
     from twind.recording.fastread import read_channels
     from twind.recording.reader import read_session
 
@@ -259,7 +259,7 @@ def test_fast_reader_equals_read_session(tmp_path: Path) -> None:
 def test_tf_benchmark_runs_end_to_end(tmp_path: Path) -> None:
     """``twind bench --suite tf`` machinery on 60 s: a session written, timed in process and
     as the CLI, and removed unless kept."""
-    from twind.analysis.benchmark import run_tf_benchmark
+    from twind.lab.tf_speed import run_tf_benchmark
 
     res = run_tf_benchmark(60.0, workdir=tmp_path, echo=False)
     assert res.channels == 12 and res.in_process_s > 0 and res.cli_s > 0

@@ -7,8 +7,7 @@ from collections.abc import Iterator
 import numpy as np
 from numpy.typing import NDArray
 
-from twind import DOFS
-from twind.model.osem import OSEMS
+from twind import DOFS, OSEMS
 
 TEST_POINTS = ("EXC", "IN1", "IN2", "OUT")
 UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}

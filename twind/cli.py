@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twind import DOFS, __version__, progress, strictjson
+from twind import __version__, DOFS, OSEMS, progress, strictjson
 from twind.errors import TwindError, TwindWarning
 
 
@@ -61,7 +61,7 @@ def cmd_model_response(args: argparse.Namespace) -> int:
         strictjson.dump(out, sys.stdout)
         sys.stdout.write("\n")
         return 0
-    from twind.plotting import bode_matrix
+    from twind.viz.plotting import bode_matrix
 
     path = Path(args.output or f"{cfg.name}_response.png")
     plant = path.with_name(f"{path.stem}_plant{path.suffix}")
@@ -79,7 +79,7 @@ def cmd_model_compare(args: argparse.Namespace) -> int:
     """Geometric rigid-body model against the analytical model for one optic."""
     from twind.config import load_config
     from twind.model.compare import compare_models
-    from twind.plotting import plot_comparison
+    from twind.viz.plotting import plot_comparison
 
     cfg = load_config(args.config, [args.optic]).select([args.optic])[0]
     cmp = compare_models(cfg.sus, np.geomspace(0.1, 10, 400))
@@ -237,7 +237,7 @@ def _bus_arguments(p: argparse.ArgumentParser) -> None:
 
 def cmd_soak(args: argparse.Namespace) -> int:
     """Serve, record, inject and attack for a while; print the service figures."""
-    from twind.service.soak import soak
+    from twind.lab.soak import soak
 
     report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config,
                   load=args.load, suspend=args.suspend)
@@ -372,7 +372,7 @@ def cmd_tf(args: argparse.Namespace) -> int:
 
 def _plot_tfs(tfs, path: Path) -> tuple[Path, Path]:  # noqa: ANN001 - TFSet
     """``twind tf -o``: the measured IN1/EXC matrix, and the plant beside it (``_plant``)."""
-    from twind.plotting import Measured, bode_matrix
+    from twind.viz.plotting import Measured, bode_matrix
 
     f = tfs.frequency_hz
     keep = f > 0
@@ -395,7 +395,7 @@ def _show_transfers(args: argparse.Namespace, why: str) -> int:
     """``twind tf`` on diaggui files that are not a suspension set: every transfer function
     with its coherence and errors (a table, ``--json`` or a Bode PNG)."""
     from twind.analysis.diaggui import read_transfers
-    from twind.plotting import bode_transfers
+    from twind.viz.plotting import bode_transfers
 
     transfers = [t for path in args.inputs for t in read_transfers(path)]
     if args.band:
@@ -426,7 +426,8 @@ def _show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_jso
 
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit the nominal parameters to measured TFs; print them with calibrated sigmas."""
-    from twind.analysis.fit import FIT_PARAMS, fit, plot_fit, read_truth
+    from twind.analysis.fit import FIT_PARAMS, fit, read_truth
+    from twind.viz.plotting import plot_fit
     from twind.config import load_config
 
     truth = read_truth(args.truth) if args.truth else None  # a bad file fails before the fit
@@ -481,7 +482,7 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
     recording."""
     from twind.analysis.freeswing import analyse, ringdown
     from twind.config import load_config
-    from twind.plotting import plot_freeswing
+    from twind.viz.plotting import plot_freeswing
 
     optic = load_config(args.config, [args.optic]).optics[args.optic]
     duration = 1000.0 if args.duration is None else args.duration
@@ -520,7 +521,6 @@ def _recorded_osems(paths: list[str], ifo: str, optic: str, start: float | None,
     import numpy as np
 
     from twind.channels import osem_channel
-    from twind.model.osem import OSEMS
     from twind.recording.reader import as_array, getdata, session_files
 
     names = [osem_channel(ifo, optic, o) for o in OSEMS]
@@ -533,8 +533,9 @@ def _recorded_osems(paths: list[str], ifo: str, optic: str, start: float | None,
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
     """Locate the mismatch, name the physics left out, fit it, show the improvement."""
-    from twind.analysis.diagnose import diagnose, write_report
+    from twind.analysis.diagnose import diagnose
     from twind.config import load_config
+    from twind.viz.report import write_report
 
     tfs = _measured_tfs(args)
     if args.band:
@@ -545,15 +546,19 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     if args.output:
         print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
     if args.push:
-        from twind.analysis.diagnose import push
+        from twind.client import TwinClient
 
-        print(f"pushed into {', '.join(args.push)}: {push(result, args.push)}", file=sys.stderr)
+        nominal, effect = result.final_model()
+        with TwinClient(list(args.push)) as twin:
+            twin.params(result.final.optic, effect=effect, **nominal)
+        print(f"pushed into {', '.join(args.push)}: {len(nominal)} nominal parameter(s)"
+              + (f" and {effect['id']}" if effect else ""), file=sys.stderr)
     return 0
 
 
 def _bench_engine(args: argparse.Namespace) -> int:
     """Engine speed, side by side with python-control on the same closed loop."""
-    from twind.simulation.benchmark import run_benchmarks
+    from twind.lab.engine_speed import run_benchmarks
 
     duration = 20.0 if args.duration is None else args.duration
     run_benchmarks(args.config, duration, marginal=not args.no_marginal)
@@ -562,7 +567,7 @@ def _bench_engine(args: argparse.Namespace) -> int:
 
 def _bench_tf(args: argparse.Namespace) -> int:
     """``twind tf`` on a written session (default 1 h of 12 channels at 16384 Hz)."""
-    from twind.analysis.benchmark import run_tf_benchmark
+    from twind.lab.tf_speed import run_tf_benchmark
 
     duration = 3600.0 if args.duration is None else args.duration
     run_tf_benchmark(duration, workdir=args.workdir, keep=args.keep)
@@ -578,7 +583,7 @@ def _optic(args: argparse.Namespace, name: str = "ETMX"):  # noqa: ANN202 - Opti
 
 def _bench_pull(args: argparse.Namespace) -> int:
     """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
-    from twind.analysis.calibration import pull_test
+    from twind.lab.calibration import pull_test
     cfg = _optic(args)
     report = pull_test(cfg, n=args.realisations or 100, bw=args.bw or 0.02, estimator=args.estimator,
                        workers=args.workers)
@@ -588,7 +593,7 @@ def _bench_pull(args: argparse.Namespace) -> int:
 
 def _bench_information(args: argparse.Namespace) -> int:
     """D-optimal multisines against white noise of equal RMS, measured and fitted on the twin."""
-    from twind.analysis.calibration import information_benchmark
+    from twind.lab.calibration import information_benchmark
     cfg = _optic(args)
     print("\n".join(information_benchmark(cfg)))
     return 0
@@ -596,7 +601,7 @@ def _bench_information(args: argparse.Namespace) -> int:
 
 def _bench_diagnose(args: argparse.Namespace) -> int:
     """twind diagnose on the proof corpus: drifted optics with concealed effects."""
-    from twind.analysis.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus
+    from twind.lab.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus
 
     effects = args.effects.split(",") if args.effects else [*EFFECTS, *BEYOND]
     excited = args.excite.split(",") if args.excite else list(EXCITED)
@@ -618,7 +623,7 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
 
 def _bench_freeswing(args: argparse.Namespace) -> int:
     """twind freeswing on the ringdowns of random drifted optics with OSEM imbalances."""
-    from twind.analysis.freeswing import benchmark
+    from twind.lab.freeswing_bench import benchmark
 
     duration = 1000.0 if args.duration is None else args.duration
     for line in benchmark(_optic(args, args.optic), n=args.realisations or 8,
@@ -634,7 +639,7 @@ BENCH_SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """A "real" twin with a concealed effect beside a nominal one, recorded and diagnosed."""
-    from twind.analysis.corpus import run_demo
+    from twind.lab.corpus import run_demo
 
     run_demo(_optic(args), args.output, args.effect, say=lambda line: print(line, flush=True))
     return 0
@@ -745,7 +750,7 @@ def build_parser() -> argparse.ArgumentParser:
              "a valid MCAP file from a killed or damaged recording"),
             ("excite", "twind.excitation.excite", "excite_main",
              "design an excitation: a coherence in a band, or the most information"),
-            ("campaign", "twind.analysis.campaign", "campaign_main",
+            ("campaign", "twind.lab.campaign", "campaign_main",
              "identify an optic: design, inject, record, fit, redesign to a target")]:
         cmd = sub.add_parser(name, help=text)
         _arguments_of(module, cmd)

@@ -21,7 +21,7 @@ from twind.limits import ServiceLimits
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import N_STAGES, FilterModule, Stage
 from twind.loop.foton import design_to_sos
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.params import ALL_DOFS, SOSParams
 from twind.simulation.noise import NoiseSpec
 

@@ -23,7 +23,7 @@ explains the miss, and how much better the augmented model fits.
 (the BounceRoll notches leave little there), and from where a search over the modes'
 frequencies put it (:mod:`twind.analysis.narrow`), which its p-value pays for.
 The claims are scored on a corpus of concealed effects by ``twind bench --suite diagnose``
-(:mod:`twind.analysis.corpus`).
+(:mod:`twind.lab.corpus`).
 """
 
 from __future__ import annotations
@@ -31,13 +31,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from twind import progress, strictjson
+from twind import DOFS, progress
 from twind.analysis import narrow
 from twind.analysis.fit import (
     FIT_PARAMS,
@@ -49,6 +48,7 @@ from twind.analysis.fit import (
     with_params,
 )
 from twind.analysis.locate import Located, _null_moments, locate
+from twind.analysis.noise import in1_noise_asd
 from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
@@ -265,6 +265,13 @@ class Diagnosis:
                     f"{rest}{rivals}")
         return f"explained by {names} ({chi2}); nothing remains{rivals}"
 
+    def final_model(self) -> tuple[dict[str, float], dict | None]:
+        """The final model as a running twin takes it (:meth:`twind.client.TwinClient.params`):
+        the refitted nominal parameters, and the best effect when one was claimed."""
+        nominal = {n: v for n, v in self.final.identified().items() if n in FIT_PARAMS}
+        best = self.effects[0] if self.effects else None
+        return nominal, best and {"id": best.effect, "values": best.values()[0]}
+
     def to_json(self) -> dict:
         """The object of the issue, exactly."""
         nominal = {n: {"value": p["value"], "sigma": p["sigma"]}
@@ -466,9 +473,6 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
                            ) -> tuple[str, str, float]:
     """The excitation (DOF, response, frequency) where two fitted hypotheses differ most
     relative to the IN1 noise: what to measure next to tell them apart."""
-    from twind import DOFS
-    from twind.excitation.coherence import in1_noise_asd
-
     f = np.logspace(-1, 2, 400)
     noise = in1_noise_asd(cfg, f)  # [f, response]
     ta, tb = (ClosedLoopModel(cfg, f, 0.0, r.effect)(r.as_dict()) for r in (a, b))
@@ -727,74 +731,3 @@ def _averages(tfs: TFSet | Sequence[TFSet]) -> int:
 def _sets(tfs: TFSet | Sequence[TFSet]) -> list[TFSet]:
     """The measurements, one or several."""
     return [tfs] if isinstance(tfs, TFSet) else list(tfs)
-
-
-def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path) -> Path:
-    """Bode matrices before and after (measured, model, residual/sigma per bin), the JSON,
-    and an HTML page with both, in directory `out` (created; existing files are refused)."""
-    from twind.analysis.fit import plot_fit
-    from twind.analysis.report import report_page  # report builds on this module
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    names = ["nominal.png", "augmented.png", "diagnosis.json", "index.html", "diagnosis.rrd"]
-    taken = [n for n in names if (out / n).exists()]
-    if taken:
-        msg = f"{out} already holds {', '.join(taken)}; twind does not overwrite reports"
-        raise DiagnoseError(msg)
-    plot_fit(tfs, cfg, diagnosis.nominal, str(out / "nominal.png"))
-    if diagnosis.effects:
-        plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))
-    (out / "diagnosis.json").write_text(strictjson.dumps(diagnosis.to_json(), indent=1))
-    _write_rrd(diagnosis, tfs, cfg, out / "diagnosis.rrd")
-    titles = {"nominal.png": "The nominal model refitted: measured, model, residual / sigma",
-              "augmented.png": "With the effects chosen"}
-    images = [(t, n) for n, t in titles.items() if (out / n).exists()]
-    (out / "index.html").write_text(report_page(diagnosis, images))
-    return out / "index.html"
-
-
-def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -> None:
-    """Per element: measured, nominal and augmented |IN1/EXC| (dB) and residuals / sigma."""
-    from twind.viz.spectra import write_spectra_rrd
-
-    data = FitData.from_tfset(tfs)
-    f = data.frequency_hz
-    fits = {"nominal": diagnosis.nominal}
-    if diagnosis.effects:
-        fits["augmented"] = diagnosis.final
-    series = {}
-    for label, result in fits.items():
-        model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
-        pred = model(result.as_dict())
-        for i, r in enumerate(data.responses):
-            for j, e in enumerate(data.excited):
-                used = data.mask[:, i, j]
-                if not used.any():
-                    continue
-                base = f"diagnose/{r}_{e}"
-                resid = np.abs(data.H[:, i, j] - pred[:, i, j]) / data.sigma[:, i, j]
-                series[f"{base}/{label}_db"] = (f[used], 20 * np.log10(np.abs(pred[used, i, j])))
-                series[f"{base}/{label}_residual_sigma"] = (f[used], resid[used])
-                series[f"{base}/measured_db"] = (f[used], 20 * np.log10(np.abs(data.H[used, i, j])))
-    write_spectra_rrd(path, f"twind diagnose {diagnosis.nominal.optic}", series)
-
-
-def push(diagnosis: Diagnosis, connect: Sequence[str], ifo: str = "C1") -> str:
-    """Give a running twin the diagnosis' final model: the refitted nominal parameters and,
-    when one was claimed, the best effect; returns what was sent, for a person."""
-    from twind.client import TwinClient
-
-    final = diagnosis.final
-    nominal = {n: v for n, v in final.identified().items() if n in FIT_PARAMS}
-    effect = None
-    if diagnosis.effects:
-        best = diagnosis.effects[0]
-        effect = {"id": best.effect, "values": best.values()[0]}
-    client = TwinClient(list(connect), ifo=ifo)
-    try:
-        client.params(final.optic, effect=effect, **nominal)
-    finally:
-        client.close()
-    return f"{len(nominal)} nominal parameter(s)" + (
-        f" and {effect['id']}" if effect else "")

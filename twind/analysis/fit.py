@@ -47,7 +47,7 @@ from twind.analysis.tf import Kernel, TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.loop.damping import sensitivity
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.effects import (
     MODE_SEARCH,
     EffectError,
@@ -827,27 +827,3 @@ def _monomial(names: list[str], powers: NDArray) -> str:
     den = [term(n, p) for n, p in zip(names, powers, strict=True) if p < 0]
     text = "*".join(num) or "1"
     return text + ("/" + "/".join(den) if den else "")
-
-
-def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
-    """Per element: measured ``IN1/EXC`` (the bins the fit used with their errors, the
-    others faded) with the starting and fitted models, and beneath it the residual of each
-    in units of the measurement's sigma (what the fit minimised), over the span of the bins
-    the fit used: a recording reaches Nyquist, its excitation does not."""
-    from twind.plotting import Measured, bode_matrix
-
-    used = FitData.from_tfset(tfs, result.min_coherence).mask
-    f_used = tfs.frequency_hz[used.any(axis=(1, 2))]
-    if f_used.size:
-        tfs = tfs.band(f_used[0], f_used[-1])
-        used = FitData.from_tfset(tfs, result.min_coherence).mask
-    data = FitData.from_tfset(tfs, min_coherence=0.0)
-    model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
-    curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
-              model(result.as_dict())}
-    title = (f"{result.optic} IN1/EXC" + (f", nominal + {result.effect}" if result.effect
-                                          else ", nominal model")
-             + f": chi2/nu {result.chi2_nu:.3g} after the fit")
-    bode_matrix(data.frequency_hz, path, data.responses, data.excited, curves,
-                {"measured": Measured(data.H, data.sigma, used)}, residuals=True, title=title)
-    return path

@@ -45,7 +45,7 @@ from twind.analysis.fit import (
 )
 from twind.config import OpticConfig
 from twind.loop.damping import sensitivity
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.effects import BODY_DOFS, MODE_SEARCH, mode_bands, with_effect
 from twind.model.params import SOSParams
 

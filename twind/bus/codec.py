@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from twind.recording.schema import sample_block_class
+from twind.bus.schema import sample_block_class
 
 
 def _varint(value: int) -> bytes:

@@ -9,7 +9,7 @@ excitation, suppressed by the loop like any other input:
 
 with ``H = (M s^2 + C s + K)^-1`` the pendulum, ``F_sp`` the generalised force per unit
 suspension-point motion and ``n_OSEM``, ``n_sp`` the independent noises of
-:class:`~twind.simulation.noise.NoiseSpec` (:func:`in1_noise_asd`, which the engine
+:class:`~twind.simulation.noise.NoiseSpec` (:func:`twind.analysis.noise.in1_noise_asd`, which the engine
 reproduces sample by sample).  The true coherence of ``EXC_d`` and ``IN1_r`` is then
 ``g2 = S / (S + N_r^2)`` with ``S = |T_rd|^2 A^2``, so a coherence ``g2`` needs
 
@@ -73,18 +73,18 @@ from scipy import optimize, special, stats
 
 from twind import DOFS
 from twind.errors import TwindError
+from twind.analysis.noise import in1_noise_asd
 from twind.excitation.checks import DEFAULT_LIMITS, Limits, check
 from twind.excitation.design import NOISE_PEAK_SIGMAS, noise_shape
 from twind.excitation.request import ExcitationError, ExcitationRequest
 from twind.loop.foton import ZPK, parse_design
-from twind.simulation.noise import CHANNELS
 
 if TYPE_CHECKING:
     from twind.config import OpticConfig
     from twind.loop.damping import DampingLoop
 
 __all__ = ["CoherenceDesign", "DofDesign", "ExcitationDesignError", "coherence_cdf",
-           "design_coherence", "design_coherent", "in1_noise_asd"]
+           "design_coherence", "design_coherent"]
 
 RESPONSES = ("own", "all")
 """Which ``IN1`` must be coherent: the excited DOF's own, or every DOF of the design."""
@@ -114,45 +114,6 @@ class ExcitationDesignError(TwindError):
 # ============================================================================================
 # Noise and coherence statistics
 # ============================================================================================
-def in1_noise_asd(optic_cfg: OpticConfig, f_hz: ArrayLike,
-                  loop: DampingLoop | None = None) -> NDArray[np.float64]:
-    """ASD of each DOF's ``IN1`` without excitation: sensor and suspension-point noise.
-
-    Parameters
-    ----------
-    optic_cfg : OpticConfig
-        The optic; its ``noise`` gives the OSEM and suspension-point ASDs.
-    f_hz : array_like
-        Frequencies (Hz), > 0.
-    loop : DampingLoop, optional
-        The optic's loop (default ``optic_cfg.loop()``).
-
-    Returns
-    -------
-    ndarray, shape (len(f), 4)
-        um or urad per rtHz, columns POS, PIT, YAW, SIDE; zeros when the noise is disabled.
-
-    Notes
-    -----
-    ``N = InMat (n_OSEM + Sens H F_sp n_sp)`` enters at ``IN1``; closed loop
-    ``IN1 = (I - P K)^-1 N``.  The eight noise channels are independent, so the PSD of
-    ``IN1_r`` is ``sum_c |G_rc|^2 n_c^2`` with ``G`` the closed-loop map of channel c.
-    """
-    f = np.atleast_1d(np.asarray(f_hz, dtype=float))
-    loop = optic_cfg.loop() if loop is None else loop
-    plant = loop.plant
-    mech = plant.mechanics
-    r = loop.responses(f)
-    sens = r["closed_loop_IN2_per_EXC"]
-    H = mech.admittance(2j * np.pi * f)
-    osem = np.broadcast_to(plant.input_matrix, (f.size, 4, 5))
-    sp = plant.input_matrix @ plant.sensing @ H @ mech.suspension_point_forces()
-    G = sens @ np.concatenate([osem, sp], axis=2)  # (f, 4 DOFs, 8 channels)
-    asd = optic_cfg.noise.asd(f)
-    n = np.stack([asd[c] for c in CHANNELS], axis=1) * float(optic_cfg.noise.enabled)
-    return np.sqrt(np.sum(np.abs(G) ** 2 * n[:, None, :] ** 2, axis=2))
-
-
 def coherence_cdf(c: float, gamma2: float, averages: int) -> float:
     """Probability that the coherence estimated from `averages` segments is <= `c`.
 

@@ -29,7 +29,8 @@ from twind.analysis.fit import (
     param_value,
 )
 from twind.config import OpticConfig
-from twind.excitation.coherence import ExcitationDesignError, in1_noise_asd
+from twind.analysis.noise import in1_noise_asd
+from twind.excitation.coherence import ExcitationDesignError
 from twind.excitation.design import schroeder_phases
 
 _STEP = 1e-4

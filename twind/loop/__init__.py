@@ -1,1 +1,2 @@
-"""The CDS damping loop: input/output matrices, foton filters, filter modules, the plant it sees."""
+"""The CDS damping loop around the plant: foton filter designs and files, filter modules and
+the closed loop's test-point responses."""

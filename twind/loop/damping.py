@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from twind import DOFS
 from twind.loop.filtermodule import FilterModule
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 
 
 @dataclass

@@ -48,11 +48,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from twind import OSEMS
 from twind.errors import TwindError
-from twind.loop.plant import Plant
 from twind.model.mechanics import Mechanics
-from twind.model.osem import FACE_POSITION, OSEMS
+from twind.model.osem import FACE_POSITION
 from twind.model.params import SOSParams
+from twind.model.plant import Plant
 
 FACES = tuple(FACE_POSITION)  # UL, UR, LL, LR: the first four OSEM columns/rows
 

@@ -12,7 +12,6 @@ from numpy.typing import NDArray
 from twind.model.mechanics import Mechanics
 from twind.model.params import SOSParams
 
-OSEMS = ("UL", "UR", "LL", "LR", "SIDE")
 FACE_POSITION = {"UL": (1, 1), "UR": (-1, 1), "LL": (1, -1), "LR": (-1, -1)}  # (y, z) / lever
 
 
@@ -23,7 +22,7 @@ def _face_row(dofs: tuple[str, ...], y: float, z: float) -> NDArray[np.float64]:
 
 
 def sensing_matrix(p: SOSParams, mech: Mechanics) -> NDArray[np.float64]:
-    """OSEM readings (m) per unit generalised coordinate, shape (5, n), rows :data:`OSEMS`."""
+    """OSEM readings (m) per unit generalised coordinate, shape (5, n), rows :data:`twind.OSEMS`."""
     h = p.osem_lever_m
     rows = [_face_row(mech.dofs, y * h, z * h) for y, z in FACE_POSITION.values()]
     rows.append(np.array([1.0 if d == "SIDE" else 0.0 for d in mech.dofs]))
@@ -31,7 +30,7 @@ def sensing_matrix(p: SOSParams, mech: Mechanics) -> NDArray[np.float64]:
 
 
 def actuation_matrix(p: SOSParams, mech: Mechanics) -> NDArray[np.float64]:
-    """Generalised force per DAC count on each coil, shape (n, 5), columns :data:`OSEMS`.
+    """Generalised force per DAC count on each coil, shape (n, 5), columns :data:`twind.OSEMS`.
 
     A face coil pushes along x at its OSEM's position with ``F = -alpha * drive``; the
     collocated coil therefore acts through the transpose of the sensing geometry.

@@ -588,7 +588,7 @@ def forty_meter_channels(ifo: str = "C1") -> list[str]:
     """The 210 channel names of the 40m's ten optics."""
     from twind import DOFS
     from twind.channels import TEST_POINTS, dof_channel, osem_channel
-    from twind.model.osem import OSEMS
+    from twind import OSEMS
 
     optics = ("ETMX", "ETMY", "ITMX", "ITMY", "BS", "PRM", "SRM", "MC1", "MC2", "MC3")
     return [name for optic in optics for name in

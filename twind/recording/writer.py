@@ -97,7 +97,7 @@ def sample_block_schema_data() -> bytes:
     """The serialized FileDescriptorSet of ``twind.v1.SampleBlock``, as mcap-protobuf writes it."""
     from mcap_protobuf.schema import build_file_descriptor_set
 
-    from twind.recording.schema import sample_block_class
+    from twind.bus.schema import sample_block_class
 
     return build_file_descriptor_set(sample_block_class()).SerializeToString()
 

@@ -12,14 +12,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from twind import DOFS
+from twind import DOFS, OSEMS
 from twind.analysis.modes import modes_hz
 from twind.channels import dof_channel, osem_channel
 from twind.client import TwinClient
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.excitation.checks import DEFAULT_LIMITS
-from twind.model.osem import OSEMS
 from twind.recording.reader import as_array, getdata
 
 DRIVE_S = 20.0

@@ -12,8 +12,7 @@ import fnmatch
 import re
 from collections.abc import Iterable
 
-from twind import DOFS
-from twind.model.osem import OSEMS
+from twind import DOFS, OSEMS
 
 _OPTIC = r"^(?P<ifo>[^:]+):SUS-(?P<optic>[A-Z0-9]+)_"
 _DOF = re.compile(rf"{_OPTIC}SUS(?P<dof>{'|'.join(DOFS)})_(?P<point>[A-Z0-9]+)$")
@@ -53,7 +52,6 @@ def blueprint(optics: Iterable[str], bode: Iterable[str] = (),  # noqa: ANN201
     coherence) when there are any, and the events log below."""
     import rerun.blueprint as rrb
 
-    from twind import DOFS
 
     tabs = []
     for optic in optics:

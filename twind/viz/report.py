@@ -1,15 +1,25 @@
-"""The page ``twind diagnose -o DIR`` writes: the verdict first, then the tables a
-commissioner reads (the nominal parameters, every hypothesis, the rivals and what tells them
-apart, the bands located and left), then the figures."""
+"""The report ``twind diagnose -o DIR`` writes: Bode matrices before and after, the JSON, a
+Rerun file, and a page with the verdict first, then the tables a commissioner reads (the
+nominal parameters, every hypothesis, the rivals and what tells them apart, the bands located
+and left), then the figures."""
 
 from __future__ import annotations
 
 import html
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
-from twind.analysis.diagnose import Diagnosis
+import numpy as np
+
+from twind import strictjson
+from twind.analysis.diagnose import Diagnosis, DiagnoseError
+from twind.analysis.fit import ClosedLoopModel, FitData
 from twind.analysis.locate import Located
+from twind.analysis.tf import TFSet
+from twind.config import OpticConfig
+from twind.viz.plotting import plot_fit
+from twind.viz.spectra import write_spectra_rrd
 
 STYLE = """
 body { font-family: sans-serif; max-width: 70em; margin: 1em auto; color: #222 }
@@ -108,3 +118,49 @@ def _bands(table_id: str, bands: Sequence[Located], empty: str) -> str:
              f"{x.excess:.2f}") for x in bands]
     return _table(table_id, ("element", "band (Hz)", "significance (sigma)",
                              "residual power / expected"), rows)
+
+
+def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path) -> Path:
+    """Bode matrices before and after (measured, model, residual/sigma per bin), the JSON,
+    and an HTML page with both, in directory `out` (created; existing files are refused)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = ["nominal.png", "augmented.png", "diagnosis.json", "index.html", "diagnosis.rrd"]
+    taken = [n for n in names if (out / n).exists()]
+    if taken:
+        msg = f"{out} already holds {', '.join(taken)}; twind does not overwrite reports"
+        raise DiagnoseError(msg)
+    plot_fit(tfs, cfg, diagnosis.nominal, str(out / "nominal.png"))
+    if diagnosis.effects:
+        plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))
+    (out / "diagnosis.json").write_text(strictjson.dumps(diagnosis.to_json(), indent=1))
+    _write_rrd(diagnosis, tfs, cfg, out / "diagnosis.rrd")
+    titles = {"nominal.png": "The nominal model refitted: measured, model, residual / sigma",
+              "augmented.png": "With the effects chosen"}
+    images = [(t, n) for n, t in titles.items() if (out / n).exists()]
+    (out / "index.html").write_text(report_page(diagnosis, images))
+    return out / "index.html"
+
+
+def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -> None:
+    """Per element: measured, nominal and augmented |IN1/EXC| (dB) and residuals / sigma."""
+    data = FitData.from_tfset(tfs)
+    f = data.frequency_hz
+    fits = {"nominal": diagnosis.nominal}
+    if diagnosis.effects:
+        fits["augmented"] = diagnosis.final
+    series = {}
+    for label, result in fits.items():
+        model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
+        pred = model(result.as_dict())
+        for i, r in enumerate(data.responses):
+            for j, e in enumerate(data.excited):
+                used = data.mask[:, i, j]
+                if not used.any():
+                    continue
+                base = f"diagnose/{r}_{e}"
+                resid = np.abs(data.H[:, i, j] - pred[:, i, j]) / data.sigma[:, i, j]
+                series[f"{base}/{label}_db"] = (f[used], 20 * np.log10(np.abs(pred[used, i, j])))
+                series[f"{base}/{label}_residual_sigma"] = (f[used], resid[used])
+                series[f"{base}/measured_db"] = (f[used], 20 * np.log10(np.abs(data.H[used, i, j])))
+    write_spectra_rrd(path, f"twind diagnose {diagnosis.nominal.optic}", series)

@@ -29,7 +29,7 @@ from twind.analysis.tf import (
 )
 from twind.analysis.welch import welch_tfs
 from twind.config import OpticConfig
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.simulation.engine import Engine
 
 BLOCK = 1024

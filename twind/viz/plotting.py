@@ -1,4 +1,5 @@
-"""Bode-matrix figures (matplotlib, Agg backend, imported only when a plot is asked for)."""
+"""Bode-matrix figures of models and measurements, a fit's before and after, a ringdown's
+spectra (matplotlib, Agg backend, imported only when a plot is asked for)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from twind.analysis.fit import ClosedLoopModel, FitData, FitResult
+from twind.analysis.tf import TFSet
 from twind.channels import UNITS
+from twind.config import OpticConfig
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -237,8 +241,7 @@ def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: AN
     import matplotlib.pyplot as plt
     from scipy import signal
 
-    from twind import DOFS
-    from twind.model.osem import OSEMS
+    from twind import DOFS, OSEMS
 
     fig = plt.figure(figsize=(11, 7))
     spec = fig.add_subplot(2, 1, 1)
@@ -326,3 +329,25 @@ def _panel(ax: "Axes", cmp: "ModelComparison", i: int, j: int, zero: bool, worst
     ax.text(0.97, 0.95, f"max |Δ| = {100 * worst:.2g} %", ha="right", va="top",
             transform=ax.transAxes, fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
+
+
+def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
+    """Per element: measured ``IN1/EXC`` (the bins the fit used with their errors, the
+    others faded) with the starting and fitted models, and beneath it the residual of each
+    in units of the measurement's sigma (what the fit minimised), over the span of the bins
+    the fit used: a recording reaches Nyquist, its excitation does not."""
+    used = FitData.from_tfset(tfs, result.min_coherence).mask
+    f_used = tfs.frequency_hz[used.any(axis=(1, 2))]
+    if f_used.size:
+        tfs = tfs.band(f_used[0], f_used[-1])
+        used = FitData.from_tfset(tfs, result.min_coherence).mask
+    data = FitData.from_tfset(tfs, min_coherence=0.0)
+    model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
+    curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
+              model(result.as_dict())}
+    title = (f"{result.optic} IN1/EXC" + (f", nominal + {result.effect}" if result.effect
+                                          else ", nominal model")
+             + f": chi2/nu {result.chi2_nu:.3g} after the fit")
+    bode_matrix(data.frequency_hz, path, data.responses, data.excited, curves,
+                {"measured": Measured(data.H, data.sigma, used)}, residuals=True, title=title)
+    return path

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from twind.loop.matrices import input_matrix, output_matrix
+from twind.model.matrices import input_matrix, output_matrix
 from twind.model.mechanics import Mechanics
 from twind.model.osem import actuation_matrix, sensing_matrix
 from twind.model.params import SOSParams

@@ -352,7 +352,7 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float, pau
     Zenoh's shared memory, such pauses damaged blocks), then suspend it for `seconds`
     (SIGSTOP, as Ctrl-Z does) and resume it: what the twin lost meanwhile (late blocks,
     lag) and what the subscriber read."""
-    proc = subprocess.Popen([sys.executable, "-c", "from twind.service.soak import "
+    proc = subprocess.Popen([sys.executable, "-c", "from twind.lab.soak import "
                              f"watch_until_told; watch_until_told({endpoint!r})"],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:

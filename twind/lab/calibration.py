@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from twind import progress
 from twind.analysis.fit import FIT_PARAMS, fit, param_value, with_params
 from twind.config import OpticConfig
-from twind.simulation.measurement import SETTLE_S, measure_tfs
+from twind.lab.measurement import SETTLE_S, measure_tfs
 
 # a few-percent drift of every nominal parameter, as docs/model.md describes a real optic
 DRIFT = {"wire_length_m": 0.983, "b_m": 1.027, "R1_m": 0.975, "coil_N_per_ct": 0.968,
@@ -153,7 +153,7 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
     """
     from scipy import signal
 
-    from twind.analysis.campaign import LocalTwin, tones_only
+    from twind.lab.campaign import LocalTwin, tones_only
     from twind.excitation.information import design_information, det_root
 
     real = replace(cfg, sus=with_params(cfg.sus, {k: param_value(cfg.sus, k) * v

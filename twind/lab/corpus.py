@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from twind import DOFS, OSEMS
 from twind.analysis.fit import (
     ClosedLoopModel,
     FitData,
@@ -50,9 +51,8 @@ from twind.analysis.fit import (
     with_params,
 )
 from twind.config import OpticConfig
-from twind.loop.plant import Plant
+from twind.model.plant import Plant
 from twind.model.mechanics import Mechanics
-from twind.model.osem import OSEMS
 from twind.model.params import SOSParams
 
 CONCEAL_SIGMA = 3.0
@@ -348,7 +348,6 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
 
 
 def _indices(data: FitData) -> tuple[list[int], list[int]]:
-    from twind import DOFS
 
     return [DOFS.index(d) for d in data.responses], [DOFS.index(d) for d in data.excited]
 
@@ -359,7 +358,7 @@ def reference_data(cfg: OpticConfig, seed: int, excited: Sequence[str] = EXCITED
     """A corpus measurement of the nominal optic on `route`, its bins as ``diagnose``
     chooses them: the errors the effects are concealed against."""
     from twind.analysis.diagnose import MIN_COHERENCE
-    from twind.simulation.measurement import measure_tfs
+    from twind.lab.measurement import measure_tfs
 
     tfs = measure_tfs(cfg, excited, bw=bw or ROUTE_BW[route], averages=averages, rms=rms,
                       seed=seed)
@@ -593,7 +592,7 @@ def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - 
     `averages` and an excitation of `rms`."""
     from twind.analysis.diaggui import write_measurement_set
     from twind.analysis.tf import from_diaggui, from_session
-    from twind.simulation.measurement import SETTLE_S, measure_tfs, record_measurement
+    from twind.lab.measurement import SETTLE_S, measure_tfs, record_measurement
 
     if route not in ROUTE_BW:
         msg = f"unknown route {route!r}: xml or mcap"
@@ -761,9 +760,10 @@ def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", s
     (Diagnosis, Diagnosis)
         The real optic's and the nominal one's.
     """
-    from twind.analysis.diagnose import diagnose, write_report
+    from twind.analysis.diagnose import diagnose
+    from twind.viz.report import write_report
     from twind.analysis.tf import from_session
-    from twind.simulation.measurement import SETTLE_S, record_measurement
+    from twind.lab.measurement import SETTLE_S, record_measurement
 
     out = Path(out)
     rng = np.random.default_rng(seed)

@@ -21,13 +21,13 @@ from typing import Protocol
 
 import numpy as np
 
-from twind import progress, strictjson
+from twind import DOFS, progress, strictjson
 from twind.analysis.fit import FIT_PARAMS, FitResult, fit, with_params
 from twind.analysis.tf import TFSet, from_session
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.excitation.information import InformationDesign, design_information
-from twind.simulation.measurement import SETTLE_S, measure_tfs
+from twind.lab.measurement import SETTLE_S, measure_tfs
 
 MIN_AVERAGES = 4
 """Fewer periods leave the coherence estimate (and the errors made from it) meaningless."""
@@ -243,7 +243,6 @@ def plot_rounds(rounds: list[Round], target: float, path: str | Path) -> Path:
 # ------------------------------------------------------------------------------ command line
 def add_arguments(parser) -> None:  # noqa: ANN001 - argparse.ArgumentParser
     """Arguments of ``twind campaign``."""
-    from twind import DOFS
 
     parser.add_argument("--connect", action="append", metavar="ENDPOINT",
                         help="measure a running twin (twind serve) at this Zenoh endpoint; "
@@ -277,7 +276,7 @@ def add_arguments(parser) -> None:  # noqa: ANN001 - argparse.ArgumentParser
 
 def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
     """``twind campaign``: run rounds until the target; print each round and the result."""
-    from twind.analysis.calibration import DRIFT
+    from twind.lab.calibration import DRIFT
     from twind.analysis.fit import param_value
     from twind.config import load_config
 
