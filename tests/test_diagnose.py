@@ -216,7 +216,7 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
                                                                     etmx) -> None:  # noqa: ANN001
     """A drifted optic with a concealed coil imbalance, measured on the twin and saved as
     diaggui files like example_null: from the files alone, the imbalance is named."""
-    from twind.lab.calibration import DRIFT
+    from twind.lab.measurement import DRIFT
     from twind.analysis.diaggui import write_measurement_set
     from twind.analysis.fit import param_value, with_params
     from twind.analysis.tf import from_diaggui

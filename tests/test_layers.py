@@ -1,8 +1,10 @@
 """The layers of docs/architecture.md hold: import-linter checks pyproject.toml's contracts
-against every import in the package, those inside functions included."""
+against every import in the package, those inside functions included; and imports stand at
+the top of their module unless a comment says why not."""
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 import pytest
@@ -15,3 +17,25 @@ def test_the_imports_keep_the_layers(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(ROOT)
     assert lint_imports(config_filename=str(ROOT / "pyproject.toml"), no_cache=True,
                         no_logo=True) == 0
+
+
+def _imports_inside_functions() -> list[tuple[str, int, bool]]:
+    """Every import statement inside a function: file, line, and whether a comment on its
+    line or the one before says why it is there."""
+    found = []
+    for path in sorted((ROOT / "twind").rglob("*.py")):
+        lines = path.read_text().splitlines()
+        for node in ast.walk(ast.parse("\n".join(lines))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for inner in ast.walk(node):
+                    if isinstance(inner, (ast.Import, ast.ImportFrom)):
+                        here = lines[inner.lineno - 1] + lines[inner.lineno - 2]
+                        found.append((str(path.relative_to(ROOT)), inner.lineno, "#" in here))
+    return found
+
+
+def test_imports_are_at_module_top_unless_a_comment_says_why() -> None:
+    inside = _imports_inside_functions()
+    print(f"{len(inside)} import(s) inside functions: {inside}")
+    assert len(inside) < 20, inside
+    assert all(said for _, _, said in inside), [i for i in inside if not i[2]]

@@ -29,8 +29,7 @@ from servicekit import free_port
 from twind.bus.codec import SampleBlock
 from twind.bus.session import zenoh_config
 from twind.channels import block_channels
-from twind.cli import main
-from twind.recording.export import add_arguments as export_arguments
+from twind.cli import build_parser, main
 from twind.recording.export import export, export_main
 from twind.recording.fastread import read_channels
 from twind.recording.reader import (
@@ -148,12 +147,9 @@ def test_export_npz_and_hdf5(engine_session: tuple[Path, dict], tmp_path: Path) 
     assert not (tmp_path / "x.npz").exists()
 
     # the command line's half: twind export FILE -o OUT --channels a,b
-    import argparse
-
-    parser = argparse.ArgumentParser()
-    export_arguments(parser)
     out = tmp_path / "cli.hdf5"
-    args = parser.parse_args([str(path), "-o", str(out), "--channels", ",".join(some)])
+    args = build_parser().parse_args(["export", str(path), "-o", str(out), "--channels",
+                                      ",".join(some)])
     assert export_main(args) == 0
     with h5py.File(out, "r") as f:
         assert sorted(f.keys()) == sorted(some)

@@ -3,7 +3,6 @@ own .rrd reader."""
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import socket
@@ -23,7 +22,8 @@ from twind.config import load_config
 from twind.errors import TwindError
 from twind.recording.writer import SessionWriter
 from twind.simulation.engine import Engine
-from twind.viz import add_rrd_arguments, add_view_arguments, rrd_main, view_main
+from twind.cli import build_parser
+from twind.viz.commands import rrd_main, view_main
 from twind.viz.decimate import NS, Decimator
 from twind.viz.entities import entity_path, matcher
 from twind.viz.rerun_export import mcap_to_rrd
@@ -159,11 +159,10 @@ def test_mcap_to_rrd_series_events_and_bode(session: Path, tmp_path: Path) -> No
 
 
 def test_rrd_command_selects_channels_and_never_overwrites(session: Path, tmp_path: Path) -> None:
-    parser = argparse.ArgumentParser()
-    add_rrd_arguments(parser)
     out = tmp_path / "pos.rrd"
-    args = parser.parse_args([str(session), "-o", str(out), "--channels",
-                              "C1:SUS-ETMX_SUSPOS_IN*,*_ULSEN_OUT", "--rate", "64", "--no-bode"])
+    args = build_parser().parse_args(["rrd", str(session), "-o", str(out), "--channels",
+                                      "C1:SUS-ETMX_SUSPOS_IN*,*_ULSEN_OUT", "--rate", "64",
+                                      "--no-bode"])
     text = io.StringIO()
     with redirect_stdout(text):
         assert rrd_main(args) == 0
@@ -245,11 +244,9 @@ def test_view_streams_the_live_channels_into_a_recording(tmp_path: Path) -> None
 
     thread = threading.Thread(target=publish, daemon=True)
     thread.start()
-    parser = argparse.ArgumentParser()
-    add_view_arguments(parser)
     out = tmp_path / "live.rrd"
-    args = parser.parse_args(["--connect", endpoint, "--channels", "*_SUSPOS_*", "--rate", "64",
-                              "--duration", "2.5", "--save", str(out)])
+    args = build_parser().parse_args(["view", "--connect", endpoint, "--channels", "*_SUSPOS_*",
+                                      "--rate", "64", "--duration", "2.5", "--save", str(out)])
     try:
         with redirect_stdout(io.StringIO()):
             assert view_main(args) == 0
@@ -274,14 +271,13 @@ def test_view_explains_what_to_do_without_a_display(monkeypatch: pytest.MonkeyPa
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     monkeypatch.setattr("sys.platform", "linux")
-    parser = argparse.ArgumentParser()
-    add_view_arguments(parser)
+    parser = build_parser()
     with pytest.raises(TwindError, match="--viewer URL .* --web .* --save FILE.rrd"):
-        view_main(parser.parse_args(["--connect", "tcp/127.0.0.1:1"]))
+        view_main(parser.parse_args(["view", "--connect", "tcp/127.0.0.1:1"]))
     with pytest.raises(SystemExit):  # one sink at a time
         with redirect_stdout(io.StringIO()), pytest.MonkeyPatch.context() as m:
             m.setattr("sys.stderr", io.StringIO())
-            parser.parse_args(["--save", "a.rrd", "--web"])
+            parser.parse_args(["view", "--save", "a.rrd", "--web"])
 
 
 def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> None:
@@ -295,10 +291,9 @@ def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> 
     folder = tmp_path / "rec"
     live = tmp_path / "live.rrd"
     with serving("--optics", "ETMX", "--speed", "4", "--record", str(folder)) as endpoint:
-        parser = argparse.ArgumentParser()
-        add_view_arguments(parser)
-        args = parser.parse_args(["--connect", endpoint, "--channels", "C1:SUS-ETMX_SUSPOS_*",
-                                  "--duration", "3.5", "--save", str(live)])
+        args = build_parser().parse_args(["view", "--connect", endpoint, "--channels",
+                                          "C1:SUS-ETMX_SUSPOS_*", "--duration", "3.5",
+                                          "--save", str(live)])
         codes: list[int] = []
         viewer = threading.Thread(target=lambda: codes.append(view_main(args)))
         viewer.start()

@@ -21,9 +21,14 @@ from twind.limits import ServiceLimits
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import N_STAGES, FilterModule, Stage
 from twind.loop.foton import design_to_sos
-from twind.model.plant import Plant
+from twind.loop.foton_file import read_filter_file
+from twind.model.analytical import analytical_mechanics
+from twind.model.geometric import WireGeometry, geometric_mechanics
 from twind.model.params import ALL_DOFS, SOSParams
+from twind.model.plant import Plant
+from twind.simulation.discretize import closed_loop_matrices, delay_samples
 from twind.simulation.noise import NoiseSpec
+from twind.units import parse_quantity
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "c1.toml"
@@ -80,10 +85,8 @@ class OpticConfig:
     def mechanics(self):  # noqa: ANN201 - Mechanics, imported lazily with the geometric model
         """Rigid-body dynamics of the configured model."""
         if self.model == "geometric":
-            from twind.model.geometric import WireGeometry, geometric_mechanics
 
             return geometric_mechanics(WireGeometry.from_params(self.sus))
-        from twind.model.analytical import analytical_mechanics
 
         return analytical_mechanics(self.sus)
 
@@ -158,7 +161,6 @@ class _Reader:
 
 
 def _quantity(dimension: str) -> Callable[[Any], float]:
-    from twind.units import parse_quantity
 
     return lambda v: parse_quantity(v, dimension)
 
@@ -236,7 +238,6 @@ def _stage(rate_hz: float) -> Callable[[Any], Stage]:
 
 def _foton_file(damping: _Reader):  # noqa: ANN202 - FilterFile or None
     """The foton file named by ``foton_file`` (relative to the config file), if any."""
-    from twind.loop.foton_file import read_filter_file
 
     name = damping.get("foton_file", str, None)
     if name is None:
@@ -417,7 +418,6 @@ def check_stable(cfg: OpticConfig) -> None:
 
     The check uses the engine's own discrete closed loop, so what passes here runs.
     """
-    from twind.simulation.discretize import closed_loop_matrices, delay_samples
 
     try:
         delay_samples(cfg.sus.loop_delay_s, cfg.sus.sample_rate_hz)
@@ -435,7 +435,6 @@ def check_stable(cfg: OpticConfig) -> None:
 
 def _culprit(cfg: OpticConfig) -> str:
     """The DOF whose loop alone (other gains zero) is unstable, for the error message."""
-    from twind.simulation.discretize import closed_loop_matrices
 
     for dof in DOFS:
         loop = cfg.loop()

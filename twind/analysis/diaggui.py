@@ -18,10 +18,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from xml.sax.saxutils import escape
 
+import dttxml
 import numpy as np
 from numpy.typing import NDArray
 
-from twind.analysis.tf import TFError, TFSet
+from twind.analysis.tf import POINTS, TFError, TFSet
 
 _DTD = """<?xml version="1.0"?>
 <!DOCTYPE LIGO_LW [
@@ -131,7 +132,6 @@ def read_transfers(path: str | Path) -> list[Transfer]:
     TFError
         If the file is not a readable diaggui XML file or holds no transfer function.
     """
-    import dttxml
 
     try:
         acc = dttxml.DiagAccess(str(path))
@@ -307,7 +307,6 @@ def write_measurement_set(tfs: TFSet, directory: str | Path, ifo: str = "C1",
     """One diaggui file per excited DOF of `tfs` (``<OPTIC>_<DOF>_exc.xml``, as
     example_null), for TFs whose excitation PSD is known (``tfs.exc_psd``); with `stop_hz`,
     the bins up to it alone, as diaggui keeps its StopFrequency (example_null: 30 Hz)."""
-    from twind.analysis.tf import POINTS
 
     if not tfs.exc_psd:
         msg = "these TFs carry no excitation PSD (measure them with twind's own tools)"

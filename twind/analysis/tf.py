@@ -20,6 +20,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+import dttxml
+import h5py
 import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
@@ -28,6 +30,7 @@ from twind import DOFS
 from twind.analysis.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
+from twind.recording.fastread import read_channels, stream_channels
 
 __all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
            "highpassed", "welch_tf", "welch_tfs", "xml_transfer"]
@@ -167,7 +170,6 @@ class TFSet:
             raise TFError(msg)
         P, Ps = self.plant()
         if path.suffix.lower() in (".h5", ".hdf5"):
-            import h5py
 
             with h5py.File(path, "x") as f:
                 f.attrs.update(optic=self.optic, excited=self.excited, responses=self.responses,
@@ -216,7 +218,6 @@ class TFSet:
 # ------------------------------------------------------------------------------ diaggui XML
 def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
     """Transfer functions from diaggui XML files, one per excited DOF (dttxml's ``xfer``)."""
-    import dttxml
 
     columns, freq, optic, averages = {}, None, None, None
     for path in paths:
@@ -268,7 +269,6 @@ def _warn_unusable(path: str | Path, name: str, exc: str, h: NDArray, g2: NDArra
 def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201
     """``numerator/denominator`` of a diaggui measurement (a ``dttxml.DiagAccess`` or a
     path): frequencies, transfer function, coherence and number of averages."""
-    import dttxml
 
     if not hasattr(acc, "xfer"):
         acc = dttxml.DiagAccess(str(acc))
@@ -369,7 +369,6 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         tfs = _streamed(paths, bw, overlap, optic, window, settle_s)
         if tfs is not None:
             return tfs
-    from twind.recording.fastread import read_channels
 
     session = read_channels(list(paths), _test_point(optic))
     extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in session.channels.items()}
@@ -497,7 +496,6 @@ def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str
               window: str, settle_s: float) -> TFSet | None:
     """:func:`from_session` summed while reading; None where the recording must be read whole
     (gaps, events recorded late, an excitation shorter than a segment)."""
-    from twind.recording.fastread import stream_channels
 
     def planner(events: list[dict], extents: Mapping[str, Extent]) -> dict:
         return {key: _Plan.of(key, start, end, extents, settle_s).segment

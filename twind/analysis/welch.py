@@ -21,7 +21,12 @@ from typing import Any
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
+from scipy import fft, signal
+
+try:  # FFTW when it is installed; numpy's pocketfft otherwise
+    import pyfftw
+except ImportError:
+    pyfftw = None
 
 from twind import progress
 from twind.errors import TwindError
@@ -43,9 +48,7 @@ class WelchError(TwindError):
 # ------------------------------------------------------------------------------ transforms
 def _aligned(n: int, dtype: type = np.float64) -> NDArray:
     """An empty array aligned as FFTW's SIMD code wants (plain numpy without pyfftw)."""
-    try:
-        import pyfftw
-    except ImportError:
+    if pyfftw is None:
         return np.empty(n, dtype=dtype)
     return pyfftw.empty_aligned(n, dtype=dtype)
 
@@ -55,9 +58,7 @@ class _RealFFT:
     one per thread (FFTW plans are not shared between threads)."""
 
     def __init__(self, n: int) -> None:
-        try:
-            import pyfftw
-        except ImportError:
+        if pyfftw is None:
             self._plan = None
             return
         self._plan = pyfftw.FFTW(_aligned(n), _aligned(n // 2 + 1, np.complex128),
@@ -123,8 +124,6 @@ class _Sums:
         """Frequencies, ``CSD/PSD`` and coherence, scaled as scipy scales them; computed in
         place of the sums (an hour at 0.01 Hz: new memory is slow to fault in), which are
         spent."""
-        from scipy import fft
-
         if self.count == 0:
             msg = "no segments summed, or their spectra already taken"
             raise WelchError(msg)

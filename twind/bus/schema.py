@@ -11,6 +11,7 @@ import tempfile
 from pathlib import Path
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from grpc_tools import protoc
 
 from twind.errors import TwindError
 
@@ -20,7 +21,6 @@ TIMESERIES = "twind/v1/timeseries.proto"
 
 @functools.cache
 def _pool(proto: str) -> descriptor_pool.DescriptorPool:
-    from grpc_tools import protoc
 
     source = SCHEMA_ROOT / proto
     if not source.exists():

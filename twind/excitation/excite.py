@@ -23,52 +23,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 
-from twind import DOFS, strictjson
+from twind import strictjson
+from twind.analysis.fit import FIT_PARAMS
+from twind.config import load_config
 from twind.errors import TwindError
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``twind excite --dof POS [--dof PIT ...] --band LO HI [...]``."""
-    parser.add_argument("--mode", choices=tuple(MODES), default="coherence",
-                        help="what the excitation is designed for (default coherence)")
-    parser.add_argument("--config", help="config file (default: the 40m file shipped with twind)")
-    parser.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
-    parser.add_argument("--dof", action="append", choices=DOFS, metavar="DOF",
-                        help=f"DOF to excite, one of {', '.join(DOFS)}; repeat for several "
-                             "(each measured on its own); default POS")
-    parser.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"), required=True,
-                        help="frequency band (Hz) that must be coherent")
-    parser.add_argument("--coherence", type=float, default=0.7,
-                        help="coherence to reach in every bin of the band (default 0.7)")
-    parser.add_argument("--averages", type=int, default=10,
-                        help="non-overlapping averages of the measurement (default 10)")
-    parser.add_argument("--bw", type=float, default=0.01,
-                        help="frequency resolution of the measurement, Hz (default 0.01)")
-    parser.add_argument("--confidence", type=float, default=0.95,
-                        help="probability that a bin's estimate reaches the coherence "
-                             "(sets the margin for the estimator's scatter; default 0.95)")
-    parser.add_argument("--all-responses", action="store_true",
-                        help="make the IN1 of every --dof coherent with each excitation, "
-                             "not only the excited DOF's own")
-    parser.add_argument("--rms", type=float, help="RMS limit at EXC (default: the twin's)")
-    parser.add_argument("--peak", type=float, help="peak limit at EXC (default: the twin's)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the noise request")
-    parser.add_argument("--params", nargs="+", metavar="NAME",
-                        help="information: parameters to inform (default: all nine)")
-    parser.add_argument("--duration", type=float, default=110.0,
-                        help="information: seconds of measurement per DOF")
-    parser.add_argument("--period", type=float, default=20.0,
-                        help="information: multisine period (s); measure with bw = 1/period")
-    parser.add_argument("--json", action="store_true", help="print the design as JSON")
-    parser.add_argument("-o", "--output", metavar="FILE.png",
-                        help="plot of the required and designed ASD and the coherence")
+from twind.excitation.checks import Limits
+from twind.excitation.coherence import design_coherent
+from twind.excitation.information import design_information
 
 
 def excite_main(args: argparse.Namespace) -> int:
     """``twind excite``: print the design (or its JSON), optionally plot it."""
-    from twind.config import load_config
-    from twind.excitation.checks import Limits
 
     for name in ("rms", "peak"):
         value = getattr(args, name)
@@ -93,7 +60,6 @@ def excite_main(args: argparse.Namespace) -> int:
 
 # -- coherence ------------------------------------------------------------------------------------
 def _coherence(args: argparse.Namespace, optic: Any, ifo: str, limits: Any) -> Any:
-    from twind.excitation.coherence import design_coherent
 
     return design_coherent(optic, args.dof or ["POS"], tuple(args.band), target=args.coherence,
                            averages=args.averages, bw=args.bw, limits=limits,
@@ -115,14 +81,10 @@ def plot_coherence(design: Any, path: str | Path) -> Path:
     Path
         The file written.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     lo, hi = design.band
     n = len(design.dofs)
-    fig, axes = plt.subplots(2, n, figsize=(5.0 * n, 6.5), sharex="col", squeeze=False)
+    fig = Figure(figsize=(5.0 * n, 6.5))
+    axes = fig.subplots(2, n, sharex="col", squeeze=False)
     f = np.geomspace(lo / 10, hi * 10, 800)
     for j, d in enumerate(design.dofs.values()):
         top, bottom = axes[0, j], axes[1, j]
@@ -145,7 +107,6 @@ def plot_coherence(design: Any, path: str | Path) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -155,8 +116,6 @@ INFORMATION_RMS = 10.0
 
 
 def _information(args: argparse.Namespace, optic: Any, ifo: str, limits: Any) -> Any:
-    from twind.analysis.fit import FIT_PARAMS
-    from twind.excitation.information import design_information
 
     rms = INFORMATION_RMS if args.rms is None else args.rms
     design = design_information(optic, args.dof or ["POS", "PIT", "YAW"], tuple(args.band),
@@ -173,12 +132,8 @@ def _information(args: argparse.Namespace, optic: Any, ifo: str, limits: Any) ->
 
 def plot_information(design: Any, path: str | Path) -> Path:
     """Tone amplitudes per DOF, and the predicted uncertainties against white noise's."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 7))
+    fig = Figure(figsize=(8, 7))
+    top, bottom = fig.subplots(2, 1)
     for i, dof in enumerate(design.tones):
         top.stem(design.tones[dof], design.amps[dof], label=dof, linefmt=f"C{i}-",
                  markerfmt=f"C{i}o", basefmt=" ").markerline.set_markersize(4)
@@ -198,7 +153,6 @@ def plot_information(design: Any, path: str | Path) -> Path:
     bottom.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
     return Path(path)
 
 

@@ -17,15 +17,14 @@ from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import signal
 
 from twind import progress
 from twind.analysis.fit import FIT_PARAMS, fit, param_value, with_params
 from twind.config import OpticConfig
-from twind.lab.measurement import SETTLE_S, measure_tfs
-
-# a few-percent drift of every nominal parameter, as docs/model.md describes a real optic
-DRIFT = {"wire_length_m": 0.983, "b_m": 1.027, "R1_m": 0.975, "coil_N_per_ct": 0.968,
-         "osem_lever_m": 1.012, "Q_POS": 0.87, "Q_PIT": 1.3, "Q_YAW": 1.1, "Q_SIDE": 0.8}
+from twind.excitation.information import design_information, det_root
+from twind.lab.campaign import LocalTwin, tones_only
+from twind.lab.measurement import DRIFT, SETTLE_S, measure_tfs
 
 
 @dataclass
@@ -151,10 +150,7 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
     measured with 50 %-overlap Hann Welch at the same resolution.  Printed: each round's
     ``det(Cov)^(1/p)`` over the parameters both identify, and its ratio to white noise's.
     """
-    from scipy import signal
 
-    from twind.lab.campaign import LocalTwin, tones_only
-    from twind.excitation.information import design_information, det_root
 
     real = replace(cfg, sus=with_params(cfg.sus, {k: param_value(cfg.sus, k) * v
                                                   for k, v in drift.items()}))

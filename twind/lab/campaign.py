@@ -20,14 +20,19 @@ from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+from matplotlib.figure import Figure
 
-from twind import DOFS, progress, strictjson
-from twind.analysis.fit import FIT_PARAMS, FitResult, fit, with_params
+from twind import progress, strictjson
+from twind.analysis.fit import FIT_PARAMS, FitResult, fit, param_value, with_params
 from twind.analysis.tf import TFSet, from_session
-from twind.config import OpticConfig
+from twind.bus.keys import data_key
+from twind.bus.session import zenoh_config
+from twind.client import TwinClient
+from twind.config import OpticConfig, load_config
 from twind.errors import TwindError
 from twind.excitation.information import InformationDesign, design_information
-from twind.lab.measurement import SETTLE_S, measure_tfs
+from twind.lab.measurement import DRIFT, SETTLE_S, measure_tfs
+from twind.recording.recorder import Recorder
 
 MIN_AVERAGES = 4
 """Fewer periods leave the coherence estimate (and the errors made from it) meaningless."""
@@ -73,7 +78,6 @@ class BusTwin:
     def __init__(self, connect: Sequence[str], optic: str, ifo: str = "C1",
                  update: Sequence[str] | None = None, workdir: str | Path | None = None
                  ) -> None:
-        from twind.client import TwinClient
 
         self.connect, self.optic, self.ifo = list(connect), optic, ifo
         self.client = TwinClient(self.connect, ifo=ifo)
@@ -82,9 +86,6 @@ class BusTwin:
         self.rounds = 0
 
     def measure(self, design: InformationDesign, averages: int) -> TFSet:
-        from twind.bus.keys import data_key
-        from twind.bus.session import zenoh_config
-        from twind.recording.recorder import Recorder
 
         rate = float(self.client.params(self.optic)["params"]["sample_rate_hz"])
         self.rounds += 1
@@ -217,12 +218,8 @@ def _progress(k: int, what: str, twin_s: float, rounds: list[Round]) -> None:
 
 def plot_rounds(rounds: list[Round], target: float, path: str | Path) -> Path:
     """Relative uncertainty of each parameter after each round, against twin time."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig = Figure(figsize=(7, 4.5))
+    ax = fig.subplots()
     names = sorted({n for r in rounds for n in r.relative_sigma})
     t = [r.twin_s / 60 for r in rounds]
     for n in names:
@@ -236,49 +233,14 @@ def plot_rounds(rounds: list[Round], target: float, path: str | Path) -> Path:
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=90)
-    plt.close(fig)
     return path
 
 
 # ------------------------------------------------------------------------------ command line
-def add_arguments(parser) -> None:  # noqa: ANN001 - argparse.ArgumentParser
-    """Arguments of ``twind campaign``."""
-
-    parser.add_argument("--connect", action="append", metavar="ENDPOINT",
-                        help="measure a running twin (twind serve) at this Zenoh endpoint; "
-                             "default: an in-process twin of the optic drifted by --drift")
-    parser.add_argument("--update", action="append", metavar="ENDPOINT",
-                        help="push each round's fit into the twin at this endpoint")
-    parser.add_argument("--config", help="twin config (TOML): the nominal model")
-    parser.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
-    parser.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
-    parser.add_argument("--dof", action="append", choices=DOFS, metavar="DOF",
-                        help="excited DOF, repeatable (default POS, PIT, YAW)")
-    parser.add_argument("--band", type=float, nargs=2, default=(0.1, 10.0), metavar=("LO", "HI"),
-                        help="band of the multisines, Hz (default 0.1 10)")
-    parser.add_argument("--rms", type=float, default=10.0, help="RMS at each EXC")
-    parser.add_argument("--period", type=float, default=20.0, help="multisine period (s)")
-    parser.add_argument("--averages", type=int, default=5, help="periods per DOF per round")
-    parser.add_argument("--params", nargs="+", metavar="NAME", default=list(FIT_PARAMS),
-                        help=f"parameters to identify (default {' '.join(FIT_PARAMS)})")
-    parser.add_argument("--target", type=float, default=0.01,
-                        help="relative sigma to reach on every identifiable parameter")
-    parser.add_argument("--max-rounds", type=int, default=8,
-                        help="rounds at most, if the target is not reached (default 8)")
-    parser.add_argument("--drift", type=float, default=1.0,
-                        help="in-process twin: scale of the built-in drift of the 'real' optic")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="in-process twin: seed of its noise (default 0)")
-    parser.add_argument("--workdir", help="running twin: where the rounds' MCAP files go")
-    parser.add_argument("--json", action="store_true", help="the result as JSON")
-    parser.add_argument("-o", "--output", help=".png: relative sigma per round")
 
 
 def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
     """``twind campaign``: run rounds until the target; print each round and the result."""
-    from twind.lab.calibration import DRIFT
-    from twind.analysis.fit import param_value
-    from twind.config import load_config
 
     nominal = load_config(args.config, [args.optic]).select([args.optic])[0]
     if args.connect:
@@ -289,8 +251,8 @@ def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
                  for k, f in DRIFT.items()}
         twin = LocalTwin(replace(nominal, sus=with_params(nominal.sus, truth)), args.seed)
     rounds = run_campaign(nominal, twin, args.dof or ["POS", "PIT", "YAW"], tuple(args.band),
-                          args.rms, args.period, args.averages, args.params, args.target,
-                          args.max_rounds)
+                          args.rms, args.period, args.averages, args.params or FIT_PARAMS,
+                          args.target, args.max_rounds)
     last = rounds[-1]
     if args.json:
         out = {"rounds": [{"round": r.index, "twin_s": r.twin_s,

@@ -43,17 +43,23 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS, OSEMS
-from twind.analysis.fit import (
-    ClosedLoopModel,
-    FitData,
-    FitError,
-    param_value,
-    with_params,
-)
+from twind.analysis.diaggui import write_measurement_set
+from twind.analysis.diagnose import MIN_COHERENCE, diagnose, evidence
+from twind.analysis.fit import ClosedLoopModel, FitData, FitError, param_value, with_params
+from twind.analysis.tf import from_diaggui, from_session
 from twind.config import OpticConfig
-from twind.model.plant import Plant
+from twind.lab.measurement import SETTLE_S, measure_tfs, record_measurement
+from twind.model.geometric import (
+    WireGeometry,
+    geometric_mechanics,
+    geometric_model,
+    pendulum_centre_offset,
+)
 from twind.model.mechanics import Mechanics
+from twind.model.osem import FACE_POSITION
 from twind.model.params import SOSParams
+from twind.model.plant import Plant
+from twind.viz.report import write_report
 
 CONCEAL_SIGMA = 3.0
 """Largest change of one bin of IN1/EXC an effect makes, in that bin's standard errors."""
@@ -183,7 +189,6 @@ def raised_clamp(plant: Plant, sus: SOSParams, rise_m: float) -> tuple[Plant, di
     (equilibrium and Hessian of the wires), so the longer wire's softer pull, and with it
     the POS<->YAW coupling, is not docs/model.md's formula put back; docs/model.md's ``delta_m`` is
     the geometry's pendulum-centre offset."""
-    from twind.model.geometric import WireGeometry, geometric_model, pendulum_centre_offset
 
     offsets = np.zeros((2, 3))
     offsets[0 if rise_m >= 0 else 1, 2] = abs(rise_m)
@@ -217,8 +222,6 @@ def tilted_heads(plant: Plant, sus: SOSParams, towards_side: float, towards_vert
     Nothing goes through the catalogue's ``bounce_roll``; docs/model.md's parameters come out of
     the geometry: ``vertical`` = (sensing x actuation of VERT per face head), ``roll`` the
     same of ROLL per unit lever, and the modes' frequencies."""
-    from twind.model.geometric import WireGeometry, geometric_mechanics
-    from twind.model.osem import FACE_POSITION
 
     geo = geometric_mechanics(WireGeometry.from_params(sus))
     mech, extra = plant.mechanics, ("VERT", "ROLL")
@@ -357,8 +360,6 @@ def reference_data(cfg: OpticConfig, seed: int, excited: Sequence[str] = EXCITED
                    rms: float = RMS) -> FitData:
     """A corpus measurement of the nominal optic on `route`, its bins as ``diagnose``
     chooses them: the errors the effects are concealed against."""
-    from twind.analysis.diagnose import MIN_COHERENCE
-    from twind.lab.measurement import measure_tfs
 
     tfs = measure_tfs(cfg, excited, bw=bw or ROUTE_BW[route], averages=averages, rms=rms,
                       seed=seed)
@@ -590,9 +591,6 @@ def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - 
     twin's TFs, up to :data:`STOP_HZ`) or ``"mcap"`` (a session recorded from the twin's
     engine), each DOF of `excited` in turn, at resolution `bw` (default the route's), with
     `averages` and an excitation of `rms`."""
-    from twind.analysis.diaggui import write_measurement_set
-    from twind.analysis.tf import from_diaggui, from_session
-    from twind.lab.measurement import SETTLE_S, measure_tfs, record_measurement
 
     if route not in ROUTE_BW:
         msg = f"unknown route {route!r}: xml or mcap"
@@ -624,7 +622,6 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
     -------
     list of Score
     """
-    from twind.analysis.diagnose import diagnose, evidence
 
     bw = bw or ROUTE_BW[route]
     say(f"resolution {bw:g} Hz, {averages} averages, excitation RMS {rms:g}")
@@ -760,10 +757,6 @@ def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", s
     (Diagnosis, Diagnosis)
         The real optic's and the nominal one's.
     """
-    from twind.analysis.diagnose import diagnose
-    from twind.viz.report import write_report
-    from twind.analysis.tf import from_session
-    from twind.lab.measurement import SETTLE_S, record_measurement
 
     out = Path(out)
     rng = np.random.default_rng(seed)

@@ -28,12 +28,19 @@ from twind.analysis.tf import (
     with_lpm,
 )
 from twind.analysis.welch import welch_tfs
+from twind.channels import dof_channel
 from twind.config import OpticConfig
 from twind.model.plant import Plant
+from twind.recording.writer import SessionWriter
 from twind.simulation.engine import Engine
 
 BLOCK = 1024
 """Samples per engine step of :func:`record_measurement`: the service's 1/16 s block."""
+DRIFT = {"wire_length_m": 0.983, "b_m": 1.027, "R1_m": 0.975, "coil_N_per_ct": 0.968,
+         "osem_lever_m": 1.012, "Q_POS": 0.87, "Q_PIT": 1.3, "Q_YAW": 1.1, "Q_SIDE": 0.8}
+"""Factors of a "real" optic's parameters over the nominal ones: a few per cent in each, as
+a real optic drifts (docs/model.md), for the pull test and the in-process campaign."""
+
 SETTLE_S = 30.0
 """Seconds run before recording.  The slowest closed-loop pole of the 40m damping loops
 (Q ~ 5 at 0.69 Hz) decays with tau = Q / (pi f) ~ 2.3 s; 30 s leaves 2e-6 of the switch-on
@@ -178,8 +185,6 @@ def record_measurement(cfg: OpticConfig, path: str | Path, dofs: Sequence[str] =
     -------
     Path
     """
-    from twind.channels import dof_channel
-    from twind.recording.writer import SessionWriter
 
     rate = cfg.sus.sample_rate_hz
     needed = int(SETTLE_S * rate) + _averaged(rate, bw, averages, overlap)[1]

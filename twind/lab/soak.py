@@ -33,6 +33,7 @@ from twind.bus.session import zenoh_config
 from twind.client import TwinClient
 from twind.config import DEFAULT_CONFIG, load_config
 from twind.errors import TwindError
+from twind.recording.reader import iter_raw_messages
 
 
 @dataclass
@@ -381,7 +382,6 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float, pau
 def _scan_recording(files: list[Path]) -> tuple[int, int]:
     """Blocks and sequence gaps of a recording, read as a stream: an hour of the 40m is
     ~50 GB, far more than memory holds."""
-    from twind.recording.reader import iter_raw_messages
 
     last: dict[str, int] = {}
     blocks = gaps = 0

@@ -24,12 +24,17 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 from scipy import signal
 
+from twind.analysis import tf
+from twind.analysis.tf import from_session
+from twind.bus.codec import SampleBlock
 from twind.channels import dof_channel
 from twind.errors import TwindError
+from twind.recording.writer import McapSession
 
 TARGET_S = 20.0
 """The issue's target wall time for an hour of 12 channels."""
@@ -103,8 +108,6 @@ def write_session(path: str | Path, duration: float = 3600.0, rate: float = 1638
     TwindError
         If `duration` is too short to hold one block per excitation.
     """
-    from twind.bus.codec import SampleBlock
-    from twind.recording.writer import McapSession
 
     n_blocks = int(duration * rate) // BLOCK_SAMPLES
     per_dof = n_blocks // len(EXCITED)
@@ -159,7 +162,6 @@ def write_session(path: str | Path, duration: float = 3600.0, rate: float = 1638
 
 def time_from_session(path: str | Path, bw: float = 0.01) -> float:
     """Wall seconds of :func:`twind.analysis.tf.from_session` on `path` (in this process)."""
-    from twind.analysis.tf import from_session
 
     t0 = time.perf_counter()
     tfs = from_session([path], bw=bw)
@@ -186,9 +188,7 @@ def _warm_up(workdir: Path, rate: float) -> float:
 def time_read_whole(path: str | Path, bw: float = 0.01) -> float:
     """Wall seconds of :func:`twind.analysis.tf.from_session` reading the test points whole
     before the Welch sums (its path for recordings with gaps or late events)."""
-    from unittest import mock
 
-    from twind.analysis import tf
 
     with mock.patch.object(tf, "_streamed", lambda *_a, **_k: None):
         return time_from_session(path, bw)

@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from twind.recording.reader import Gap, RecordingError, read_session
@@ -82,12 +84,6 @@ def export(path_in: str | Path | Iterable[str | Path], path_out: str | Path,
     if path_out.exists():
         msg = f"{path_out} exists; twind export does not overwrite files"
         raise RecordingError(msg)
-    if fmt == "hdf5":
-        try:
-            import h5py  # noqa: F401 - checked before the (long) read
-        except ImportError:
-            msg = "HDF5 export needs h5py: pip install h5py (or export to .npz)"
-            raise RecordingError(msg) from None
     session = read_session(path_in, None if channels is None else list(channels))
     if not session.channels:
         msg = f"{session.files[0]}: no channels recorded"
@@ -126,7 +122,6 @@ def _write_npz(channels: dict, path: Path) -> None:
 
 
 def _write_hdf5(channels: dict, path: Path, sources: list[Path]) -> None:
-    import h5py
 
     f = h5py.File(path, "x")  # "x": fail if the file exists (then nothing to clean up)
     try:
@@ -147,19 +142,8 @@ def _write_hdf5(channels: dict, path: Path, sources: list[Path]) -> None:
 # --- command line ----------------------------------------------------------------------------
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``twind export FILE.mcap [FILE ...] -o OUT.npz [--channels C ...]``."""
-    parser.add_argument("inputs", nargs="+", metavar="FILE.mcap",
-                        help="recording: an MCAP file, a rotated set's name, or several files")
-    parser.add_argument("-o", "--output", required=True, metavar="OUT",
-                        help="OUT.npz, OUT.h5 or OUT.hdf5 (never overwritten)")
-    parser.add_argument("--channels", nargs="+", metavar="CHANNEL",
-                        help="channels to export, space- or comma-separated (default all)")
-
-
 def export_main(args: argparse.Namespace) -> int:
     """``twind export``: write the file, print what it holds, report gaps on stderr."""
-    import warnings
 
     channels = None
     if args.channels:

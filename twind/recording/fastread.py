@@ -27,25 +27,35 @@ from io import BytesIO
 from pathlib import Path
 from typing import Any, Protocol
 
+import lz4.frame
 import numba as nb
 import numpy as np
+import zstandard
+from mcap import records as mcap_records
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import EndOfFile, InvalidMagic, McapError, RecordLengthLimitExceeded
+from mcap.opcode import Opcode
+from mcap.reader import make_reader
+from mcap.records import Channel as McapChannel, DataEnd, Footer, Message, Metadata, Schema
+from mcap.writer import MCAP0_MAGIC as _MAGIC
 from numpy.typing import NDArray
 
 from twind.recording.reader import (
+    _Block,
     Channel,
     RecordingError,
     Session,
-    _Block,
-    _join,
-    _some,
-    _warn_gaps,
+    _block_samples,
     indexed_chunks,
     indexed_summary,
+    _join,
     report_truncation,
     require_header,
     scan_sample_block,
     session_files,
+    _some,
     truncation_reason,
+    _warn_gaps,
 )
 from twind.recording.writer import (
     BLOCK_SCHEMA,
@@ -353,7 +363,6 @@ def _decode_batch(chunks: list[_ChunkView], channel_map: tuple
 
 def _decompress(chunk: _ChunkView, out: NDArray[np.uint8]) -> None:
     """A chunk's records into `out` (its uncompressed size), CRC checked."""
-    import zstandard
 
     if chunk.compression == "zstd":
         with zstandard.ZstdDecompressor().stream_reader(chunk.data) as reader:
@@ -363,7 +372,6 @@ def _decompress(chunk: _ChunkView, out: NDArray[np.uint8]) -> None:
     elif chunk.compression in ("lz4", ""):
         data = chunk.data
         if chunk.compression == "lz4":
-            import lz4.frame
 
             data = lz4.frame.decompress(data)
         n = len(data)
@@ -417,8 +425,6 @@ class _FileReader:
 
     def record(self, rec: Any) -> None:
         """A record outside the kernels (Schema, Channel, Message outside chunks, ...)."""
-        from mcap.records import Channel as McapChannel
-        from mcap.records import Message, Metadata, Schema
 
         if isinstance(rec, Schema):
             self.schemas[rec.id] = rec
@@ -431,7 +437,6 @@ class _FileReader:
 
     def message(self, channel_id: int, data: bytes) -> None:
         """One message by :func:`read_session`'s rules."""
-        from twind.recording.reader import _block_samples
 
         channel = self.channels.get(channel_id)
         if channel is None:
@@ -502,9 +507,6 @@ class _FileReader:
 
     def _chunk_in_python(self, arr: NDArray[np.uint8], ops: NDArray, starts: NDArray,
                          lens: NDArray) -> None:
-        from mcap.data_stream import ReadDataStream
-        from mcap.records import Channel as McapChannel
-        from mcap.records import Schema
 
         buf = arr.tobytes()
 
@@ -611,18 +613,12 @@ class _Records:
         self.path, self.size, self.at = path, size, 0
 
     def __iter__(self) -> Iterator[Any]:
-        from mcap import records as r
-        from mcap.data_stream import ReadDataStream
-        from mcap.exceptions import EndOfFile, InvalidMagic, RecordLengthLimitExceeded
-        from mcap.opcode import Opcode
-        from mcap.writer import MCAP0_MAGIC as _MAGIC
-
         # the indexes are not parsed: the file is read in order (an hour's chunk index is
         # 20 000 records)
-        kinds = {Opcode.ATTACHMENT: r.Attachment, Opcode.CHANNEL: r.Channel,
-                 Opcode.DATA_END: r.DataEnd, Opcode.FOOTER: r.Footer, Opcode.HEADER: r.Header,
-                 Opcode.METADATA: r.Metadata, Opcode.SCHEMA: r.Schema,
-                 Opcode.STATISTICS: r.Statistics}
+        kinds = {Opcode.ATTACHMENT: mcap_records.Attachment, Opcode.CHANNEL: mcap_records.Channel,
+                 Opcode.DATA_END: mcap_records.DataEnd, Opcode.FOOTER: mcap_records.Footer,
+                 Opcode.HEADER: mcap_records.Header, Opcode.METADATA: mcap_records.Metadata,
+                 Opcode.SCHEMA: mcap_records.Schema, Opcode.STATISTICS: mcap_records.Statistics}
         if self.size < len(_MAGIC):
             raise InvalidMagic(b"")
         with open(self.path, "rb") as fh:
@@ -644,7 +640,7 @@ class _Records:
             if op == Opcode.CHUNK:
                 yield _chunk_view(view[i + 9:end])
             elif op == Opcode.MESSAGE:
-                yield r.Message.read(ReadDataStream(BytesIO(view[i + 9:end])), length)
+                yield mcap_records.Message.read(ReadDataStream(BytesIO(view[i + 9:end])), length)
             elif op in kinds:  # anything else is skipped, as mcap does
                 yield kinds[op].read(ReadDataStream(BytesIO(view[i + 9:end])))
                 if op == Opcode.FOOTER:
@@ -671,9 +667,6 @@ def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolE
                ) -> None:
     """Every record of one file, by :func:`~twind.recording.reader.iter_raw_messages`'s rules
     for a file cut short."""
-    import zstandard
-    from mcap.exceptions import EndOfFile, InvalidMagic, McapError
-    from mcap.records import DataEnd, Footer
 
     size = path.stat().st_size
     require_header(path, size)
@@ -775,7 +768,6 @@ def _read_by_index(path: Path, reader: _FileReader, chunks: int, problems: list[
 
 def _message_counts(files: list[Path]) -> dict[str, int]:
     """Messages per topic over `files`, from their summaries; partial if one has none."""
-    from mcap.reader import make_reader
 
     counts: dict[str, int] = {}
     for path in files:

@@ -26,17 +26,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.decoder import DecoderFactory as McapDecoderFactory
-from mcap.reader import SeekingReader
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError
-from mcap.records import Channel as McapChannel
-from mcap.records import Chunk, DataEnd, Footer, Message, Metadata, Schema
+from mcap.reader import SeekingReader
+from mcap.records import Channel as McapChannel, Chunk, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC
 from numpy.typing import NDArray
 
+from twind.bus.keys import data_key
+from twind.bus.session import DEFAULT_ENDPOINT, ENDPOINT, zenoh_config, zenoh_message
 from twind.errors import TwindError, TwindWarning
 from twind.recording.writer import (
     BLOCK_SCHEMA,
@@ -47,7 +49,7 @@ from twind.recording.writer import (
     BlockHeader,
     scan_block,
 )
-from twind.timeutil import unix_ns_to_gps
+from twind.timeutil import now_gps, unix_ns_to_gps
 
 
 class RecordingError(TwindError):
@@ -653,7 +655,8 @@ def _slice(ch: Channel, start: float, duration: float) -> tuple[NDArray[np.float
 
 
 def _as_series(parts: dict[str, tuple[NDArray[np.float64], float, Channel]]) -> Any:
-    try:
+    """gwpy series when gwpy is installed, else :class:`Series`."""
+    try:  # gwpy is optional and slow to import: only when a series is returned
         from gwpy.timeseries import TimeSeries, TimeSeriesDict
     except ImportError:
         return {name: Series(np.array(x), t0, ch.rate, name, ch.unit)
@@ -708,9 +711,7 @@ def getdata(channels: str | Sequence[str], duration: float | None, start: float 
     if duration is not None and not (duration > 0 and math.isfinite(duration)):
         msg = f"getdata: duration must be positive and finite, got {duration}"
         raise RecordingError(msg)
-    import zenoh
 
-    from twind.bus.session import DEFAULT_ENDPOINT, ENDPOINT, zenoh_config
 
     if source is None:
         source = DEFAULT_ENDPOINT
@@ -755,11 +756,7 @@ def as_array(data: Any) -> tuple[NDArray[np.float64], float]:
 def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float | None,
                       timeout: float | None) -> dict[str, Channel]:
     """Subscribe to `names` until each covers the span asked for, then join the blocks."""
-    import zenoh
 
-    from twind.bus.keys import data_key
-    from twind.bus.session import zenoh_message
-    from twind.timeutil import now_gps
 
     if timeout is None:
         timeout = 2 * duration + 10 + (max(0.0, start - now_gps()) if start else 0.0)

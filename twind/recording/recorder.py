@@ -24,27 +24,29 @@ import os
 import queue
 import signal
 import socket
+import subprocess
 import sys
+import tempfile
 import threading
 import time
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType, TracebackType
 from typing import Any
 
+import numpy as np
 import zenoh
 
 import twind
+from twind import DOFS, OSEMS
+from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
+from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
+from twind.channels import TEST_POINTS, dof_channel, osem_channel
 from twind.recording.reader import RecordingError, rotated_name
-from twind.recording.writer import (
-    CHUNK_BYTES,
-    CHUNK_SECONDS,
-    BlockHeader,
-    McapSession,
-    scan_block,
-)
+from twind.recording.writer import CHUNK_BYTES, CHUNK_SECONDS, BlockHeader, McapSession, scan_block
 from twind.timeutil import now_gps
 
 _STOP = object()  # the writer thread's end-of-queue marker
@@ -511,40 +513,8 @@ class Recorder:
 # --- command line ----------------------------------------------------------------------------
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``twind record [KEYEXPR ...] -o FILE.mcap [--duration S] [--connect EP]
-    [--listen EP] [--rotate-mb N] [--rotate-s S] [--ifo C1]``."""
-    parser.add_argument("keyexprs", nargs="*", metavar="KEYEXPR",
-                        help="data key expressions to record (default twin/**, every channel)")
-    parser.add_argument("-o", "--output", required=True, metavar="FILE.mcap",
-                        help="file to write (with rotation: FILE-0001.mcap, FILE-0002.mcap, ...)")
-    parser.add_argument("--duration", type=float, metavar="S",
-                        help="stop after S seconds (default: at SIGINT/SIGTERM)")
-    parser.add_argument("--connect", action="append", metavar="EP",
-                        help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 "
-                             "(repeatable; default tcp/127.0.0.1:7447 unless --listen)")
-    parser.add_argument("--listen", action="append", metavar="EP",
-                        help="Zenoh endpoint to listen on (repeatable)")
-    parser.add_argument("--mode", choices=("peer", "client"), default="peer",
-                        help="Zenoh mode (default peer)")
-    parser.add_argument("--rotate-mb", type=float, metavar="N",
-                        help="start a new file every N MB (1 MB = 10^6 bytes)")
-    parser.add_argument("--rotate-s", type=float, metavar="S",
-                        help="start a new file every S seconds of data (GPS)")
-    parser.add_argument("--ifo", default="C1", help="interferometer of the events and status "
-                                                    "keys (default C1)")
-    parser.add_argument("--no-events", action="store_true",
-                        help="do not record twin/@/<IFO>/events")
-    parser.add_argument("--zenoh-config", metavar="FILE.json5",
-                        help="a Zenoh configuration (credentials, TLS) to start from")
-    parser.add_argument("--parent", type=int, metavar="PID",
-                        help="end the recording when process PID, which started this one, "
-                             "exits or is killed (twind serve --record passes its own)")
-
-
 def record_main(args: argparse.Namespace) -> int:
     """``twind record``: record until --duration, SIGINT or SIGTERM; print a summary."""
-    from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 
     for name in ("duration", "rotate_mb", "rotate_s"):
         value = getattr(args, name)
@@ -573,11 +543,7 @@ def synthetic_block(channel: str, sequence: int, gps0: float = 1.4e9, n: int = 1
     (`seed` overrides), so that they are as incompressible as the twin's noise and can be
     regenerated for checking.
     """
-    import zlib
 
-    import numpy as np
-
-    from twind.bus.codec import SampleBlock
 
     s = seed if seed is not None else zlib.crc32(channel.encode()) * 1_000_003 + sequence
     x = np.random.default_rng(s).standard_normal(n)
@@ -586,9 +552,6 @@ def synthetic_block(channel: str, sequence: int, gps0: float = 1.4e9, n: int = 1
 
 def forty_meter_channels(ifo: str = "C1") -> list[str]:
     """The 210 channel names of the 40m's ten optics."""
-    from twind import DOFS
-    from twind.channels import TEST_POINTS, dof_channel, osem_channel
-    from twind import OSEMS
 
     optics = ("ETMX", "ETMY", "ITMX", "ITMY", "BS", "PRM", "SRM", "MC1", "MC2", "MC3")
     return [name for optic in optics for name in
@@ -614,7 +577,6 @@ def recording_benchmark(seconds: float = 2.0, block_samples: int = 1024,
         the 40m's rate), ``file_mb``, and with `end_to_end`: ``e2e_blocks``, ``e2e_expected``,
         ``e2e_dropped``, ``e2e_max_backlog_mb``.
     """
-    import tempfile
 
     names = forty_meter_channels()
     per_s = rate / block_samples
@@ -640,9 +602,7 @@ def recording_benchmark(seconds: float = 2.0, block_samples: int = 1024,
 
 def _end_to_end(tmp: Path, seconds: float, names: list[str], block_samples: int,
                 rate: float) -> dict[str, float]:
-    import subprocess
 
-    from twind.bus.session import zenoh_config
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -673,7 +633,6 @@ def _matching(publisher: Any) -> bool:
 
 def _publish_paced(endpoint: str, n_seq: int, block_samples: int, rate: float) -> None:
     """Publish `n_seq` blocks of every 40m channel at the real-time pace (benchmark helper)."""
-    from twind.bus.session import zenoh_config
 
     names = forty_meter_channels()
     with zenoh.open(zenoh_config(connect=[endpoint])) as session:

@@ -67,13 +67,6 @@ def recover(source: str | Path, out: str | Path) -> tuple[int, list[str]]:
     return n, problems
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``twind recover IN.mcap -o OUT.mcap``."""
-    parser.add_argument("input", metavar="IN.mcap", help="a killed or damaged recording")
-    parser.add_argument("-o", "--output", required=True, metavar="OUT.mcap",
-                        help="the recovered file (never overwritten)")
-
-
 def recover_main(args: argparse.Namespace) -> int:
     """``twind recover``: write the file, say what was lost."""
     with warnings.catch_warnings():

@@ -26,6 +26,7 @@ from typing import Any
 import zenoh
 
 from twind.bus.keys import control_key
+from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 from twind.recording.reader import RecordingError, iter_raw_messages, session_files
 from twind.recording.writer import BLOCK_SCHEMA, CONFIG_TOPIC, EVENTS_TOPIC, scan_block
 
@@ -190,30 +191,8 @@ def _wait_for_subscriber(pub: Any, timeout: float, stop: threading.Event) -> Non
 # --- command line ----------------------------------------------------------------------------
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``twind replay FILE [FILE ...] [--rate X] [--loop] [--connect EP]
-    [--listen EP]``."""
-    parser.add_argument("files", nargs="+", metavar="FILE",
-                        help="recording: an MCAP file, a rotated set's name, or several files")
-    parser.add_argument("--rate", type=float, default=1.0, metavar="X",
-                        help="speed-up: 2 is twice as fast; 0 or inf as fast as possible "
-                             "(default 1)")
-    parser.add_argument("--loop", action="store_true", help="start again at the end")
-    parser.add_argument("--connect", action="append", metavar="EP",
-                        help="Zenoh endpoint to connect to (repeatable; default "
-                             "tcp/127.0.0.1:7447 unless --listen)")
-    parser.add_argument("--listen", action="append", metavar="EP",
-                        help="Zenoh endpoint to listen on (repeatable)")
-    parser.add_argument("--mode", choices=("peer", "client"), default="peer",
-                        help="Zenoh mode (default peer)")
-    parser.add_argument("--ifo", help="interferometer of the events key (default the "
-                                      "recording's)")
-    parser.add_argument("--no-events", action="store_true", help="do not publish events")
-
-
 def replay_main(args: argparse.Namespace) -> int:
     """``twind replay``: until the end (or, with --loop, SIGINT/SIGTERM)."""
-    from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 
     rate = _check_rate(args.rate)
     files = session_files(args.files)

@@ -41,11 +41,13 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from mcap.writer import CompressionType, IndexType
-from mcap.writer import Writer as McapWriter
+from mcap.writer import CompressionType, IndexType, Writer as McapWriter
+from mcap_protobuf.schema import build_file_descriptor_set
 
 import twind
 from twind import strictjson
+from twind.bus.codec import SampleBlock
+from twind.bus.schema import sample_block_class
 from twind.channels import block_channels
 from twind.timeutil import gps_to_unix_ns, now_gps
 
@@ -95,9 +97,7 @@ _CONFIG_JSON_SCHEMA = {
 
 def sample_block_schema_data() -> bytes:
     """The serialized FileDescriptorSet of ``twind.v1.SampleBlock``, as mcap-protobuf writes it."""
-    from mcap_protobuf.schema import build_file_descriptor_set
 
-    from twind.bus.schema import sample_block_class
 
     return build_file_descriptor_set(sample_block_class()).SerializeToString()
 
@@ -420,7 +420,6 @@ class SessionWriter:
 
     def write_block(self, block) -> None:  # noqa: ANN001 - twind.simulation.engine.Block
         """Append every channel of `block` as one message each."""
-        from twind.bus.codec import SampleBlock
 
         gps = self.gps_start + block.start_sample / block.rate_hz
         for name, unit, samples in block_channels(self.ifo, block):

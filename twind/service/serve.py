@@ -19,6 +19,7 @@ from twind.config import TwinConfig
 from twind.errors import TwindError
 from twind.limits import ServiceLimits
 from twind.service.twin import TwinService
+from twind.timeutil import now_gps
 
 
 def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float = 1 / 16,
@@ -138,7 +139,6 @@ def _recorder(folder: str, endpoints: Sequence[str], ifo: str,
               zenoh_config_file: str | None = None) -> subprocess.Popen:
     """``twind record`` in a process of its own: it cannot slow the twin's pacing thread
     (Python threads share one interpreter lock) nor take the twin down if it fails."""
-    from twind.timeutil import now_gps
 
     Path(folder).mkdir(parents=True, exist_ok=True)
     out = Path(folder) / f"{ifo}-twin-{int(now_gps())}.mcap"

@@ -28,19 +28,14 @@ from twind.bus.keys import ROOT, control_key, data_key
 from twind.channels import block_channels, dof_channel
 from twind.config import OpticConfig, TwinConfig
 from twind.errors import FotonError, TwindError
-from twind.excitation import (
-    ExcitationError,
-    ExcitationRequest,
-    Limits,
-    check,
-    make_waveform,
-)
+from twind.excitation import ExcitationError, ExcitationRequest, Limits, check, make_waveform
 from twind.excitation.request import is_int, is_real
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import FilterModule
 from twind.loop.foton_file import N_STAGES
 from twind.model.effects import with_effect
 from twind.model.params import SOSParams
+from twind.simulation.discretize import closed_loop_matrices
 from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
 
@@ -584,7 +579,6 @@ def _filter_change(request: dict) -> FilterChange:
 
 
 def _check_stable(loop, rate: float) -> None:  # noqa: ANN001 - DampingLoop
-    from twind.simulation.discretize import closed_loop_matrices
 
     with np.errstate(all="ignore"):
         A = closed_loop_matrices(loop, rate)[0]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import control
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
@@ -124,7 +125,6 @@ def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, ...]:
     return np.diag(wr).copy(), a_off, partner, inv @ B, C @ vr, vr
 
 
-
 def _series(first: SS, second: SS) -> SS:
     """``second`` after ``first``."""
     A1, B1, C1, D1 = first
@@ -178,6 +178,5 @@ def closed_loop_matrices(loop: DampingLoop, rate_hz: float) -> SS:
 
 def discrete_closed_loop(loop: DampingLoop, rate_hz: float):  # noqa: ANN201 - control.StateSpace
     """:func:`closed_loop_matrices` as a python-control discrete ``StateSpace``."""
-    import control
 
     return control.ss(*closed_loop_matrices(loop, rate_hz), 1.0 / rate_hz)

@@ -11,7 +11,12 @@ import shutil
 import sys
 from pathlib import Path
 
+import rerun as rr
+
+from twind.bus.session import DEFAULT_ENDPOINT
 from twind.errors import TwindError
+from twind.viz.live import stream
+from twind.viz.rerun_export import mcap_to_rrd
 
 
 def _viewer_executable() -> str | None:
@@ -26,33 +31,9 @@ def _can_open_window() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def add_view_arguments(p: argparse.ArgumentParser) -> None:
-    """Arguments of ``twind view``."""
-    p.add_argument("--connect", action="append",
-                   help="Zenoh endpoint of the twin or its router (default tcp/127.0.0.1:7447)")
-    p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (credentials, TLS)")
-    p.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
-    p.add_argument("--channels", help="comma-separated shell patterns, e.g. 'C1:SUS-ETMX_*' "
-                                      "(default: every channel)")
-    p.add_argument("--rate", type=float, default=64.0, help="plotted rate in Hz (default 64)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: Ctrl-C)")
-    sink = p.add_mutually_exclusive_group()
-    sink.add_argument("--viewer", metavar="URL",
-                      help="send to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
-    sink.add_argument("--save", metavar="FILE.rrd", help="write a .rrd file instead of viewing")
-    sink.add_argument("--web", action="store_true",
-                      help="serve the web viewer (http://localhost:9090) for a browser, e.g. on a "
-                           "headless host")
-    p.add_argument("--port", type=int, default=9876,
-                   help="gRPC port of the spawned viewer or of --web (default 9876)")
-
-
 def view_main(args: argparse.Namespace) -> int:
     """Stream the live twin to a Rerun viewer (spawned, given by --viewer, --web or --save)."""
-    import rerun as rr
 
-    from twind.bus.session import DEFAULT_ENDPOINT
-    from twind.viz.live import stream
 
     if not (args.rate > 0):
         msg = f"--rate must be positive, got {args.rate}"
@@ -95,19 +76,8 @@ def view_main(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_rrd_arguments(p: argparse.ArgumentParser) -> None:
-    """Arguments of ``twind rrd``."""
-    p.add_argument("mcap", help="a session recorded by 'twind simulate --record' or 'twind record'")
-    p.add_argument("-o", "--output", help="the .rrd to write (default: the MCAP's name, .rrd)")
-    p.add_argument("--channels", help="comma-separated shell patterns (default: every channel)")
-    p.add_argument("--rate", type=float, default=256.0, help="plotted rate in Hz (default 256)")
-    p.add_argument("--no-bode", action="store_true",
-                   help="skip the IN1/EXC and IN2/EXC transfer functions of excited DOFs")
-
-
 def rrd_main(args: argparse.Namespace) -> int:
     """Convert an MCAP session into a Rerun .rrd; prints what it holds."""
-    from twind.viz.rerun_export import mcap_to_rrd
 
     out = Path(args.output) if args.output else Path(args.mcap).with_suffix(".rrd")
     summary = mcap_to_rrd(args.mcap, out, channels=args.channels, decimate_to_hz=args.rate,

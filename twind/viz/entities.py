@@ -12,6 +12,8 @@ import fnmatch
 import re
 from collections.abc import Iterable
 
+import rerun.blueprint as rrb
+
 from twind import DOFS, OSEMS
 
 _OPTIC = r"^(?P<ifo>[^:]+):SUS-(?P<optic>[A-Z0-9]+)_"
@@ -50,7 +52,6 @@ def blueprint(optics: Iterable[str], bode: Iterable[str] = (),  # noqa: ANN201
     """The default layout: a tab per optic (a time-series view per DOF and one of the OSEMs),
     a tab of Bode views (one per excitation and transfer function: magnitude, phase,
     coherence) when there are any, and the events log below."""
-    import rerun.blueprint as rrb
 
 
     tabs = []

@@ -18,9 +18,12 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import rerun as rr
+import zenoh
 
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import ROOT, all_data, control_key
+from twind.bus.session import zenoh_config
 from twind.viz.decimate import NS, Decimated, Decimator
 from twind.viz.entities import blueprint, entity_path, matcher, parse_dof_channel
 from twind.viz.rerun_export import EVENTS_ENTITY, event_gps, event_text, gps_columns
@@ -65,10 +68,7 @@ def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: 
     duration : float, optional
         Wall seconds after which to stop.
     """
-    import rerun as rr
-    import zenoh
 
-    from twind.bus.session import zenoh_config
 
     stop = stop or threading.Event()
     select = matcher(channels)

@@ -9,8 +9,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from matplotlib.figure import Figure
 from numpy.typing import NDArray
+from scipy import signal
 
+from twind import DOFS, OSEMS
 from twind.analysis.fit import ClosedLoopModel, FitData, FitResult
 from twind.analysis.tf import TFSet
 from twind.channels import UNITS
@@ -88,16 +91,11 @@ def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str]
     -------
     Path
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     models, measured = models or {}, measured or {}
     panels = 3 if residuals else 2
     width, height = 3.3 * len(cols), (2.0 * panels + 0.4) * len(rows)
-    fig, axes = plt.subplots(panels * len(rows), len(cols), sharex=True, squeeze=False,
-                             figsize=(width, height))
+    fig = Figure(figsize=(width, height))
+    axes = fig.subplots(panels * len(rows), len(cols), sharex=True, squeeze=False)
     for i, r in enumerate(rows):
         for j, c in enumerate(cols):
             unit = f"{dof_unit(r)}/{per or dof_unit(c)}"
@@ -128,7 +126,6 @@ def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str]
                         top=1 - 0.9 / height, wspace=0.6, hspace=0.3)
     path = Path(path)
     fig.savefig(path, dpi=80)
-    plt.close(fig)
     return path
 
 
@@ -198,13 +195,8 @@ def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Pa
     Path
         The PNG written.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (mag, phase, coh) = plt.subplots(3, 1, figsize=(8, 8), sharex=True,
-                                          gridspec_kw={"height_ratios": [3, 2, 1]})
+    fig = Figure(figsize=(8, 8))
+    mag, phase, coh = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 2, 1]})
     for t in transfers:
         f, h, s = t.frequency_hz, t.tf, t.sigma()
         good = t.coherence >= MIN_COHERENCE
@@ -227,7 +219,6 @@ def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Pa
     fig.tight_layout(rect=(0, 0, 1, 0.97))
     path = Path(path)
     fig.savefig(path, dpi=90)
-    plt.close(fig)
     return path
 
 
@@ -235,15 +226,7 @@ def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: AN
                    path: str | Path) -> Path:
     """A free-swinging check (:class:`twind.analysis.freeswing.FreeSwing`) as a figure: the
     OSEM spectra with the modes found and the model's, and both input matrices as maps."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from scipy import signal
-
-    from twind import DOFS, OSEMS
-
-    fig = plt.figure(figsize=(11, 7))
+    fig = Figure(figsize=(11, 7))
     spec = fig.add_subplot(2, 1, 1)
     q = max(1, int(rate_hz / 16))
     low = signal.decimate(sen - sen.mean(axis=1, keepdims=True), q, ftype="fir", axis=1) \
@@ -273,7 +256,6 @@ def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: AN
     fig.colorbar(im, ax=fig.axes[1:], shrink=0.8, label="over the configured row's largest")
     path = Path(path)
     fig.savefig(path, dpi=90)
-    plt.close(fig)
     return path
 
 
@@ -291,12 +273,7 @@ def plot_comparison(cmp: "ModelComparison", path: str | Path) -> Path:
     Path
         The file written.
     """
-    # Agg canvas directly: no pyplot global state, no display needed
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=(14, 11))
-    FigureCanvasAgg(fig)
     axes = fig.subplots(4, 4, sharex=True)
     zero = cmp.structurally_zero()
     worst = cmp.max_relative_difference()

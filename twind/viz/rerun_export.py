@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rerun as rr
 from numpy.typing import NDArray
 
 from twind.bus.codec import SampleBlock
@@ -59,7 +60,6 @@ GPS_TO_UNIX_NS = (GPS_EPOCH_UNIX - LEAP_SECONDS) * NS
 
 def gps_columns(gps_ns: NDArray[np.int64]) -> list:
     """The ``gps`` (duration) and ``utc`` (timestamp) index columns of GPS instants in ns."""
-    import rerun as rr
 
     gps_ns = np.asarray(gps_ns, dtype=np.int64)
     return [rr.TimeColumn(GPS_TIMELINE, duration=gps_ns.astype("timedelta64[ns]")),
@@ -232,7 +232,6 @@ class _Exporter:
             self.spans.feed(block)
         if not self.select(block.channel):
             return
-        import rerun as rr
 
         name = block.channel
         dec = self.decimators.get(name)
@@ -249,7 +248,6 @@ class _Exporter:
                 self._flush(name)
 
     def _flush(self, name: str) -> None:
-        import rerun as rr
 
         parts = self.pending[name]
         if not parts:
@@ -280,7 +278,6 @@ class _Exporter:
 
     def _bode(self, ifo: str, optic: str, dof: str, series: dict[str, NDArray], start: float,
               rate: float, truncated: bool) -> None:
-        import rerun as rr
 
         stop = start + series["EXC"].size / rate
         channel = f"{ifo}:SUS-{optic}_SUS{dof}_EXC"
@@ -318,7 +315,6 @@ class _Exporter:
                               columns=rr.TextLog.columns(text=[note], level=["INFO"]))
 
     def finish(self) -> None:
-        import rerun as rr
 
         if self.spans is not None:
             self.spans.close_all()
@@ -370,7 +366,6 @@ def mcap_to_rrd(mcap_path: str | Path, rrd_path: str | Path,
     -------
     ExportSummary
     """
-    import rerun as rr
 
     mcap_path, rrd_path = Path(mcap_path), Path(rrd_path)
     if not mcap_path.is_file():

@@ -8,6 +8,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+import rerun as rr
 from numpy.typing import NDArray
 
 from twind.errors import TwindError
@@ -33,7 +34,6 @@ def write_spectra_rrd(path: str | Path, name: str,
     -------
     Path
     """
-    import rerun as rr
 
     path = Path(path)
     if path.exists():

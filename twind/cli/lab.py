@@ -1,0 +1,110 @@
+"""The commands that prove twind: ``twind bench``, ``demo`` and ``soak``."""
+
+from __future__ import annotations
+
+import argparse
+
+from twind import DOFS
+from twind.config import load_config
+from twind.errors import TwindError
+from twind.lab.calibration import information_benchmark, pull_test
+from twind.lab.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus, run_demo
+from twind.lab.engine_speed import run_benchmarks
+from twind.lab.freeswing_bench import benchmark
+from twind.lab.soak import soak
+from twind.lab.tf_speed import run_tf_benchmark
+
+
+def cmd_soak(args: argparse.Namespace) -> int:
+    """Serve, record, inject and attack for a while; print the service figures."""
+
+    report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config,
+                  load=args.load, suspend=args.suspend)
+    print("\n".join(report.lines()))
+    return 0
+
+
+def _bench_engine(args: argparse.Namespace) -> int:
+    """Engine speed, side by side with python-control on the same closed loop."""
+
+    duration = 20.0 if args.duration is None else args.duration
+    run_benchmarks(args.config, duration, marginal=not args.no_marginal)
+    return 0
+
+
+def _bench_tf(args: argparse.Namespace) -> int:
+    """``twind tf`` on a written session (default 1 h of 12 channels at 16384 Hz)."""
+
+    duration = 3600.0 if args.duration is None else args.duration
+    run_tf_benchmark(duration, workdir=args.workdir, keep=args.keep)
+    return 0
+
+
+def _optic(args: argparse.Namespace, name: str = "ETMX"):  # noqa: ANN202 - OpticConfig
+    """Optic `name` of ``--config``: the one the identification benchmarks run on."""
+
+    return load_config(args.config, [name]).optics[name]
+
+
+def _bench_pull(args: argparse.Namespace) -> int:
+    """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
+    cfg = _optic(args)
+    report = pull_test(cfg, n=args.realisations or 100, bw=args.bw or 0.02,
+                       estimator=args.estimator, workers=args.workers)
+    print("\n".join(report.lines()))
+    return 0
+
+
+def _bench_information(args: argparse.Namespace) -> int:
+    """D-optimal multisines against white noise of equal RMS, measured and fitted on the twin."""
+    cfg = _optic(args)
+    print("\n".join(information_benchmark(cfg)))
+    return 0
+
+
+def _bench_diagnose(args: argparse.Namespace) -> int:
+    """twind diagnose on the proof corpus: drifted optics with concealed effects."""
+
+    effects = args.effects.split(",") if args.effects else [*EFFECTS, *BEYOND]
+    excited = args.excite.split(",") if args.excite else list(EXCITED)
+    if set(excited) - set(DOFS):
+        msg = f"--excite takes DOFs among {', '.join(DOFS)}, not {args.excite}"
+        raise TwindError(msg)
+    unknown = [e for e in effects if set(e.split("+")) - set(MADE)]
+    if unknown:
+        msg = f"the corpus cannot hide {', '.join(unknown)}; it makes {', '.join(MADE)}"
+        raise TwindError(msg)
+    cfg = _optic(args, args.optic)
+    for route in ("xml", "mcap") if args.route == "both" else (args.route,):
+        print(f"--- route: {route}", flush=True)
+        run_corpus(cfg, route, args.per_effect, args.nulls, effects=effects,
+                   say=lambda line: print(line, flush=True), excited=excited, bw=args.bw,
+                   averages=args.averages or AVERAGES, rms=args.rms or RMS)
+    return 0
+
+
+def _bench_freeswing(args: argparse.Namespace) -> int:
+    """twind freeswing on the ringdowns of random drifted optics with OSEM imbalances."""
+
+    duration = 1000.0 if args.duration is None else args.duration
+    for line in benchmark(_optic(args, args.optic), n=args.realisations or 8,
+                          duration_s=duration):
+        print(line, flush=True)
+    return 0
+
+
+SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
+          "information": _bench_information, "diagnose": _bench_diagnose,
+          "freeswing": _bench_freeswing}
+"""The functions of ``twind bench --suite`` (:data:`twind.cli.commands.BENCH_SUITES`)."""
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """A "real" twin with a concealed effect beside a nominal one, recorded and diagnosed."""
+    run_demo(_optic(args), args.output, args.effect, say=lambda line: print(line, flush=True))
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Run the benchmark suite chosen with ``--suite``."""
+    return SUITES[args.suite](args)

@@ -1,0 +1,136 @@
+"""``twind model response``, ``twind model compare`` and ``twind simulate``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from twind import DOFS, strictjson
+from twind.channels import block_channels
+from twind.config import load_config
+from twind.errors import TwindError
+from twind.model.compare import compare_models
+from twind.recording.writer import SessionWriter
+from twind.simulation.engine import Engine
+from twind.timeutil import now_gps
+from twind.viz.plotting import bode_matrix, plot_comparison
+
+
+def _frequencies(args: argparse.Namespace) -> np.ndarray:
+    if args.freqs:
+        try:
+            f = np.array([float(x) for x in args.freqs.split(",")])
+        except ValueError:
+            msg = f"--freqs: expected comma-separated numbers, got {args.freqs!r}"
+            raise TwindError(msg) from None
+    else:
+        if not 0 < args.fmin < args.fmax or args.n < 2:
+            msg = f"need 0 < --fmin < --fmax and --n >= 2, got {args.fmin}, {args.fmax}, {args.n}"
+            raise TwindError(msg)
+        f = np.geomspace(args.fmin, args.fmax, args.n)
+    if np.any(f <= 0) or not np.all(np.isfinite(f)):
+        msg = "frequencies must be positive and finite"
+        raise TwindError(msg)
+    return f
+
+
+def _complex(a: np.ndarray) -> dict[str, list]:
+    return {"re": a.real.tolist(), "im": a.imag.tolist()}
+
+
+def cmd_model_response(args: argparse.Namespace) -> int:
+    """Frequency responses of one optic's loop, as golden_tf.json or a Bode-matrix PNG."""
+
+    cfg = load_config(args.config, [args.optic]).select([args.optic])[0]
+    f = _frequencies(args)
+    r = cfg.loop().responses(f)
+    keys = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC",
+            "closed_loop_IN2_per_EXC")
+    if args.json:
+        out = {"about": f"twind model response of {cfg.name} ({cfg.model} model, {cfg.source})",
+               "dofs": list(DOFS), "frequency_hz": f.tolist()}
+        out.update({k: _complex(r[k]) for k in keys})
+        out["uncoupled_frequencies_hz"] = cfg.sus.uncoupled_frequencies_hz()
+        strictjson.dump(out, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+
+    path = Path(args.output or f"{cfg.name}_response.png")
+    plant = path.with_name(f"{path.stem}_plant{path.suffix}")
+    name = f"C1:SUS-{cfg.name} ({cfg.model} model)"
+    bode_matrix(f, path, DOFS, DOFS, {"IN1/EXC": r["closed_loop_IN1_per_EXC"],
+                                      "IN2/EXC": r["closed_loop_IN2_per_EXC"]},
+                title=f"{name}: closed loop")
+    bode_matrix(f, plant, DOFS, DOFS, {"IN1/OUT": r["plant_IN1_per_OUT"]}, per="ct",
+                title=f"{name}: plant")
+    print(f"wrote {path} and {plant}")
+    return 0
+
+
+def cmd_model_compare(args: argparse.Namespace) -> int:
+    """Geometric rigid-body model against the analytical model for one optic."""
+
+    cfg = load_config(args.config, [args.optic]).select([args.optic])[0]
+    cmp = compare_models(cfg.sus, np.geomspace(0.1, 10, 400))
+    for dof, pct in cmp.eigen_difference_pct().items():
+        print(f"{dof:5s} analytical {cmp.eigen_analytical_hz[dof]:8.5f} Hz  "
+              f"geometric {cmp.eigen_geometric_hz[dof]:8.5f} Hz  ({pct:+.3f} %)")
+    path = plot_comparison(cmp, args.output)
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Run the twin as fast as it can; print per-channel RMS and the speed reached."""
+
+    twin = load_config(args.config, args.optics)
+    optics = twin.select(args.optics)
+    for name in ("duration", "block"):
+        if not getattr(args, name) > 0:
+            msg = f"--{name} must be positive, got {getattr(args, name)}"
+            raise TwindError(msg)
+    rate = optics[0].sus.sample_rate_hz
+    n_block = int(round(args.block * rate))
+    n_total = int(round(args.duration * rate))
+    if n_block < 1 or n_total < 1:
+        msg = f"--duration and --block must each hold at least one sample at {rate:g} Hz"
+        raise TwindError(msg)
+    engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
+                    seed=args.seed, rate_hz=rate)
+    buf = engine.new_block(n_block)
+    writer = None
+    if args.record:
+
+        writer = SessionWriter(args.record, twin.ifo, now_gps())
+    sums = {p: 0.0 for p in ("exc", "in1", "in2", "out", "sen")}
+    t0 = time.perf_counter()
+    try:
+        done = 0
+        while done < n_total:
+            n = min(n_block, n_total - done)
+            block = engine.step(n, out=buf if n == n_block else None)
+            for point in sums:
+                x = getattr(block, point)
+                sums[point] = sums[point] + np.einsum("ock,ock->oc", x, x)
+            if writer:
+                writer.write_block(block)
+            done += n
+    finally:
+        if writer:
+            writer.close()
+    wall = time.perf_counter() - t0
+    rms = engine.new_block(1)
+    for point, ss in sums.items():
+        getattr(rms, point)[..., 0] = np.sqrt(ss / n_total)
+    for name, unit, x in block_channels(twin.ifo, rms):
+        print(f"{name:32s} rms {x[0]:11.4g} {unit}")
+    speed = args.duration / wall
+    print(f"simulated {args.duration:g} s of {len(optics)} optic(s) in {wall:.3f} s: "
+          f"{speed:.1f} x real time ({n_total * len(optics) / wall:.3g} optic-samples/s)")
+    if writer:
+        print(f"recorded {args.record}")
+    return 0

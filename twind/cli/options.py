@@ -1,0 +1,53 @@
+"""Options several commands share, and the argument types that check them."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+CONFIG_HELP = "twin config (TOML); default: the 40m file shipped with twind"
+SEED_HELP = "seed of the twin's noise (default 0)"
+
+
+def frequency(text: str) -> float:
+    """A frequency argument (Hz): a finite number, zero or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        msg = f"not a frequency in Hz: {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def seed(text: str) -> int:
+    """A seed argument: a non-negative integer."""
+    value = int(text)
+    if value < 0:
+        msg = f"must be a non-negative integer, got {text}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def bus_arguments(p: argparse.ArgumentParser) -> None:
+    """How a command reaches a running twin."""
+    p.add_argument("--connect", action="append", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
+    p.add_argument("--timeout", type=float, default=5.0,
+                   help="seconds to wait for the twin's reply (default 5)")
+    p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
+
+
+def input_arguments(p: argparse.ArgumentParser) -> None:
+    """Measured transfer functions: diaggui XML files or MCAP sessions, and how to read them."""
+    p.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF) or MCAP")
+    p.add_argument("--bw", type=float, default=0.01, help="MCAP: Welch resolution (Hz)")
+    p.add_argument("--overlap", type=float, default=0.5, help="MCAP: Welch overlap")
+    p.add_argument("--optic", help="MCAP: the optic, when several were excited")
+    p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
+                   help="MCAP: Welch (diaggui's) or Pintelon-Schoukens' local polynomial "
+                        "method over each whole excitation (leakage removed; --bw unused)")
+    p.add_argument("--band", type=frequency, nargs=2, metavar=("LO", "HI"),
+                   help="only the frequencies from LO to HI Hz")
+    p.add_argument("--json", action="store_true", help="the numbers as JSON")

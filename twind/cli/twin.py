@@ -1,0 +1,88 @@
+"""``twind serve`` and the commands that talk to a running twin: ``inject``, ``stop``,
+``status``."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+
+from twind import strictjson
+from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
+from twind.client import TwinClient
+from twind.config import load_config
+from twind.errors import TwindError
+
+
+def _endpoints(args: argparse.Namespace) -> tuple[list[str], list[str]]:
+    # a Zenoh configuration file brings its own endpoints
+    default = [] if args.connect or getattr(args, "zenoh_config", None) else [DEFAULT_ENDPOINT]
+    return args.listen or default, args.connect or []
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """The twin as a Zenoh service."""
+    # OpenMP threads that spin between blocks cost a whole core while serving in real time;
+    # set before the engine loads its compiled kernel (the runtime reads it once)
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+    from twind.service.serve import main as serve_main  # after the line above: see there
+
+    twin = load_config(args.config, args.optics)
+    optics = twin.select(args.optics)
+    listen, connect = _endpoints(args)
+    conf = zenoh_config(listen, connect, mode=args.mode, config_file=args.zenoh_config)
+    return serve_main(conf, twin, optics, block_s=args.block, speed=args.speed, seed=args.seed,
+                      duration=args.duration, record_dir=args.record, endpoints=listen + connect,
+                      record_config=args.record_zenoh_config)
+
+
+def client(args: argparse.Namespace) -> TwinClient:
+    """A client of the twin the command's bus arguments name."""
+    return TwinClient(connect=args.connect or [DEFAULT_ENDPOINT], ifo=args.ifo,
+                      timeout=args.timeout, config_file=args.zenoh_config)
+
+
+def cmd_inject(args: argparse.Namespace) -> int:
+    """Start an excitation on a running twin; prints its id, or the reason it was refused."""
+    settings = {k: getattr(args, k) for k in ("freq", "amp", "duration", "ramp", "f_stop",
+                                              "n_tones", "shape", "seed")
+                if getattr(args, k) is not None}
+    if args.start is not None:
+        settings["start_gps"] = args.start
+    if args.file:
+        try:
+            settings["samples"] = np.loadtxt(args.file, ndmin=1)
+        except ValueError as err:
+            msg = f"{args.file}: not a column of numbers ({err})"
+            raise TwindError(msg) from None
+    with client(args) as twin:
+        exc_id = twin.inject(args.channel, args.waveform, **settings)
+    print(exc_id)
+    return 0
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    """Stop an excitation by id (or all)."""
+    with client(args) as twin:
+        print(" ".join(twin.stop(None if args.id == "all" else args.id)))
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Print the service status."""
+    with client(args) as twin:
+        status = twin.status()
+    if args.json:
+        print(strictjson.dumps(status))
+        return 0
+    print(f"{status['ifo']} twin of {', '.join(status['optics'])}: GPS {status['gps']:.3f}, "
+          f"up {status['uptime_s']:.1f} s, {status['real_time_factor']:.3f} x real time "
+          f"(speed {status['speed']:g}), lag {1e3 * status['lag_s']:.1f} ms "
+          f"(max {1e3 * status['max_lag_s']:.1f}), {status['late_blocks']} late blocks, "
+          f"busy {100 * status['cpu_fraction']:.1f} %")
+    for exc in status["excitations"]:
+        when = "waits for" if exc["scheduled"] else "since"
+        print(f"  {exc['id']}: {exc['waveform']} on {exc['channel']}, {when} GPS "
+              f"{exc['start_gps']:.3f}")
+    return 0
