@@ -30,7 +30,7 @@ from twind.lab.corpus import (
     tilted_heads,
 )
 from twind.analysis.diagnose import MIN_COHERENCE
-from twind.analysis.fit import FitData
+from twind.analysis.identification.data import FitData
 from twind.analysis.tf import from_session
 from twind.cli import main
 from twind.config import load_config

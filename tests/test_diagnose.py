@@ -218,7 +218,7 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
     diaggui files like example_null: from the files alone, the imbalance is named."""
     from twind.lab.measurement import DRIFT
     from twind.analysis.diaggui import write_measurement_set
-    from twind.analysis.fit import param_value, with_params
+    from twind.analysis.identification.params import param_value, with_params
     from twind.analysis.tf import from_diaggui
 
     real = replace(etmx, sus=with_params(etmx.sus, {k: param_value(etmx.sus, k) * v

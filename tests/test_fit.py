@@ -16,11 +16,11 @@ import pytest
 from conftest import REFERENCE
 from measurekit import record_excited_session
 
-from twind.analysis.fit import (
+from twind.analysis.identification.data import FitData
+from twind.analysis.identification.fit import fit
+from twind.analysis.identification.params import (
     FIT_PARAMS,
-    FitData,
     FitError,
-    fit,
     param_value,
     read_truth,
     with_params,
@@ -88,7 +88,7 @@ def test_singular_fisher_names_the_determined_combination(etmx) -> None:  # noqa
 def test_determined_product_ignores_the_other_parameters_signs() -> None:
     """An effect's parameter may be negative (a gain deficit): the product a pair of
     log-scaled parameters determines is still their own, not NaN."""
-    from twind.analysis.fit import _name_null
+    from twind.analysis.identification.result import name_null as _name_null
 
     null = np.array([[1.0], [-1.0], [0.0]])  # a/b unidentifiable
     with warnings.catch_warnings():

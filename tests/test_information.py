@@ -14,7 +14,7 @@ from servicekit import serving
 
 from twind.lab.calibration import DRIFT
 from twind.lab.campaign import BusTwin, LocalTwin, run_campaign
-from twind.analysis.fit import param_value, with_params
+from twind.analysis.identification.params import param_value, with_params
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.excitation.coherence import ExcitationDesignError

@@ -1,6 +1,7 @@
 """The layers of docs/architecture.md hold: import-linter checks pyproject.toml's contracts
 against every import in the package, those inside functions included; and imports stand at
-the top of their module unless a comment says why not."""
+the top of their module unless a comment says why not; functions are short enough to read at
+once (100 lines at most)."""
 
 from __future__ import annotations
 
@@ -39,3 +40,12 @@ def test_imports_are_at_module_top_unless_a_comment_says_why() -> None:
     print(f"{len(inside)} import(s) inside functions: {inside}")
     assert len(inside) < 20, inside
     assert all(said for _, _, said in inside), [i for i in inside if not i[2]]
+
+
+def test_no_function_is_longer_than_a_screenful_or_two() -> None:
+    long = [(str(path.relative_to(ROOT)), node.name, node.end_lineno - node.lineno + 1)
+            for path in sorted((ROOT / "twind").rglob("*.py"))
+            for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and node.end_lineno - node.lineno + 1 > 100]
+    assert not long, long

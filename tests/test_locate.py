@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import REFERENCE
 
-from twind.analysis.fit import fit
+from twind.analysis.identification.fit import fit
 from twind.analysis.locate import locate
 from twind.analysis.tf import from_diaggui
 from twind.config import load_config

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from twind import DOFS
-from twind.analysis.fit import ClosedLoopModel, FitData
+from twind.analysis.identification.data import FitData
+from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.narrow import Scan, _columns, p_value, search
 from twind.config import load_config
 from twind.model.plant import Plant

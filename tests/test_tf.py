@@ -122,7 +122,8 @@ def test_session_lpm_errors_are_the_residuals_of_the_model(tmp_path: Path,
     """MCAP route, local polynomial method: over each 60 s excitation (windows of 0.25 Hz,
     wider than the 0.14 Hz POS resonance) IN1/EXC differs from the model, seen through
     the LPM's kernel, by its own errors: ``|z|^2 / 2`` averages F(2, 2q)'s mean."""
-    from twind.analysis.fit import ClosedLoopModel, FitData
+    from twind.analysis.identification.data import FitData
+    from twind.analysis.identification.model import ClosedLoopModel
 
     cfg = load_config(None, ["ETMX"]).optics["ETMX"]
     path = record_excited_session(cfg, tmp_path / "twin.mcap",

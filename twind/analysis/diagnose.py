@@ -1,7 +1,7 @@
 """``twind diagnose``: is the nominal model enough, where does it miss, which physics left out
 explains the miss, and how much better the augmented model fits.
 
-1. The nominal parameters are refitted (:func:`~twind.analysis.fit.fit`); the residuals are
+1. The nominal parameters are refitted (:func:`~twind.analysis.identification.fit.fit`); the residuals are
    searched band by band with the false alarms of the whole search controlled
    (:func:`~twind.analysis.locate.locate`).
 2. Effects are chosen one by one (forward selection): every hypothesis (the catalogue,
@@ -38,15 +38,11 @@ from scipy import stats
 
 from twind import DOFS, progress
 from twind.analysis import narrow
-from twind.analysis.fit import (
-    FIT_PARAMS,
-    ClosedLoopModel,
-    FitData,
-    FitError,
-    FitResult,
-    fit,
-    with_params,
-)
+from twind.analysis.identification.data import FitData
+from twind.analysis.identification.fit import fit
+from twind.analysis.identification.model import ClosedLoopModel
+from twind.analysis.identification.params import FIT_PARAMS, FitError, with_params
+from twind.analysis.identification.result import FitResult
 from twind.analysis.locate import Located, _null_moments, locate
 from twind.analysis.noise import in1_noise_asd
 from twind.analysis.tf import TFSet
@@ -353,7 +349,7 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     params : sequence of str
         The nominal parameters refitted alongside every hypothesis.
     min_coherence : float
-        Bins fitted (see :meth:`~twind.analysis.fit.FitData.from_tfset`): by default every
+        Bins fitted (see :meth:`~twind.analysis.identification.data.FitData.from_tfset`): by default every
         response wherever the excitation reached the optic, coherent or not. An effect
         that couples one DOF into another lifts that element out of the noise only where
         it is large; spread thinly, it is plain only in the many incoherent bins together,

@@ -1,6 +1,6 @@
 """Where does a fitted model miss the data?  Residual power per TF element and band.
 
-After :func:`twind.analysis.fit.fit`, each element ``response/excited`` is cut into bands
+After :func:`twind.analysis.identification.fit.fit`, each element ``response/excited`` is cut into bands
 (three a decade); the residual power of a band, ``U = sum |z|^2 / (2 s^2)`` with ``s`` the
 fit's robust noise scale, is compared with its distribution when the model is right.  A
 residual divided by a coherence-based sigma from ``n`` averages is not Gaussian: ``|z|^2 / 2``
@@ -19,7 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from twind.analysis.fit import ClosedLoopModel, FitData, FitResult
+from twind.analysis.identification.data import FitData
+from twind.analysis.identification.model import ClosedLoopModel
+from twind.analysis.identification.result import FitResult
 from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 

@@ -35,14 +35,9 @@ from numpy.typing import NDArray
 from scipy import optimize, stats
 
 from twind import DOFS
-from twind.analysis.fit import (
-    FIT_PARAMS,
-    NARROW_REACH_BINS,
-    ClosedLoopModel,
-    FitData,
-    hann_kernel,
-    with_params,
-)
+from twind.analysis.identification.data import FitData
+from twind.analysis.identification.model import NARROW_REACH_BINS, ClosedLoopModel, hann_kernel
+from twind.analysis.identification.params import FIT_PARAMS, with_params
 from twind.config import OpticConfig
 from twind.loop.damping import sensitivity
 from twind.model.plant import Plant

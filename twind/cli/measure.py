@@ -13,7 +13,8 @@ from twind import OSEMS, strictjson
 from twind.analysis.candidates import compare
 from twind.analysis.diaggui import read_transfers
 from twind.analysis.diagnose import diagnose
-from twind.analysis.fit import FIT_PARAMS, fit, read_truth
+from twind.analysis.identification.fit import fit
+from twind.analysis.identification.params import FIT_PARAMS, read_truth
 from twind.analysis.freeswing import analyse, ringdown
 from twind.analysis.modes import fit_modes, read_mode_table
 from twind.analysis.tf import TFError, from_diaggui, from_session
@@ -241,7 +242,6 @@ def _recorded_osems(paths: list[str], ifo: str, optic: str, start: float | None,
                     duration: float | None):  # noqa: ANN202 - (ndarray, float)
     """The five OSEM signals of `optic` from a recording (a session's files), from GPS
     `start` (default: where every OSEM has data) for `duration` (default: to the end)."""
-
 
     names = [osem_channel(ifo, optic, o) for o in OSEMS]
     sen, rate = as_array(getdata(names, duration, start, source=session_files(paths)))

@@ -45,7 +45,6 @@ class Limits:
     rms : float
         Largest RMS allowed over the excitation (``math.inf``: no limit).
     """
-
     peak: float
     rms: float
 
@@ -154,6 +153,20 @@ def check(req: ExcitationRequest, limits: Limits, rate_hz: float,
     (sine and sweep: ``amp / sqrt(2)``; multisine: of its period; noise: ``amp``), except for
     a stream, whose tapered samples are measured.
     """
+    rate_hz = _check_arguments(limits, rate_hz, max_samples)
+    req = typed(req, max_samples)
+    _channel_match(req.channel)
+    if req.waveform not in WAVEFORMS:
+        raise ExcitationError(f"{req.waveform!r:.40} is not one of {', '.join(WAVEFORMS)}",
+                              "waveform")
+    _check_timing(req, rate_hz)
+    _check_waveform(req, rate_hz)
+    _check_level(req, limits, rate_hz)
+
+
+def _check_arguments(limits: Limits, rate_hz: float, max_samples: int) -> float:
+    """The caller's side of :func:`check`: the limits, the rate (returned as a float) and
+    the longest stream."""
     if not isinstance(max_samples, int) or max_samples < 1:
         raise ExcitationError(f"must be a positive integer, got {max_samples!r}", "max_samples")
     rate_hz = _positive("rate_hz", rate_hz)
@@ -165,13 +178,13 @@ def check(req: ExcitationRequest, limits: Limits, rate_hz: float,
             # NaN fails v >= 0 too: a NaN limit would otherwise let everything through
             raise ExcitationError(f"must be a number >= 0 (inf: no limit), got {v!r}",
                                   f"limits.{key}")
-    req = typed(req, max_samples)
-    _channel_match(req.channel)
-    wf = req.waveform
-    if wf not in WAVEFORMS:
-        raise ExcitationError(f"{wf!r:.40} is not one of {', '.join(WAVEFORMS)}", "waveform")
+    return rate_hz
 
-    # -- timing -------------------------------------------------------------------------------
+
+def _check_timing(req: ExcitationRequest, rate_hz: float) -> None:
+    """Amplitude, ramp, start, seed and duration: each a number in its range, the ramp at
+    most half the duration."""
+    wf = req.waveform
     if wf != "stream" and not (math.isfinite(req.amp) and req.amp >= 0):
         raise ExcitationError(f"must be a finite number >= 0, got {req.amp!r}", "amp")
     if not (math.isfinite(req.ramp) and req.ramp >= 0):
@@ -185,30 +198,38 @@ def check(req: ExcitationRequest, limits: Limits, rate_hz: float,
                               "start_gps")
     if req.seed < 0:
         raise ExcitationError(f"must be >= 0, got {req.seed}", "seed")
-    if wf == "stream":
-        if req.samples is None or req.samples.size == 0:
-            raise ExcitationError("a stream needs at least one sample", "samples")
-        duration = req.samples.size / rate_hz
-    else:
-        duration = req.duration
-        if math.isnan(duration) or duration <= 0:
-            raise ExcitationError(f"must be a number of seconds > 0, got {duration!r}",
-                                  "duration")
-        if math.isinf(duration) and wf == "sweep":
-            raise ExcitationError("a sweep needs a finite duration", "duration")
-        if math.isfinite(duration):
-            n = duration * rate_hz  # may overflow to inf: compare before rounding
-            if n > MAX_FINITE_SAMPLES:
-                raise ExcitationError(f"{duration:g} s is too long for a finite excitation; "
-                                      "use inf to run until stopped", "duration")
-            if round(n) < 1:
-                raise ExcitationError(f"{duration!r} s is shorter than one sample at "
-                                      f"{rate_hz:g} Hz", "duration")
+    duration = _duration(req, rate_hz)
     if req.ramp > duration / 2:
         raise ExcitationError(f"{req.ramp:g} s is longer than half the duration "
                               f"({duration:g} s)", "ramp")
 
-    # -- the waveform's own parameters ----------------------------------------------------------
+
+def _duration(req: ExcitationRequest, rate_hz: float) -> float:
+    """The excitation's duration (s; a stream's from its samples), checked."""
+    if req.waveform == "stream":
+        if req.samples is None or req.samples.size == 0:
+            raise ExcitationError("a stream needs at least one sample", "samples")
+        return req.samples.size / rate_hz
+    duration = req.duration
+    if math.isnan(duration) or duration <= 0:
+        raise ExcitationError(f"must be a number of seconds > 0, got {duration!r}",
+                              "duration")
+    if math.isinf(duration) and req.waveform == "sweep":
+        raise ExcitationError("a sweep needs a finite duration", "duration")
+    if math.isfinite(duration):
+        n = duration * rate_hz  # may overflow to inf: compare before rounding
+        if n > MAX_FINITE_SAMPLES:
+            raise ExcitationError(f"{duration:g} s is too long for a finite excitation; "
+                                  "use inf to run until stopped", "duration")
+        if round(n) < 1:
+            raise ExcitationError(f"{duration!r} s is shorter than one sample at "
+                                  f"{rate_hz:g} Hz", "duration")
+    return duration
+
+
+def _check_waveform(req: ExcitationRequest, rate_hz: float) -> None:
+    """The waveform's own parameters: frequencies, tones, noise shape, samples."""
+    wf = req.waveform
     if wf == "sine":
         _frequency("freq", req.freq, rate_hz, "a sine needs its frequency")
     elif wf == "sweep":
@@ -224,18 +245,20 @@ def check(req: ExcitationRequest, limits: Limits, rate_hz: float,
         raise ExcitationError(f"sample {j} is {req.samples[j]!r}; every sample must be finite",
                               "samples")
 
-    # -- limits -------------------------------------------------------------------------------
+
+def _check_level(req: ExcitationRequest, limits: Limits, rate_hz: float) -> None:
+    """The excitation's peak and RMS within the channel's limits: refused, never clipped."""
     peak, rms, how = _level(req, rate_hz)
+    field = "amp" if req.waveform != "stream" else "samples"
     if peak > limits.peak:
         raise ExcitationError(
             f"the peak {peak:.6g}{how} exceeds the limit {limits.peak:.6g} of "
             f"{req.channel}; lower the amplitude (excitations are refused, never clipped)",
-            "amp" if wf != "stream" else "samples")
+            field)
     if rms > limits.rms:
         raise ExcitationError(
             f"the RMS {rms:.6g} exceeds the limit {limits.rms:.6g} of {req.channel}; lower "
-            "the amplitude (excitations are refused, never clipped)",
-            "amp" if wf != "stream" else "samples")
+            "the amplitude (excitations are refused, never clipped)", field)
 
 
 def _check_multisine(req: ExcitationRequest, rate_hz: float) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from twind import strictjson
-from twind.analysis.fit import FIT_PARAMS
+from twind.analysis.identification.params import FIT_PARAMS
 from twind.config import load_config
 from twind.errors import TwindError
 from twind.excitation.checks import Limits

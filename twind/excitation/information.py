@@ -22,12 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS
-from twind.analysis.fit import (
-    FIT_PARAMS,
-    ClosedLoopModel,
-    check_names,
-    param_value,
-)
+from twind.analysis.identification.model import ClosedLoopModel
+from twind.analysis.identification.params import FIT_PARAMS, check_names, param_value
 from twind.config import OpticConfig
 from twind.analysis.noise import in1_noise_asd
 from twind.excitation.coherence import ExcitationDesignError

@@ -20,7 +20,8 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import progress
-from twind.analysis.fit import FIT_PARAMS, fit, param_value, with_params
+from twind.analysis.identification.fit import fit
+from twind.analysis.identification.params import FIT_PARAMS, param_value, with_params
 from twind.config import OpticConfig
 from twind.excitation.information import design_information, det_root
 from twind.lab.campaign import LocalTwin, tones_only
@@ -150,7 +151,6 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
     measured with 50 %-overlap Hann Welch at the same resolution.  Printed: each round's
     ``det(Cov)^(1/p)`` over the parameters both identify, and its ratio to white noise's.
     """
-
 
     real = replace(cfg, sus=with_params(cfg.sus, {k: param_value(cfg.sus, k) * v
                                                   for k, v in drift.items()}))

@@ -189,7 +189,6 @@ def time_read_whole(path: str | Path, bw: float = 0.01) -> float:
     """Wall seconds of :func:`twind.analysis.tf.from_session` reading the test points whole
     before the Welch sums (its path for recordings with gaps or late events)."""
 
-
     with mock.patch.object(tf, "_streamed", lambda *_a, **_k: None):
         return time_from_session(path, bw)
 

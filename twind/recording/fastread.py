@@ -172,68 +172,10 @@ def _scan_blocks(buf: NDArray[np.uint8], ops: NDArray, starts: NDArray, lens: ND
             return 2, r, empty, first, mi[:, :0], mf[:, :0]
         if slot < 0:
             continue
-        i = a + 22
         end = a + lens[r]
-        g = 0.0
-        rt = 0.0
-        sq = 0
-        runs = 0
-        off = 0
-        nbytes = 0
-        ok = True
-        while i < end and ok:
-            key, i = _varint(buf, i, end)
-            if key < 0:
-                ok = False
-                break
-            fld = key >> 3
-            wire = key & 7
-            if wire == 0:
-                v, i = _varint(buf, i, end)
-                if v < 0:
-                    ok = False
-                elif fld == 4:
-                    sq = v
-            elif wire == 1:
-                if i + 8 > end:
-                    ok = False
-                    break
-                if fld == 2:
-                    g = _f8(buf, i)
-                elif fld == 3:
-                    rt = _f8(buf, i)
-                elif fld == 5:
-                    runs += 1
-                    off = i
-                    nbytes = 8
-                i += 8
-            elif wire == 2:
-                ln, i = _varint(buf, i, end)
-                if ln < 0 or i + ln > end:
-                    ok = False
-                    break
-                if fld == 1 and ln != 0:
-                    # the channel name must be the topic's (an empty name means the topic's)
-                    if ln != name_lens[slot]:
-                        ok = False
-                    else:
-                        for b in range(ln):
-                            if buf[i + b] != names[slot, b]:
-                                ok = False
-                                break
-                elif fld == 5:
-                    if ln % 8:
-                        ok = False
-                    elif ln:
-                        runs += 1
-                        off = i
-                        nbytes = ln
-                i += ln
-            elif wire == 5:
-                i += 4
-            else:
-                ok = False
-        if not ok or i != end or runs > 1:
+        ok, g, rt, sq, off, nbytes = _parse_block(buf, a + 22, end, names[slot],
+                                                  name_lens[slot])
+        if not ok:
             return 1, r, empty, first, mi[:, :0], mf[:, :0]
         mi[0, k] = r
         mi[1, k] = sq
@@ -248,6 +190,85 @@ def _scan_blocks(buf: NDArray[np.uint8], ops: NDArray, starts: NDArray, lens: ND
         k += 1
     for s in range(n_slots):
         first[s + 1] += first[s]
+    out, gi, gf = _grouped(buf, mi[:, :k], mf[:, :k], s_off[:k], first, n_slots)
+    return 0, -1, out, first, gi, gf
+
+
+@nb.njit(cache=True, nogil=True)
+def _parse_block(buf: NDArray[np.uint8], i: int, end: int, name: NDArray[np.uint8],
+                 name_len: int):  # noqa: ANN202 - (ok, gps, rate, sequence, offset, nbytes)
+    """The fields of one SampleBlock message in ``buf[i:end]``: GPS start, rate, sequence,
+    and where its samples' bytes lie; ``ok`` False for what the kernel does not handle (a
+    malformed field, another channel's name, more than one run of samples)."""
+    g = 0.0
+    rt = 0.0
+    sq = 0
+    runs = 0
+    off = 0
+    nbytes = 0
+    ok = True
+    while i < end and ok:
+        key, i = _varint(buf, i, end)
+        if key < 0:
+            ok = False
+            break
+        fld = key >> 3
+        wire = key & 7
+        if wire == 0:
+            v, i = _varint(buf, i, end)
+            if v < 0:
+                ok = False
+            elif fld == 4:
+                sq = v
+        elif wire == 1:
+            if i + 8 > end:
+                ok = False
+                break
+            if fld == 2:
+                g = _f8(buf, i)
+            elif fld == 3:
+                rt = _f8(buf, i)
+            elif fld == 5:
+                runs += 1
+                off = i
+                nbytes = 8
+            i += 8
+        elif wire == 2:
+            ln, i = _varint(buf, i, end)
+            if ln < 0 or i + ln > end:
+                ok = False
+                break
+            if fld == 1 and ln != 0:
+                # the channel name must be the topic's (an empty name means the topic's)
+                if ln != name_len:
+                    ok = False
+                else:
+                    for b in range(ln):
+                        if buf[i + b] != name[b]:
+                            ok = False
+                            break
+            elif fld == 5:
+                if ln % 8:
+                    ok = False
+                elif ln:
+                    runs += 1
+                    off = i
+                    nbytes = ln
+            i += ln
+        elif wire == 5:
+            i += 4
+        else:
+            ok = False
+    return ok and i == end and runs <= 1, g, rt, sq, off, nbytes
+
+
+@nb.njit(cache=True, nogil=True)
+def _grouped(buf: NDArray[np.uint8], mi: NDArray[np.int64], mf: NDArray[np.float64],
+             s_off: NDArray[np.int64], first: NDArray[np.int64], n_slots: int
+             ):  # noqa: ANN202 - (samples, meta_i, meta_f)
+    """The scanned blocks' samples and metadata reordered slot by slot (`first`: each
+    slot's start), the samples copied out of the chunk."""
+    k = mi.shape[1]
     fill = first[:n_slots].copy()
     order = np.empty(k, np.int64)
     total = 0
@@ -268,7 +289,7 @@ def _scan_blocks(buf: NDArray[np.uint8], ops: NDArray, starts: NDArray, lens: ND
         pos += n
         gi[:, q] = mi[:, j]
         gf[:, q] = mf[:, j]
-    return 0, -1, out, first, gi, gf
+    return out, gi, gf
 
 
 # ------------------------------------------------------------------------------ the reader

@@ -757,7 +757,6 @@ def _collect_from_bus(conf: Any, names: list[str], duration: float, start: float
                       timeout: float | None) -> dict[str, Channel]:
     """Subscribe to `names` until each covers the span asked for, then join the blocks."""
 
-
     if timeout is None:
         timeout = 2 * duration + 10 + (max(0.0, start - now_gps()) if start else 0.0)
     inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()

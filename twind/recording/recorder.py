@@ -544,7 +544,6 @@ def synthetic_block(channel: str, sequence: int, gps0: float = 1.4e9, n: int = 1
     regenerated for checking.
     """
 
-
     s = seed if seed is not None else zlib.crc32(channel.encode()) * 1_000_003 + sequence
     x = np.random.default_rng(s).standard_normal(n)
     return SampleBlock(channel, gps0 + sequence * n / rate, rate, sequence, x, "um").encode()

@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -27,7 +27,7 @@ import zenoh
 
 from twind.bus.keys import control_key
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
-from twind.recording.reader import RecordingError, iter_raw_messages, session_files
+from twind.recording.reader import RawMessage, RecordingError, iter_raw_messages, session_files
 from twind.recording.writer import BLOCK_SCHEMA, CONFIG_TOPIC, EVENTS_TOPIC, scan_block
 
 
@@ -121,54 +121,35 @@ def replay(path: str | Path | Iterable[str | Path], conf: zenoh.Config, rate: fl
         period_ns = 0  # one pass, from its first message to one block after its last
         while not stop.is_set():
             log0: int | None = None
-            end_ns = 0
-            pass_ifo = ifo
-            for path_i in files:
-                metadata: dict[str, dict[str, str]] = {}
-                for m in iter_raw_messages(path_i, metadata=metadata):
-                    if stop.is_set():
+            one = _Pass(files, ifo, events, first=stats.loops == 0)
+            for key, m in one:
+                if stop.is_set():
+                    break
+                pub = publisher(key)
+                if wall0 is None:
+                    _wait_for_subscriber(pub, wait_subscribers, stop)
+                    wall0 = first_wall = time.monotonic()
+                if log0 is None:
+                    log0 = m.log_time
+                    stats.loops += 1
+                if rate:
+                    delay = wall0 + (m.log_time - log0) / 1e9 / rate - time.monotonic()
+                    if delay > 0 and stop.wait(delay):
                         break
-                    if m.topic == CONFIG_TOPIC:
-                        continue
-                    if m.topic == EVENTS_TOPIC:
-                        if not events:
-                            continue
-                        if pass_ifo is None:
-                            pass_ifo = metadata.get("twind.session", {}).get("ifo", "C1")
-                        key = control_key(pass_ifo, "events")
-                    elif m.schema_name == BLOCK_SCHEMA:
-                        key = m.topic
-                        if stats.loops <= 1:  # the first pass: where its last block ends
-                            h = scan_block(m.data)
-                            end_ns = max(end_ns, m.log_time + round(h.n_samples / h.rate_hz
-                                                                    * 1e9))
-                    else:
-                        continue
-                    pub = publisher(key)
-                    if wall0 is None:
-                        _wait_for_subscriber(pub, wait_subscribers, stop)
-                        wall0 = first_wall = time.monotonic()
-                    if log0 is None:
-                        log0 = m.log_time
-                        stats.loops += 1
-                    if rate:
-                        delay = wall0 + (m.log_time - log0) / 1e9 / rate - time.monotonic()
-                        if delay > 0 and stop.wait(delay):
-                            break
-                    pub.put(m.data)
-                    last_wall = time.monotonic()
-                    stats.messages += 1
-                    stats.bytes += len(m.data)
-                    stats.keys.add(key)
-                    if stats.loops == 1:
-                        stats.recorded_span_s = (m.log_time - log0) / 1e9
+                pub.put(m.data)
+                last_wall = time.monotonic()
+                stats.messages += 1
+                stats.bytes += len(m.data)
+                stats.keys.add(key)
+                if stats.loops == 1:
+                    stats.recorded_span_s = (m.log_time - log0) / 1e9
             if stop.is_set() or not loop:
                 break
             if log0 is None:
                 msg = f"{files[0]}: nothing to replay (no blocks or events)"
                 raise RecordingError(msg)
             if stats.loops == 1:
-                period_ns = max(end_ns - log0, round(stats.recorded_span_s * 1e9))
+                period_ns = max(one.end_ns - log0, round(stats.recorded_span_s * 1e9))
             # the next pass starts one block after the last one of this pass
             wall0 = wall0 + (period_ns / 1e9 / rate if rate else time.monotonic() - wall0)
             if log:
@@ -176,6 +157,39 @@ def replay(path: str | Path | Iterable[str | Path], conf: zenoh.Config, rate: fl
         stats.elapsed_s = last_wall - first_wall
         time.sleep(0.05)  # let the last messages leave before the session closes
     return stats
+
+
+class _Pass:
+    """One pass over a recording: each message to publish with its key, and (on the first
+    pass) where the last block ends."""
+
+    def __init__(self, files: list[Path], ifo: str | None, events: bool, first: bool) -> None:
+        self.files, self.ifo, self.events, self.first = files, ifo, events, first
+        self.end_ns = 0
+
+    def __iter__(self) -> Iterator[tuple[str, RawMessage]]:
+        for path in self.files:
+            metadata: dict[str, dict[str, str]] = {}
+            for m in iter_raw_messages(path, metadata=metadata):
+                key = self._key(m, metadata)
+                if key is not None:
+                    yield key, m
+
+    def _key(self, m: RawMessage, metadata: dict[str, dict[str, str]]) -> str | None:
+        """Where `m` is published; None for what a replay leaves out (the configuration, or
+        the events when not wanted)."""
+        if m.topic == EVENTS_TOPIC:
+            if not self.events:
+                return None
+            if self.ifo is None:
+                self.ifo = metadata.get("twind.session", {}).get("ifo", "C1")
+            return control_key(self.ifo, "events")
+        if m.topic == CONFIG_TOPIC or m.schema_name != BLOCK_SCHEMA:
+            return None
+        if self.first:
+            h = scan_block(m.data)
+            self.end_ns = max(self.end_ns, m.log_time + round(h.n_samples / h.rate_hz * 1e9))
+        return m.topic
 
 
 def _wait_for_subscriber(pub: Any, timeout: float, stop: threading.Event) -> None:

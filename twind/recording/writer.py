@@ -98,7 +98,6 @@ _CONFIG_JSON_SCHEMA = {
 def sample_block_schema_data() -> bytes:
     """The serialized FileDescriptorSet of ``twind.v1.SampleBlock``, as mcap-protobuf writes it."""
 
-
     return build_file_descriptor_set(sample_block_class()).SerializeToString()
 
 

@@ -34,7 +34,6 @@ def _can_open_window() -> bool:
 def view_main(args: argparse.Namespace) -> int:
     """Stream the live twin to a Rerun viewer (spawned, given by --viewer, --web or --save)."""
 
-
     if not (args.rate > 0):
         msg = f"--rate must be positive, got {args.rate}"
         raise TwindError(msg)

@@ -53,7 +53,6 @@ def blueprint(optics: Iterable[str], bode: Iterable[str] = (),  # noqa: ANN201
     a tab of Bode views (one per excitation and transfer function: magnitude, phase,
     coherence) when there are any, and the events log below."""
 
-
     tabs = []
     for optic in optics:
         views = [rrb.TimeSeriesView(origin=f"sus/{optic}/{dof}", name=f"{optic} {dof}")

@@ -14,8 +14,9 @@ import json
 import queue
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -69,67 +70,21 @@ def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: 
         Wall seconds after which to stop.
     """
 
-
     stop = stop or threading.Event()
     select = matcher(channels)
     inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
-    stats = LiveStats()
-    decimators: dict[str, Decimator] = {}
-    pending: dict[str, list[Decimated]] = {}
-    optics: list[str] = []
+    sink = _Sink(rec, rate_hz)
     session = zenoh.open(zenoh_config(connect=connect, mode="client", config_file=config_file))
 
     def on_data(sample: zenoh.Sample) -> None:
         if inbox.qsize() > MAX_BACKLOG:  # falling behind: drop rather than grow without end
-            stats.dropped += 1
+            sink.stats.dropped += 1
             return
         inbox.put(("data", sample.payload.to_bytes()))
 
     subs = [session.declare_subscriber(all_data(root), on_data),
             session.declare_subscriber(control_key(ifo, "events", root),
                                        lambda s: inbox.put(("event", s.payload.to_bytes())))]
-
-    def flush() -> None:
-        for name, parts in pending.items():
-            if not parts:
-                continue
-            gps_ns = np.concatenate([p.gps_ns for p in parts])
-            values = np.concatenate([p.values for p in parts])
-            rec.send_columns(entity_path(name), indexes=gps_columns(gps_ns),
-                             columns=rr.Scalars.columns(scalars=values))
-            path = entity_path(name)
-            stats.rows[path] = stats.rows.get(path, 0) + values.size
-            pending[name] = []
-
-    def on_block(block: SampleBlock) -> None:
-        name = block.channel
-        if name not in decimators:
-            decimators[name] = Decimator(block.rate_hz, rate_hz)
-            pending[name] = []
-            label = f"{name} [{block.unit}]" if block.unit else name
-            rec.log(entity_path(name), rr.SeriesLines(names=label), static=True)
-            parsed = parse_dof_channel(name)
-            if parsed and parsed[1] not in optics:
-                optics.append(parsed[1])
-                rec.send_blueprint(blueprint(optics), make_active=True, make_default=True)
-        out = decimators[name].feed(block.gps_start, block.samples)
-        if out.values.size:
-            pending[name].append(out)
-
-    def on_event(data: bytes) -> None:
-        try:
-            event = json.loads(data.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError):
-            stats.dropped += 1
-            return
-        gps = event_gps(event) if isinstance(event, dict) else None
-        if gps is None:
-            return
-        text, level = event_text(event)
-        rec.send_columns(EVENTS_ENTITY, indexes=gps_columns(np.array([int(round(gps * NS))])),
-                         columns=rr.TextLog.columns(text=[text], level=[level]))
-        stats.events += 1
-
     started = time.monotonic()
     next_flush = started + flush_s
     try:
@@ -142,18 +97,11 @@ def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: 
             except queue.Empty:
                 kind = ""
             if kind == "data":
-                try:
-                    block = SampleBlock.decode(data)
-                except Exception:  # noqa: BLE001 - a foreign payload under twin/**
-                    stats.dropped += 1
-                else:
-                    stats.blocks += 1
-                    if select(block.channel):
-                        on_block(block)
+                sink.data(data, select)
             elif kind == "event":
-                on_event(data)
+                sink.event(data)
             if time.monotonic() >= next_flush:
-                flush()
+                sink.flush()
                 next_flush = time.monotonic() + flush_s
     except KeyboardInterrupt:
         pass
@@ -161,6 +109,75 @@ def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: 
         for sub in subs:
             sub.undeclare()
         session.close()
-        flush()
+        sink.flush()
         rec.flush()
-    return stats
+    return sink.stats
+
+
+class _Sink:
+    """What :func:`stream` sends to Rerun: each channel decimated to `rate_hz` and sent in
+    batches, a blueprint tab per optic as its channels appear, the injection events."""
+
+    def __init__(self, rec: Any, rate_hz: float) -> None:  # noqa: ANN401 - rr.RecordingStream
+        self.rec, self.rate_hz = rec, rate_hz
+        self.stats = LiveStats()
+        self.decimators: dict[str, Decimator] = {}
+        self.pending: dict[str, list[Decimated]] = {}
+        self.optics: list[str] = []
+
+    def data(self, data: bytes, select: Callable[[str], bool]) -> None:
+        """A published block: decoded, and kept if its channel is selected."""
+        try:
+            block = SampleBlock.decode(data)
+        except Exception:  # noqa: BLE001 - a foreign payload under twin/**
+            self.stats.dropped += 1
+            return
+        self.stats.blocks += 1
+        if select(block.channel):
+            self.block(block)
+
+    def block(self, block: SampleBlock) -> None:
+        """Decimate a block of a selected channel; a new channel gets its series and tab."""
+        name = block.channel
+        if name not in self.decimators:
+            self.decimators[name] = Decimator(block.rate_hz, self.rate_hz)
+            self.pending[name] = []
+            label = f"{name} [{block.unit}]" if block.unit else name
+            self.rec.log(entity_path(name), rr.SeriesLines(names=label), static=True)
+            parsed = parse_dof_channel(name)
+            if parsed and parsed[1] not in self.optics:
+                self.optics.append(parsed[1])
+                self.rec.send_blueprint(blueprint(self.optics), make_active=True,
+                                        make_default=True)
+        out = self.decimators[name].feed(block.gps_start, block.samples)
+        if out.values.size:
+            self.pending[name].append(out)
+
+    def event(self, data: bytes) -> None:
+        """An injection event, as a line of the events log at its GPS time."""
+        try:
+            event = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            self.stats.dropped += 1
+            return
+        gps = event_gps(event) if isinstance(event, dict) else None
+        if gps is None:
+            return
+        text, level = event_text(event)
+        self.rec.send_columns(EVENTS_ENTITY,
+                              indexes=gps_columns(np.array([int(round(gps * NS))])),
+                              columns=rr.TextLog.columns(text=[text], level=[level]))
+        self.stats.events += 1
+
+    def flush(self) -> None:
+        """Send what each channel holds."""
+        for name, parts in self.pending.items():
+            if not parts:
+                continue
+            gps_ns = np.concatenate([p.gps_ns for p in parts])
+            values = np.concatenate([p.values for p in parts])
+            path = entity_path(name)
+            self.rec.send_columns(path, indexes=gps_columns(gps_ns),
+                                  columns=rr.Scalars.columns(scalars=values))
+            self.stats.rows[path] = self.stats.rows.get(path, 0) + values.size
+            self.pending[name] = []

@@ -14,7 +14,9 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS, OSEMS
-from twind.analysis.fit import ClosedLoopModel, FitData, FitResult
+from twind.analysis.identification.data import FitData
+from twind.analysis.identification.model import ClosedLoopModel
+from twind.analysis.identification.result import FitResult
 from twind.analysis.tf import TFSet
 from twind.channels import UNITS
 from twind.config import OpticConfig

@@ -14,7 +14,8 @@ import numpy as np
 
 from twind import strictjson
 from twind.analysis.diagnose import Diagnosis, DiagnoseError
-from twind.analysis.fit import ClosedLoopModel, FitData
+from twind.analysis.identification.data import FitData
+from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.locate import Located
 from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
