@@ -12,6 +12,11 @@ import browser
 import numpy as np
 import pytest
 
+from twind.analysis.diagnose import MIN_COHERENCE
+from twind.analysis.estimation.tf import from_session
+from twind.analysis.identification.data import FitData
+from twind.cli import main
+from twind.config import load_config
 from twind.lab.corpus import (
     CONCEAL_SIGMA,
     FACES,
@@ -29,14 +34,9 @@ from twind.lab.corpus import (
     stage_error,
     tilted_heads,
 )
-from twind.analysis.diagnose import MIN_COHERENCE
-from twind.analysis.identification.data import FitData
-from twind.analysis.tf import from_session
-from twind.cli import main
-from twind.config import load_config
-from twind.model.plant import Plant
-from twind.model.effects import CATALOGUE, model_names, with_effect
 from twind.lab.measurement import SETTLE_S, measure_tfs, record_measurement
+from twind.model.effects import CATALOGUE, model_names, with_effect
+from twind.model.plant import Plant
 
 
 @pytest.fixture(scope="module")

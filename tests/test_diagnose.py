@@ -17,13 +17,13 @@ import pytest
 from browser import tables
 from conftest import REFERENCE
 
-from twind.lab.corpus import FACES, key_z
 from twind.analysis.diagnose import ALPHA, diagnose
-from twind.viz.report import report_page
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
-from twind.model.plant import Plant
+from twind.lab.corpus import FACES, key_z
 from twind.lab.measurement import measure_tfs
+from twind.model.plant import Plant
+from twind.viz.report import report_page
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 KEYS = {"consistent", "chi2_nu_nominal", "chi2_nu_final", "located", "effects",
@@ -187,7 +187,7 @@ def test_one_readback_with_its_own_stage_is_named_with_its_corners(etmx) -> None
 def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noqa: ANN001
     from servicekit import serving
 
-    from twind.analysis.tf import from_diaggui
+    from twind.analysis.estimation.tf import from_diaggui
     from twind.client import TwinClient
     from twind.errors import TwindError
 
@@ -217,9 +217,9 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
     """A drifted optic with a concealed coil imbalance, measured on the twin and saved as
     diaggui files like example_null: from the files alone, the imbalance is named."""
     from twind.lab.measurement import DRIFT
-    from twind.analysis.diaggui import write_measurement_set
+    from twind.analysis.estimation.diaggui import write_measurement_set
     from twind.analysis.identification.params import param_value, with_params
-    from twind.analysis.tf import from_diaggui
+    from twind.analysis.estimation.tf import from_diaggui
 
     real = replace(etmx, sus=with_params(etmx.sus, {k: param_value(etmx.sus, k) * v
                                                     for k, v in DRIFT.items()}))

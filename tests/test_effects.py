@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from twind import DOFS
-from twind.model.plant import Plant
 from twind.model.analytical import analytical_mechanics
 from twind.model.effects import CATALOGUE, CHANNEL_FILTERS, EffectError, with_effect
 from twind.model.params import SOSParams
+from twind.model.plant import Plant
 
 F = np.logspace(-1, 1.5, 60)
 S = 2j * np.pi * F

@@ -16,8 +16,8 @@ import pytest
 from scipy import signal
 
 from twind import DOFS
-from twind.cli import main
 from twind.analysis.noise import in1_noise_asd
+from twind.cli import main
 from twind.config import load_config
 from twind.excitation import ExcitationRequest, Limits, check, make_waveform
 from twind.excitation.coherence import (

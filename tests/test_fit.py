@@ -16,6 +16,7 @@ import pytest
 from conftest import REFERENCE
 from measurekit import record_excited_session
 
+from twind.analysis.estimation.tf import from_diaggui, from_session
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.params import (
@@ -25,7 +26,6 @@ from twind.analysis.identification.params import (
     read_truth,
     with_params,
 )
-from twind.analysis.tf import from_diaggui, from_session
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_config, load_optic
 

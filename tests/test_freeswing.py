@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from twind.analysis.freeswing import HALVES_SIGMA, analyse, eigenmodes, ringdown
-from twind.analysis.modes import modes_hz, with_params
+from twind.analysis.identification.freeswing import HALVES_SIGMA, analyse, eigenmodes, ringdown
+from twind.analysis.identification.modes import modes_hz, with_params
 from twind.cli import main
 from twind.client import TwinClient
 from twind.config import load_config

@@ -25,9 +25,9 @@ from servicekit import free_port, serving
 from twind import DOFS
 from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
+from twind.client import TwinClient
 from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
-from twind.client import TwinClient
 from twind.limits import ServiceLimits
 from twind.service.serve import limit_zenoh
 from twind.service.twin import LIVE_PARAMS, TwinService

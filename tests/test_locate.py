@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from conftest import REFERENCE
 
+from twind.analysis.estimation.tf import from_diaggui
 from twind.analysis.identification.fit import fit
-from twind.analysis.locate import locate
-from twind.analysis.tf import from_diaggui
+from twind.analysis.identification.locate import locate
 from twind.config import load_config
-from twind.model.plant import Plant
 from twind.lab.measurement import measure_tfs
+from twind.model.plant import Plant
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 

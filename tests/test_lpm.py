@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from twind.analysis.lpm import LPMError, lpm, lpm_tfs
-from twind.analysis.welch import welch_tf
+from twind.analysis.estimation.lpm import LPMError, lpm, lpm_tfs
+from twind.analysis.estimation.welch import welch_tf
 
 RATE = 64.0
 F0, Q = 1.0, 10.0  # width 0.1 Hz: five LPM windows of an 800 s record, two Welch bins at 0.05 Hz

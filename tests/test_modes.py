@@ -11,8 +11,8 @@ import pytest
 import scipy.linalg
 
 from twind import DOFS
-from twind.analysis.candidates import compare
-from twind.analysis.modes import TOLERANCE_HZ, fit_modes, modes_hz, read_mode_table
+from twind.analysis.identification.candidates import compare
+from twind.analysis.identification.modes import TOLERANCE_HZ, fit_modes, modes_hz, read_mode_table
 from twind.cli import main
 from twind.config import MEASURED_MODES, NOMINAL_ETMX, OpticConfig, load_config, load_optic
 from twind.errors import TwindError

@@ -11,10 +11,10 @@ import pytest
 from twind import DOFS
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import ClosedLoopModel
-from twind.analysis.narrow import Scan, _columns, p_value, search
+from twind.analysis.identification.narrow import Scan, _columns, p_value, search
 from twind.config import load_config
-from twind.model.plant import Plant
 from twind.model.effects import MODE_SEARCH, with_effect
+from twind.model.plant import Plant
 
 RES = 0.05
 ROLL = {"roll": 0.01, "f_roll_hz": 22.713, "roll_angle": 1.1}
@@ -113,7 +113,7 @@ def test_the_search_is_charged_for_where_it_looked() -> None:
 
 
 def test_with_no_physical_coupling_a_mode_starts_at_its_nominal_frequency() -> None:
-    from twind.analysis.narrow import _choice
+    from twind.analysis.identification.narrow import _choice
 
     drop = np.array([5.0, 9.0, 7.0])
     x = np.full((3, 1), 2.0)  # every trial's coupling above 1: none is physical

@@ -66,7 +66,7 @@ def test_a_fit_figure_spans_the_bins_fitted_not_the_recording(figures, tmp_path:
     from dataclasses import replace
 
     from twind.analysis.identification.fit import fit
-    from twind.analysis.tf import from_diaggui
+    from twind.analysis.estimation.tf import from_diaggui
     from twind.config import load_config
     from twind.viz.plotting import plot_fit
 

@@ -15,7 +15,7 @@ from conftest import REFERENCE
 from measurekit import record_excited_session
 
 from twind import DOFS
-from twind.analysis.tf import (
+from twind.analysis.estimation.tf import (
     TFError,
     from_diaggui,
     from_session,
@@ -24,8 +24,8 @@ from twind.analysis.tf import (
 )
 from twind.cli import main
 from twind.config import load_config
-from twind.model.plant import Plant
 from twind.model.analytical import analytical_mechanics
+from twind.model.plant import Plant
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 
@@ -167,7 +167,7 @@ def test_diaggui_files_written_by_twind_read_back_as_the_originals(tmp_path: Pat
     dttxml the same numbers (to float32, the file's precision)."""
     import dttxml
 
-    from twind.analysis.diaggui import write_fft_measurement
+    from twind.analysis.estimation.diaggui import write_fft_measurement
 
     src = [p for p in NULL if p.endswith("POS_exc.xml")][0]
     acc = dttxml.DiagAccess(src)
@@ -217,7 +217,7 @@ def test_welch_tfs_equal_scipy_csd_welch_coherence(n: int, nperseg: int, overlap
     for even and odd segments, with and without overlap, a DC offset, and two threads."""
     from scipy import signal
 
-    from twind.analysis.tf import welch_tfs
+    from twind.analysis.estimation.tf import welch_tfs
 
     rng = np.random.default_rng(n)
     x = rng.standard_normal(n) + 3.0
@@ -324,7 +324,7 @@ def lfilter(b, a, x):  # noqa: ANN001, ANN201
 
 
 def _read_whole(monkeypatch: pytest.MonkeyPatch, path: Path, **kw):  # noqa: ANN202
-    import twind.analysis.tf as tf
+    import twind.analysis.estimation.tf as tf
 
     with monkeypatch.context() as m:
         m.setattr(tf, "_streamed", lambda *a, **k: None)
@@ -344,7 +344,7 @@ def test_sums_taken_while_reading_equal_reading_whole(tmp_path: Path, window: st
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """The Welch sums taken while the file is read are those of the samples read whole,
     with settling skipped and a stop recorded on time."""
-    from twind.analysis.tf import _streamed
+    from twind.analysis.estimation.tf import _streamed
 
     path = _small_session(tmp_path / "s.mcap", 120.0, stop=(100.0, 100.0))
     streamed = _streamed([path], 0.5, 0.5, None, window, 3.0)
@@ -360,8 +360,8 @@ def test_a_late_stop_or_a_gap_reads_the_recording_whole(tmp_path: Path,
     """A stop event recorded 30 s after its time (past the stream's lag) or a lost block: the
     sums taken while reading are not the right ones, and from_session says so by reading the
     file whole, with the same answer as that path."""
-    from twind.analysis.tf import _streamed
-    from twind.analysis.welch import LAG_S
+    from twind.analysis.estimation.tf import _streamed
+    from twind.analysis.estimation.welch import LAG_S
     from twind.recording.reader import GapWarning
 
     late = _small_session(tmp_path / "late.mcap", 120.0, stop=(60.0, 60.0 + 3 * LAG_S))
@@ -379,8 +379,8 @@ def test_the_stream_keeps_a_few_segments_of_samples(tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """Memory: the samples held while reading stay at a few segments (plus the lag, the
     history kept for late start events and a batch of chunks), however long the recording."""
-    from twind.analysis.tf import _exc, _Plan, _segments
-    from twind.analysis.welch import HISTORY_S, LAG_S, WelchStream
+    from twind.analysis.estimation.tf import _exc, _Plan, _segments
+    from twind.analysis.estimation.welch import HISTORY_S, LAG_S, WelchStream
     from twind.recording import fastread
 
     path = _small_session(tmp_path / "long.mcap", 600.0)
@@ -406,7 +406,7 @@ def test_non_finite_bins_are_named_left_out_and_written_as_null(tmp_path: Path,
     how many, and its JSON (standard JSON, no bare NaN) has null there."""
     import dttxml
 
-    from twind.analysis.diaggui import write_fft_measurement
+    from twind.analysis.estimation.diaggui import write_fft_measurement
 
     src = [p for p in NULL if p.endswith("POS_exc.xml")][0]
     acc = dttxml.DiagAccess(src)

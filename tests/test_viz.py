@@ -18,11 +18,11 @@ import zenoh
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import control_key, data_key
 from twind.bus.session import zenoh_config
+from twind.cli import build_parser
 from twind.config import load_config
 from twind.errors import TwindError
 from twind.recording.writer import SessionWriter
 from twind.simulation.engine import Engine
-from twind.cli import build_parser
 from twind.viz.commands import rrd_main, view_main
 from twind.viz.decimate import NS, Decimator
 from twind.viz.entities import entity_path, matcher

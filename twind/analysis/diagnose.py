@@ -3,7 +3,7 @@ explains the miss, and how much better the augmented model fits.
 
 1. The nominal parameters are refitted (:func:`~twind.analysis.identification.fit.fit`); the residuals are
    searched band by band with the false alarms of the whole search controlled
-   (:func:`~twind.analysis.locate.locate`).
+   (:func:`~twind.analysis.identification.locate.locate`).
 2. Effects are chosen one by one (forward selection): every hypothesis (the catalogue,
    :data:`~twind.model.effects.CATALOGUE`, with ``resonance``, a mode anywhere in the
    band, and the ``channel_filter`` family, one channel's own stage) is fitted together
@@ -21,7 +21,7 @@ explains the miss, and how much better the augmented model fits.
 
 ``bounce_roll`` is fitted on more bins: its modes' bands, every bin whatever its coherence
 (the BounceRoll notches leave little there), and from where a search over the modes'
-frequencies put it (:mod:`twind.analysis.narrow`), which its p-value pays for.
+frequencies put it (:mod:`twind.analysis.identification.narrow`), which its p-value pays for.
 The claims are scored on a corpus of concealed effects by ``twind bench --suite diagnose``
 (:mod:`twind.lab.corpus`).
 """
@@ -37,15 +37,15 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from twind import DOFS, progress
-from twind.analysis import narrow
+from twind.analysis.estimation.tf import TFSet
+from twind.analysis.identification import narrow
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.fit import fit
+from twind.analysis.identification.locate import Located, _null_moments, locate
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.params import FIT_PARAMS, FitError, with_params
 from twind.analysis.identification.result import FitResult
-from twind.analysis.locate import Located, _null_moments, locate
 from twind.analysis.noise import in1_noise_asd
-from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.model.effects import (
@@ -661,7 +661,7 @@ def _search(tfs: TFSet | Sequence[TFSet], start: OpticConfig, free: list[str],
             reference: FitResult, effect: str, whole: tuple[tuple[float, float], ...],
             unit: float) -> tuple[dict[str, float], list[float], narrow.Scan | None]:
     """Where `effect`'s mode starts, searched on the first measurement in the residuals of
-    `reference` (:mod:`~twind.analysis.narrow`), the searches' paths and, for a
+    `reference` (:mod:`~twind.analysis.identification.narrow`), the searches' paths and, for a
     ``resonance``, its scan."""
     first = _sets(tfs)[0]
     data = FitData.from_tfset(first, reference.min_coherence, whole=whole).span()

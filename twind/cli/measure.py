@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 
 from twind import OSEMS, strictjson
-from twind.analysis.candidates import compare
-from twind.analysis.diaggui import read_transfers
 from twind.analysis.diagnose import diagnose
+from twind.analysis.estimation.diaggui import read_transfers
+from twind.analysis.estimation.tf import TFError, from_diaggui, from_session
+from twind.analysis.identification.candidates import compare
 from twind.analysis.identification.fit import fit
+from twind.analysis.identification.freeswing import analyse, ringdown
+from twind.analysis.identification.modes import fit_modes, read_mode_table
 from twind.analysis.identification.params import FIT_PARAMS, read_truth
-from twind.analysis.freeswing import analyse, ringdown
-from twind.analysis.modes import fit_modes, read_mode_table
-from twind.analysis.tf import TFError, from_diaggui, from_session
 from twind.bus.session import zenoh_config
 from twind.channels import osem_channel
 from twind.cli.twin import client

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twind.limits import ServiceLimits
 from twind.excitation.design import (
     NOISE_PEAK_SIGMAS,
     multisine_plan,
@@ -31,6 +30,7 @@ from twind.excitation.request import (
     _channel_match,
     typed,
 )
+from twind.limits import ServiceLimits
 
 
 

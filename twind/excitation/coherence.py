@@ -72,8 +72,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import optimize, special, stats
 
 from twind import DOFS
-from twind.errors import TwindError
 from twind.analysis.noise import in1_noise_asd
+from twind.errors import TwindError
 from twind.excitation.checks import DEFAULT_LIMITS, Limits, check
 from twind.excitation.design import NOISE_PEAK_SIGMAS, noise_shape
 from twind.excitation.request import ExcitationError, ExcitationRequest

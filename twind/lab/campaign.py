@@ -23,10 +23,10 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from twind import progress, strictjson
+from twind.analysis.estimation.tf import TFSet, from_session
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.params import FIT_PARAMS, param_value, with_params
 from twind.analysis.identification.result import FitResult
-from twind.analysis.tf import TFSet, from_session
 from twind.bus.keys import data_key
 from twind.bus.session import zenoh_config
 from twind.client import TwinClient

@@ -43,12 +43,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS, OSEMS
-from twind.analysis.diaggui import write_measurement_set
 from twind.analysis.diagnose import MIN_COHERENCE, diagnose, evidence
+from twind.analysis.estimation.diaggui import write_measurement_set
+from twind.analysis.estimation.tf import from_diaggui, from_session
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.params import FitError, param_value, with_params
-from twind.analysis.tf import from_diaggui, from_session
 from twind.config import OpticConfig
 from twind.lab.measurement import SETTLE_S, measure_tfs, record_measurement
 from twind.model.geometric import (

@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from twind import DOFS, progress
-from twind.analysis.freeswing import analyse, eigenmodes, ringdown
+from twind.analysis.identification.freeswing import analyse, eigenmodes, ringdown
 from twind.channels import OSEMS
 from twind.config import OpticConfig
 from twind.model.effects import with_effect

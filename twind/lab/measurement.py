@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
-from twind.analysis.tf import (
+from twind.analysis.estimation.tf import (
     POINTS,
     TFSet,
     assemble,
@@ -27,7 +27,7 @@ from twind.analysis.tf import (
     lpm_column,
     with_lpm,
 )
-from twind.analysis.welch import welch_tfs
+from twind.analysis.estimation.welch import welch_tfs
 from twind.channels import dof_channel
 from twind.config import OpticConfig
 from twind.model.plant import Plant
@@ -84,10 +84,10 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     plant : Plant, optional
         The plant the twin runs instead of `cfg`'s (physics the model leaves out).
     highpass_hz : float, optional
-        High-pass EXC and responses alike, from the start (:func:`~twind.analysis.tf.highpassed`).
+        High-pass EXC and responses alike, from the start (:func:`~twind.analysis.estimation.tf.highpassed`).
     estimator : str
         ``"welch"`` (diaggui's), or ``"lpm"``: the local polynomial method over the whole
-        record of ``averages`` segments (:mod:`twind.analysis.lpm`), up to ``4 f_max``.
+        record of ``averages`` segments (:mod:`twind.analysis.estimation.lpm`), up to ``4 f_max``.
     progress : callable, optional
         Called with the fraction done.
 

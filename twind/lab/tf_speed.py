@@ -29,8 +29,8 @@ from unittest import mock
 import numpy as np
 from scipy import signal
 
-from twind.analysis import tf
-from twind.analysis.tf import from_session
+from twind.analysis.estimation import tf
+from twind.analysis.estimation.tf import from_session
 from twind.bus.codec import SampleBlock
 from twind.channels import dof_channel
 from twind.errors import TwindError
@@ -59,7 +59,7 @@ class TFBenchmark:
     write_s : float
         Wall time to write it (not part of the target).
     in_process_s : float
-        Wall time of :func:`twind.analysis.tf.from_session` in this process.
+        Wall time of :func:`twind.analysis.estimation.tf.from_session` in this process.
     cli_s : float or None
         Wall time of ``twind tf FILE`` as a subprocess, or None if not run.
     target_s : float
@@ -161,7 +161,7 @@ def write_session(path: str | Path, duration: float = 3600.0, rate: float = 1638
 
 
 def time_from_session(path: str | Path, bw: float = 0.01) -> float:
-    """Wall seconds of :func:`twind.analysis.tf.from_session` on `path` (in this process)."""
+    """Wall seconds of :func:`twind.analysis.estimation.tf.from_session` on `path` (in this process)."""
 
     t0 = time.perf_counter()
     tfs = from_session([path], bw=bw)
@@ -186,7 +186,7 @@ def _warm_up(workdir: Path, rate: float) -> float:
 
 
 def time_read_whole(path: str | Path, bw: float = 0.01) -> float:
-    """Wall seconds of :func:`twind.analysis.tf.from_session` reading the test points whole
+    """Wall seconds of :func:`twind.analysis.estimation.tf.from_session` reading the test points whole
     before the Welch sums (its path for recordings with gaps or late events)."""
 
     with mock.patch.object(tf, "_streamed", lambda *_a, **_k: None):

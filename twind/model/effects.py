@@ -22,7 +22,7 @@ POS/PIT/YAW/SIDE (a face point (y0, z0) pulled along the beam has ``d = (1, z0, 
 Its coordinate, scaled to unit mass, adds ``w^2 g g^T`` (and ``w / q`` times it) to the
 optic's stiffness (damping) with ``g = sqrt(m2) d``; at ``g = 0`` it moves nothing, so
 the model nests the nominal one. Its frequency is searched over the whole measured band
-(``twind.analysis.narrow``).
+(``twind.analysis.identification.narrow``).
 
 Effects combine: ``"coil_imbalance+loop_delay"`` applies both, its parameters prefixed
 with their effect (``coil_imbalance.gain_UL``, :func:`effect_params`).
@@ -37,7 +37,7 @@ Each mode reaches the loop as sensing x actuation, so its parameter is that prod
 nests the nominal one. The modes are narrower than a spectral bin (Q 1000: 0.016 Hz at
 16 Hz), so their frequencies are fitted too, within :data:`MODE_SEARCH` of the nominal
 ``sqrt(k_v / m)`` and ``sqrt(k_v R2^2 / I_roll)``; at zero coupling they and the angle move
-nothing, so a fit starts them where a search put them (``twind.analysis.narrow``).
+nothing, so a fit starts them where a search put them (``twind.analysis.identification.narrow``).
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS, OSEMS
-from twind.analysis.modes import modes_hz
+from twind.analysis.identification.modes import modes_hz
 from twind.channels import dof_channel, osem_channel
 from twind.client import TwinClient
 from twind.config import OpticConfig

@@ -14,10 +14,10 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS, OSEMS
+from twind.analysis.estimation.tf import TFSet
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.result import FitResult
-from twind.analysis.tf import TFSet
 from twind.channels import UNITS
 from twind.config import OpticConfig
 
@@ -187,7 +187,7 @@ def _residuals(ax: Axes, f: NDArray, m: Measured, models: Mapping[str, NDArray],
 
 
 def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Path:
-    """Measured transfer functions (:class:`twind.analysis.diaggui.Transfer`) as a Bode plot.
+    """Measured transfer functions (:class:`twind.analysis.estimation.diaggui.Transfer`) as a Bode plot.
 
     Magnitude with its standard error, phase and coherence share the frequency axis; points
     below :data:`MIN_COHERENCE` are faded.
@@ -226,7 +226,7 @@ def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Pa
 
 def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: ANN001
                    path: str | Path) -> Path:
-    """A free-swinging check (:class:`twind.analysis.freeswing.FreeSwing`) as a figure: the
+    """A free-swinging check (:class:`twind.analysis.identification.freeswing.FreeSwing`) as a figure: the
     OSEM spectra with the modes found and the model's, and both input matrices as maps."""
     fig = Figure(figsize=(11, 7))
     spec = fig.add_subplot(2, 1, 1)

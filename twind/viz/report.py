@@ -14,10 +14,10 @@ import numpy as np
 
 from twind import strictjson
 from twind.analysis.diagnose import Diagnosis, DiagnoseError
+from twind.analysis.estimation.tf import TFSet
 from twind.analysis.identification.data import FitData
+from twind.analysis.identification.locate import Located
 from twind.analysis.identification.model import ClosedLoopModel
-from twind.analysis.locate import Located
-from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 from twind.viz.plotting import plot_fit
 from twind.viz.spectra import write_spectra_rrd

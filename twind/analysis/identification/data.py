@@ -11,8 +11,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from twind.analysis.estimation.tf import Kernel, TFSet
 from twind.analysis.identification.params import FitError
-from twind.analysis.tf import Kernel, TFSet
 
 
 MIN_COHERENCE = 0.5

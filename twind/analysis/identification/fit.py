@@ -39,11 +39,11 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from twind import progress
+from twind.analysis.estimation.tf import TFSet
 from twind.analysis.identification.data import MIN_COHERENCE, FitData
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.params import FIT_PARAMS, FitError, check_names, param_value
 from twind.analysis.identification.result import NULL_COMPONENT, FitResult, name_null
-from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 from twind.model.effects import EffectError, effect_params, effect_scale
 from twind.model.params import SOSParams
@@ -91,7 +91,7 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         `params`, from zero (the nominal model); its parameters are fitted linearly.
     effect_start : mapping of str to float, optional
         Where the effect's parameters start instead (a narrow mode's frequency, which
-        moves nothing at zero coupling, from :func:`twind.analysis.narrow.search`).
+        moves nothing at zero coupling, from :func:`twind.analysis.identification.narrow.search`).
     whole : sequence of (float, float)
         Bands (Hz) fitted bin by bin whatever their coherence (:meth:`FitData.from_tfset`).
     unfitted : sequence of str

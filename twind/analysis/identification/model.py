@@ -12,9 +12,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS
+from twind.analysis.estimation.tf import Kernel
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.params import FIT_PARAMS, with_params
-from twind.analysis.tf import Kernel
 from twind.config import OpticConfig
 from twind.loop.damping import sensitivity
 from twind.model.effects import MODE_SEARCH, mode_bands, with_effect

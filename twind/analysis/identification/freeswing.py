@@ -20,10 +20,10 @@ from scipy import ndimage, signal
 from scipy.optimize import least_squares, minimize_scalar
 
 from twind import DOFS, OSEMS
-from twind.analysis.modes import FITTED, fit_modes, modes_hz, normal_modes, with_params
+from twind.analysis.identification.modes import FITTED, fit_modes, modes_hz, normal_modes, with_params
 from twind.config import OpticConfig
-from twind.model.plant import Plant
 from twind.errors import TwindError
+from twind.model.plant import Plant
 from twind.simulation.engine import Engine
 
 DECIMATED_HZ = 4.0

@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from twind import DOFS
-from twind.analysis.modes import TOLERANCE_HZ, mechanics_modes, solve_geometry
+from twind.analysis.identification.modes import TOLERANCE_HZ, mechanics_modes, solve_geometry
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.model.mechanics import Mechanics
@@ -135,7 +135,7 @@ class CandidateFit:
     mixing_deg : float
         How far the mode labelled POS leans towards SIDE (0: pure POS, 45: half each).
     reached : bool
-        Whether every measured mode is within :data:`~twind.analysis.modes.TOLERANCE_HZ`.
+        Whether every measured mode is within :data:`~twind.analysis.identification.modes.TOLERANCE_HZ`.
     """
 
     optic: str
@@ -160,7 +160,7 @@ class CandidateFit:
 def fit_candidate(optic: OpticConfig, measured: Mapping[str, float],
                   candidate: Candidate = NOMINAL) -> CandidateFit:
     """Solve the geometry (and the candidate's free parameter, for SIDE) for the measured
-    modes (:func:`twind.analysis.modes.solve_geometry`) and compare every mode."""
+    modes (:func:`twind.analysis.identification.modes.solve_geometry`) and compare every mode."""
     geometry, value, mech = solve_geometry(optic, measured, candidate.mechanics,
                                            free=bool(candidate.free) and "SIDE" in measured)
     params = dict(geometry, **({candidate.free: value} if candidate.free else {}))

@@ -40,9 +40,9 @@ from twind.analysis.identification.model import NARROW_REACH_BINS, ClosedLoopMod
 from twind.analysis.identification.params import FIT_PARAMS, with_params
 from twind.config import OpticConfig
 from twind.loop.damping import sensitivity
-from twind.model.plant import Plant
 from twind.model.effects import BODY_DOFS, MODE_SEARCH, mode_bands, with_effect
 from twind.model.params import SOSParams
+from twind.model.plant import Plant
 
 _REACH_BINS = 3  # the Hann power kernel's reach (99.99 % of it)
 _ANGLES = (0.0, math.pi / 2, math.pi / 4)  # ROLL's PIT-like, YAW-like and mixed pattern

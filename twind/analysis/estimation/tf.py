@@ -27,8 +27,8 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
-from twind.analysis.lpm import LPMEstimate, lpm_tfs
-from twind.analysis.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
+from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
+from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
 from twind.recording.fastread import read_channels, stream_channels
 
@@ -37,7 +37,7 @@ __all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "fr
 
 POINTS = ("IN1", "IN2", "OUT")
 ESTIMATORS = ("welch", "lpm")
-"""Welch's (diaggui's), or the local polynomial method's (:mod:`twind.analysis.lpm`)."""
+"""Welch's (diaggui's), or the local polynomial method's (:mod:`twind.analysis.estimation.lpm`)."""
 _CHANNEL = re.compile(r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
 
 
@@ -49,7 +49,7 @@ class TFError(TwindError):
 class Kernel:
     """What an estimate at frequency ``f`` sees of the true response of excited DOF ``e``:
     ``sum_r weights[f, r, e] G(f + offsets_hz[r])`` (the LPM's, which depends on the
-    excitation's spectrum; :mod:`twind.analysis.lpm`)."""
+    excitation's spectrum; :mod:`twind.analysis.estimation.lpm`)."""
 
     offsets_hz: NDArray[np.float64]  # (K,)
     weights: NDArray[np.complex128]  # (nf, K, n_excited)
@@ -326,7 +326,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     ``start``/``end``/``stop`` events); windows of ``1/bw`` seconds. Only the test points
     (EXC, IN1, IN2, OUT) are read, of `optic` if given; the response DOFs are those whose
     IN1, IN2 and OUT were recorded. The Welch sums are taken while the files are read
-    (:class:`~twind.analysis.welch.WelchStream`); a recording with gaps, late events or a
+    (:class:`~twind.analysis.estimation.welch.WelchStream`); a recording with gaps, late events or a
     high-pass is read whole instead, with the same result.
 
     Parameters
@@ -348,7 +348,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         :func:`highpassed`).
     estimator : str
         ``"welch"``, or ``"lpm"``: Pintelon and Schoukens' local polynomial method over each
-        excitation's whole record (:mod:`twind.analysis.lpm`; `bw`, `overlap` and `window`
+        excitation's whole record (:mod:`twind.analysis.estimation.lpm`; `bw`, `overlap` and `window`
         unused). Every excitation is cut to the shortest one's length, so that their
         estimates fall on the same frequencies.
     max_hz : float, optional

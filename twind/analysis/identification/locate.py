@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from twind.analysis.estimation.tf import TFSet
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.result import FitResult
-from twind.analysis.tf import TFSet
 from twind.config import OpticConfig
 
 ALPHA = 0.01

@@ -1,0 +1,2 @@
+"""Estimation: transfer functions from recordings (Welch, the local polynomial method) and
+from diaggui files, with their coherence and errors, and the plant recovered from them."""
