@@ -10,7 +10,8 @@ import pytest
 
 from twind.bus.codec import SampleBlock
 from twind.cli import main
-from twind.recording.reader import RecordingError, getdata
+from twind.recording.reader import getdata
+from twind.recording.session import RecordingError
 from twind.recording.writer import McapSession
 from servicekit import free_port
 

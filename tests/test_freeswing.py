@@ -76,7 +76,8 @@ def test_twind_freeswing_on_a_recorded_ringdown(tmp_path, capsys) -> None:  # no
     from twind.channels import osem_channel
     from twind import OSEMS
     from twind.bus.session import zenoh_config
-    from twind.recording.reader import RecordingError, as_array, getdata
+    from twind.recording.reader import as_array, getdata
+    from twind.recording.session import RecordingError
     from twind.recording.writer import McapSession
 
     optic = load_config(None, ["ETMX"]).optics["ETMX"]

@@ -24,6 +24,7 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
+from mcap_reference import reference_session
 from servicekit import free_port
 
 from twind.bus.codec import SampleBlock
@@ -32,17 +33,16 @@ from twind.channels import block_channels
 from twind.cli import build_parser, main
 from twind.recording.export import export, export_main
 from twind.recording.fastread import read_channels
-from twind.recording.reader import (
-    DamagedRecordingWarning,
-    GapWarning,
-    JsonDecoderFactory,
-    RecordingError,
-    TruncatedRecordingWarning,
-    getdata,
-    read_session,
-)
+from twind.recording.mcapfile import JsonDecoderFactory
+from twind.recording.reader import getdata, read_session
 from twind.recording.recorder import Recorder, synthetic_block
 from twind.recording.replay import replay
+from twind.recording.session import (
+    DamagedRecordingWarning,
+    GapWarning,
+    RecordingError,
+    TruncatedRecordingWarning,
+)
 from twind.recording.writer import McapSession, SessionWriter, scan_block
 from twind.timeutil import gps_to_unix_ns
 
@@ -224,8 +224,8 @@ def test_truncated_file_reads_up_to_the_last_complete_chunk(tmp_path: Path) -> N
 @pytest.mark.parametrize("batch_bytes", [1, 1 << 13, None])
 def test_fast_reader_reads_cut_gappy_and_foreign_files_as_read_session(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, batch_bytes: int | None) -> None:
-    """read_channels (a memory map, chunks decoded on workers, a batch at a time) keeps
-    read_session's rules: a file cut anywhere gives the same prefix of blocks and one
+    """read_channels (a memory map, chunks decoded on workers, a batch at a time) reads as
+    mcap's own reader does, message by message (tests/mcap_reference.py): a file cut anywhere gives the same prefix of blocks and one
     truncation warning, gaps the same NaN-filled samples, a file that is not MCAP a
     RecordingError; whatever the number of chunks decoded together."""
     from twind.recording import fastread
@@ -245,7 +245,7 @@ def test_fast_reader_reads_cut_gappy_and_foreign_files_as_read_session(
         part.write_bytes(data[:cut])
         with warnings.catch_warnings(record=True) as slow_warned:
             warnings.simplefilter("always")
-            slow = read_session(part)
+            slow = reference_session(part)
         with warnings.catch_warnings(record=True) as fast_warned:
             warnings.simplefilter("always")
             fast = read_channels(part, lambda name: True)
@@ -657,13 +657,13 @@ def test_a_damaged_chunk_inside_a_complete_file_costs_only_its_own_span(
     raw[middle : middle + 4096] = bytes(4096)
     path.write_bytes(bytes(raw))
     with pytest.warns(DamagedRecordingWarning, match=r"damaged .*GPS 14\d+\.\d+ to .*lost"):
-        session = read_session(path)
+        session = reference_session(path)
     assert not session.complete and not any("killed" in p for p in session.problems)
     kept = [len(session[c].sequences) for c in SYNTH]
     assert all(60 <= n < 80 for n in kept), kept  # one chunk lost, not everything after it
     assert all(session[c].sequences[-1] == 79 for c in SYNTH)
     with pytest.warns(DamagedRecordingWarning, match=r"damaged .*GPS 14\d+\.\d+ to .*lost"):
-        fast = read_channels(path, lambda name: True)  # the fast reader, by the same rules
+        fast = read_session(path)  # twind's reader, on its fast engine
     assert [len(fast[c].sequences) for c in SYNTH] == kept and not fast.complete
     assert main(["recover", str(path), "-o", str(tmp_path / "fixed.mcap")]) == 0
     with open(tmp_path / "fixed.mcap", "rb") as fh:

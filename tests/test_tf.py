@@ -362,7 +362,7 @@ def test_a_late_stop_or_a_gap_reads_the_recording_whole(tmp_path: Path,
     file whole, with the same answer as that path."""
     from twind.analysis.estimation.tf import _streamed
     from twind.analysis.estimation.welch import LAG_S
-    from twind.recording.reader import GapWarning
+    from twind.recording.session import GapWarning
 
     late = _small_session(tmp_path / "late.mcap", 120.0, stop=(60.0, 60.0 + 3 * LAG_S))
     assert _streamed([late], 0.5, 0.5, None, "hann", 0.0) is None

@@ -24,7 +24,8 @@ from twind.cli.twin import client
 from twind.client import TwinClient
 from twind.config import MEASURED_MODES, load_config
 from twind.errors import TwindError
-from twind.recording.reader import as_array, getdata, session_files
+from twind.recording.reader import as_array, getdata
+from twind.recording.session import session_files
 from twind.service.ringdown import served_ringdown
 from twind.viz.plotting import Measured, bode_matrix, bode_transfers, plot_fit, plot_freeswing
 from twind.viz.report import write_report

@@ -33,7 +33,7 @@ from twind.bus.session import zenoh_config
 from twind.client import TwinClient
 from twind.config import DEFAULT_CONFIG, load_config
 from twind.errors import TwindError
-from twind.recording.reader import iter_raw_messages
+from twind.recording.mcapfile import iter_raw_messages
 
 
 @dataclass

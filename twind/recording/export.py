@@ -9,7 +9,7 @@ HDF5: one dataset per channel at the root, named by the channel name, with attri
 ``t0``, ``rate``, ``unit`` and, if it has gaps, ``gaps`` as above.
 
 Missing blocks are never joined silently: their samples are NaN (so sample ``i`` is at
-``t0 + i / rate``), a :class:`twind.recording.reader.GapWarning` is issued, and they are
+``t0 + i / rate``), a :class:`twind.recording.session.GapWarning` is issued, and they are
 listed in :attr:`ExportResult.gaps` and in the file.
 """
 
@@ -25,7 +25,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from twind.recording.reader import Gap, RecordingError, read_session
+from twind.recording.reader import read_session
+from twind.recording.session import Gap, RecordingError
 
 FORMATS = {".npz": "npz", ".h5": "hdf5", ".hdf5": "hdf5"}
 
@@ -60,7 +61,7 @@ def export(path_in: str | Path | Iterable[str | Path], path_out: str | Path,
     Parameters
     ----------
     path_in : path or iterable of paths
-        The recording (see :func:`twind.recording.reader.session_files`).
+        The recording (see :func:`twind.recording.session.session_files`).
     path_out : str or Path
         ``*.npz``, ``*.h5`` or ``*.hdf5``; an existing file is refused.
     channels : iterable of str, optional

@@ -1,17 +1,18 @@
-"""Fast reading of the sample channels of MCAP sessions, for long recordings.
+"""The engine of :func:`twind.recording.reader.read_session`: the sample channels of MCAP
+sessions read fast, for long recordings.
 
-:func:`read_channels` returns the same :class:`~twind.recording.reader.Session` as
-:func:`~twind.recording.reader.read_session` (same truncation and gap handling, same
-warnings), for the channels a predicate selects. It is built for an hour of 16 kHz channels
-(700 000 blocks): mcap's :func:`~mcap.stream_reader.breakup_chunk` and the protobuf scanner
-cost some 20 us of Python per block, so here a chunk's records are indexed, its
-SampleBlocks scanned and their samples copied out by numba kernels, a chunk at a time; the
-decompression and CRC check (which release the GIL) run one chunk ahead in a worker thread.
+:func:`read_channels` returns a :class:`~twind.recording.session.Session` for the channels
+a predicate selects, with the truncation and gap handling of
+:mod:`twind.recording.mcapfile`. It is built for an hour of 16 kHz channels (700 000
+blocks): mcap's :func:`~mcap.stream_reader.breakup_chunk` and the protobuf scanner cost some
+20 us of Python per block, so here a chunk's records are indexed, its SampleBlocks scanned
+and their samples copied out by numba kernels, a chunk at a time; the decompression and CRC
+check (which release the GIL) run one chunk ahead in a worker thread.
 
 Anything unusual (a block whose channel name differs from its topic, samples in several
-runs, a schema other than SampleBlock) sends its chunk through the plain Python path, which
-applies :func:`read_session`'s rules message by message; a channel with gaps, duplicates or
-overlaps is joined by the reader's own ``_join``.
+runs, a schema other than SampleBlock) sends its chunk through a plain Python path, message
+by message; a channel with gaps, duplicates or overlaps is joined by
+:func:`~twind.recording.session.join_blocks`.
 """
 
 from __future__ import annotations
@@ -40,22 +41,24 @@ from mcap.records import Channel as McapChannel, DataEnd, Footer, Message, Metad
 from mcap.writer import MCAP0_MAGIC as _MAGIC
 from numpy.typing import NDArray
 
-from twind.recording.reader import (
-    _Block,
+from twind.recording.mcapfile import (
+    indexed_chunks,
+    indexed_summary,
+    report_truncation,
+    require_header,
+    truncation_reason,
+)
+from twind.recording.session import (
+    Block,
     Channel,
     RecordingError,
     Session,
-    _block_samples,
-    indexed_chunks,
-    indexed_summary,
-    _join,
-    report_truncation,
-    require_header,
+    block_samples,
+    join_blocks,
     scan_sample_block,
     session_files,
-    _some,
-    truncation_reason,
-    _warn_gaps,
+    some_names,
+    warn_gaps,
 )
 from twind.recording.writer import (
     BLOCK_SCHEMA,
@@ -320,7 +323,7 @@ class _Slot:
     def join(self, meta_i: NDArray[np.int64], meta_f: NDArray[np.float64]) -> Channel:
         """One channel from its blocks' (sequence, samples) and (GPS, rate); the common case
         (consecutive blocks, one rate) without a Python loop over blocks, anything else by
-        the reader's ``_join``."""
+        the session's :func:`~twind.recording.session.join_blocks`."""
         seq, nsamp = meta_i
         gps, rate = meta_f
         self.buf.resize(self.n, refcheck=False)
@@ -334,11 +337,11 @@ class _Slot:
             simple = bool(np.all((np.abs(offset - k) <= 0.05) & (k == 0))
                           and np.all(np.diff(seq) == 1))
         if not simple:
-            blocks = [_Block(int(s), float(g), float(r), self.unit or "", x)
+            blocks = [Block(int(s), float(g), float(r), self.unit or "", x)
                       for s, g, r, x in zip(seq, gps, rate,
                                             np.split(samples, np.cumsum(nsamp)[:-1]),
                                             strict=True)]
-            return _join(self.name, blocks)
+            return join_blocks(self.name, blocks)
         return Channel(self.name, self.unit or "", r0, float(gps[0]), samples,
                        seq.astype(np.int64), gps.astype(np.float64), [])
 
@@ -434,7 +437,7 @@ class _FileReader:
         elif not topic.startswith(f"{TOPIC_ROOT}/") or name.startswith("@") or \
                 not self.state.wanted(name) or ch.message_encoding != "protobuf" or \
                 schema is None or schema.name != BLOCK_SCHEMA:
-            self.kind[ch.id] = _IGNORED  # read_session skips these messages too
+            self.kind[ch.id] = _IGNORED  # as mcap's own reader, a schema twind does not write is skipped
         else:
             self.kind[ch.id] = self.state.slot(name)
 
@@ -482,7 +485,7 @@ class _FileReader:
         slot = self.state.slots[s]
         if slot.unit is None:
             slot.unit = header.unit
-        x = _block_samples(data, header)
+        x = block_samples(data, header)
         if self.state.sink is not None:
             self.state.sink.samples(name, np.array([header.sequence]), np.array([x.size]),
                                     np.array([header.gps_start]), np.array([header.rate_hz]), x)
@@ -686,7 +689,7 @@ def _chunk_view(content: memoryview) -> _ChunkView:
 
 def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolExecutor
                ) -> None:
-    """Every record of one file, by :func:`~twind.recording.reader.iter_raw_messages`'s rules
+    """Every record of one file, by :func:`~twind.recording.mcapfile.iter_raw_messages`'s rules
     for a file cut short."""
 
     size = path.stat().st_size
@@ -813,7 +816,7 @@ def read_channels(path_or_paths: str | Path | Iterable[str | Path],
     Parameters
     ----------
     path_or_paths : path or iterable of paths
-        See :func:`~twind.recording.reader.session_files`.
+        See :func:`~twind.recording.session.session_files`.
     wanted : callable or iterable of str
         ``wanted(name)`` is true for the channels to read; or their names, every one of
         which must be in the recording.
@@ -846,12 +849,12 @@ def read_channels(path_or_paths: str | Path | Iterable[str | Path],
     if order is not None:
         missing = [n for n in order if n not in joined]
         if missing:
-            msg = (f"{_some(sorted(missing))} not in {files[0]}"
+            msg = (f"{some_names(sorted(missing))} not in {files[0]}"
                    f"{f' (and {len(files) - 1} more files)' if len(files) > 1 else ''}")
             raise RecordingError(msg)
         joined = {name: joined[name] for name in order}
     complete = not problems  # truncations only: gaps are problems of a complete file
-    _warn_gaps(joined, problems)
+    warn_gaps(joined, problems)
     return Session(files, joined, state.events, state.configs, complete, problems)
 
 
@@ -863,7 +866,7 @@ def stream_channels(path_or_paths: str | Path | Iterable[str | Path],
     Parameters
     ----------
     path_or_paths : path or iterable of paths
-        See :func:`~twind.recording.reader.session_files`.
+        See :func:`~twind.recording.session.session_files`.
     wanted : callable
         ``wanted(name)`` is true for the channels to stream.
     sink : SampleSink

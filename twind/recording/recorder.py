@@ -45,7 +45,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 from twind.channels import TEST_POINTS, dof_channel, osem_channel
-from twind.recording.reader import RecordingError, rotated_name
+from twind.recording.session import RecordingError, rotated_name
 from twind.recording.writer import CHUNK_BYTES, CHUNK_SECONDS, BlockHeader, McapSession, scan_block
 from twind.timeutil import now_gps
 

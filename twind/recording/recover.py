@@ -13,7 +13,8 @@ from pathlib import Path
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapWriter
 
-from twind.recording.reader import RecordingError, iter_raw_messages
+from twind.recording.mcapfile import iter_raw_messages
+from twind.recording.session import RecordingError
 from twind.recording.writer import library_label
 
 

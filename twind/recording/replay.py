@@ -27,7 +27,8 @@ import zenoh
 
 from twind.bus.keys import control_key
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
-from twind.recording.reader import RawMessage, RecordingError, iter_raw_messages, session_files
+from twind.recording.mcapfile import RawMessage, iter_raw_messages
+from twind.recording.session import RecordingError, session_files
 from twind.recording.writer import BLOCK_SCHEMA, CONFIG_TOPIC, EVENTS_TOPIC, scan_block
 
 
@@ -73,7 +74,7 @@ def replay(path: str | Path | Iterable[str | Path], conf: zenoh.Config, rate: fl
     ----------
     path : path or iterable of paths
         A recording: one file, a rotated set's name, or a list (see
-        :func:`twind.recording.reader.session_files`).
+        :func:`twind.recording.session.session_files`).
     conf : zenoh.Config
     rate : float
         Speed-up: 1 is as recorded, 2 twice as fast; 0 or ``inf`` as fast as possible.

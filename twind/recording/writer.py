@@ -13,7 +13,7 @@ and the replayer:
   ``twin/@config`` (message encoding ``json``). ``twind simulate --record`` writes the
   metadata only, so that its files hold protobuf messages only and decode with
   mcap-protobuf's DecoderFactory alone (JSON messages need a JSON decoder factory:
-  :class:`twind.recording.reader.JsonDecoderFactory`);
+  :class:`twind.recording.mcapfile.JsonDecoderFactory`);
 - topic ``twin/@events`` (``json``): injection events as published on ``twin/@/<IFO>/events``;
 - topics ``twin/<channel>`` (``protobuf``): one message per block, the bytes as published on
   the bus; MCAP ``sequence`` = the block's sequence number, ``log_time`` = ``publish_time`` =

@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from twind.bus.codec import SampleBlock
 from twind.errors import TwindError
-from twind.recording.reader import iter_raw_messages
+from twind.recording.mcapfile import iter_raw_messages
 from twind.timeutil import GPS_EPOCH_UNIX, LEAP_SECONDS
 from twind.viz.bode import measure
 from twind.viz.decimate import NS, Decimated, Decimator

@@ -332,7 +332,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     Parameters
     ----------
     paths : sequence of path
-        MCAP files of one session (see :func:`twind.recording.reader.session_files`).
+        MCAP files of one session (see :func:`twind.recording.session.session_files`).
     bw : float
         Resolution (Hz): segments of ``round(rate / bw)`` samples.
     overlap : float
