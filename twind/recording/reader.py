@@ -176,7 +176,6 @@ def getdata(channels: str | Sequence[str], duration: float | None, start: float 
         msg = f"getdata: duration must be positive and finite, got {duration}"
         raise RecordingError(msg)
 
-
     if source is None:
         source = DEFAULT_ENDPOINT
     if isinstance(source, str) and ENDPOINT.match(source) and not Path(source).exists():

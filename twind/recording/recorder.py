@@ -601,8 +601,6 @@ def recording_benchmark(seconds: float = 2.0, block_samples: int = 1024,
 
 def _end_to_end(tmp: Path, seconds: float, names: list[str], block_samples: int,
                 rate: float) -> dict[str, float]:
-
-
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

@@ -226,6 +226,7 @@ class Session:
 
 
 def some_names(names: Iterable[str], n: int = 4) -> str:
+    """The first `n` of `names` and how many more, for a message."""
     names = list(names)
     if not names:
         return "no channels"
@@ -235,6 +236,8 @@ def some_names(names: Iterable[str], n: int = 4) -> str:
 
 @dataclass
 class Block:
+    """One SampleBlock as read, before its channel is joined."""
+
     sequence: int
     gps_start: float
     rate: float
@@ -243,6 +246,7 @@ class Block:
 
 
 def block_samples(data: bytes, header: BlockHeader) -> NDArray[np.float64]:
+    """The samples of the SampleBlock `data` whose header is `header`."""
     # a view on the message bytes: no copy until the channel is joined
     if len(header.runs) == 1:
         offset, n = header.runs[0]
@@ -306,6 +310,7 @@ def scan_sample_block(data: bytes, topic: str) -> tuple[BlockHeader, str]:
 
 
 def warn_gaps(channels: dict[str, Channel], problems: list[str]) -> None:
+    """One :class:`GapWarning` for the gaps of `channels`, also listed in `problems`."""
     gaps = [g for ch in channels.values() for g in ch.gaps]
     if not gaps:
         return
