@@ -48,6 +48,22 @@ class TwinClient:
         The twin's interferometer prefix.
     timeout : float
         Seconds to wait for a reply.
+    root : str
+        The key root the twin publishes under (``twin``).
+    config_file : str, optional
+        A Zenoh JSON5 configuration (credentials, TLS) to start from.
+
+    Raises
+    ------
+    TwinUnreachable
+        If no session can be opened to `connect`.
+
+    Examples
+    --------
+    >>> with TwinClient(["tcp/127.0.0.1:7447"]) as twin:  # doctest: +SKIP
+    ...     exc = twin.inject("C1:SUS-ETMX_SUSPOS_EXC", "sine", freq=3.0, amp=1.0,
+    ...                       duration=10)
+    ...     twin.params("ETMX", Q_POS=450)
     """
 
     def __init__(self, connect: Sequence[str] = (DEFAULT_ENDPOINT,), ifo: str = "C1",
@@ -66,8 +82,26 @@ class TwinClient:
              alive: Callable[[], bool] = lambda: True, **kwargs: object) -> TwinClient:
         """A client to a twin that may still be starting: retries until its status answers.
 
-        `alive` is asked between tries (e.g. ``lambda: proc.poll() is None`` for a service
-        started as a process), so a twin that died ends the wait at once.
+        Parameters
+        ----------
+        connect : sequence of str
+            Endpoints of the twin.
+        timeout : float
+            Seconds to keep trying.
+        alive : callable
+            Asked between tries (e.g. ``lambda: proc.poll() is None`` for a service started
+            as a process), so that a twin that died ends the wait at once.
+        **kwargs
+            As :class:`TwinClient` takes them.
+
+        Returns
+        -------
+        TwinClient
+
+        Raises
+        ------
+        TwinUnreachable
+            If the twin has not answered within `timeout`, or `alive` says it died.
         """
         deadline = time.monotonic() + timeout
         while True:
@@ -85,10 +119,29 @@ class TwinClient:
                 time.sleep(0.2)
 
     def query(self, verb: str, request: dict | None = None) -> dict:
-        """Send one control request and return the reply (raises when none comes).
+        """Send one control request and return the reply.
 
         With one twin per host every twin answers; the reply that succeeded wins (the twin
         that runs the optic), otherwise the first refusal with its reason.
+
+        Parameters
+        ----------
+        verb : str
+            ``status``, ``inject``, ``stop``, ``params`` or ``filter``.
+        request : dict, optional
+            The request's JSON object.
+
+        Returns
+        -------
+        dict
+            The reply's JSON object.
+
+        Raises
+        ------
+        TwinUnreachable
+            If no twin answers within the timeout.
+        AccessRefused
+            If the twin answers ``status`` but not `verb` (the session's rights).
         """
         key = control_key(self.ifo, verb, self.root)
         replies = []
@@ -119,10 +172,27 @@ class TwinClient:
         return self.query("status")
 
     def inject(self, channel: str, waveform: str, **settings: object) -> str:
-        """Start an excitation; returns its id, or raises :class:`InjectionRefused`.
+        """Start an excitation at a test point, as awg does.
 
-        `settings` are those of :class:`twind.excitation.ExcitationRequest` (``freq``,
-        ``amp``, ``duration``, ``ramp``, ``start_gps``, ``f_stop``, ``shape``, ``samples``...).
+        Parameters
+        ----------
+        channel : str
+            The test point, e.g. ``C1:SUS-ETMX_SUSPOS_EXC``.
+        waveform : str
+            ``sine``, ``sweep``, ``noise``, ``multisine`` or ``stream``.
+        **settings
+            Those of :class:`twind.excitation.ExcitationRequest` (``freq``, ``amp``,
+            ``duration``, ``ramp``, ``start_gps``, ``f_stop``, ``shape``, ``samples``...).
+
+        Returns
+        -------
+        str
+            The excitation's id (for :meth:`stop`).
+
+        Raises
+        ------
+        InjectionRefused
+            With the twin's reason (over a limit, a bad field...): never clipped.
         """
         if "samples" in settings and settings["samples"] is not None:
             settings["samples"] = [float(x) for x in settings["samples"]]  # type: ignore[union-attr]
@@ -139,9 +209,29 @@ class TwinClient:
         return reply["stopped"]
 
     def params(self, optic: str, effect: dict | None = None, **changes: float) -> dict:
-        """An optic's parameters and filter modules; with `changes` (nominal parameters)
-        or `effect` (``{"id": "coil_imbalance", "values": {...}}``, the catalogue of docs/model.md;
-        ``{"id": None}`` removes it), set them live first."""
+        """An optic's parameters and filter modules, set live first if asked.
+
+        Parameters
+        ----------
+        optic : str
+            E.g. ``ETMX``.
+        effect : dict, optional
+            Physics left out to run from now on, ``{"id": "coil_imbalance", "values":
+            {...}}`` (the catalogue of docs/model.md); ``{"id": None}`` removes it.
+        **changes
+            Nominal parameters under the names ``twind fit`` reports (``wire_length_m``,
+            ``Q_POS``...).
+
+        Returns
+        -------
+        dict
+            The optic's parameters, filter modules and effect after the change.
+
+        Raises
+        ------
+        TwindError
+            With the twin's reason for a refused change.
+        """
         body = {"optic": optic, **({"set": changes} if changes else {}),
                 **({"effect": effect} if effect is not None else {})}
         reply = self.query("params", body)
@@ -157,11 +247,13 @@ class TwinClient:
         return reply
 
     def switch(self, optic: str, dof: str, fm: int, on: bool) -> dict:
-        """Switch filter stage FM`fm` of a damping filter module."""
+        """Switch stage FM`fm` (1-10) of `optic`'s `dof` damping filter module `on` or off;
+        the module's state, as :meth:`params` reports it."""
         return self._filter({"optic": optic, "dof": dof, "fm": fm, "on": on})
 
     def set_gain(self, optic: str, dof: str, gain: float, ramp: float | None = None) -> dict:
-        """Ramp a damping filter module's gain."""
+        """Ramp `optic`'s `dof` damping gain to `gain` over `ramp` seconds (default: the
+        module's ramp); the module's state, as :meth:`params` reports it."""
         return self._filter({"optic": optic, "dof": dof, "gain": gain, "ramp": ramp})
 
     def _filter(self, request: dict) -> dict:

@@ -85,7 +85,6 @@ class OpticConfig:
     def mechanics(self):  # noqa: ANN201 - Mechanics, imported lazily with the geometric model
         """Rigid-body dynamics of the configured model."""
         if self.model == "geometric":
-
             return geometric_mechanics(WireGeometry.from_params(self.sus))
 
         return analytical_mechanics(self.sus)

@@ -216,7 +216,24 @@ def _reading_line(r: dict) -> str:
 
 @dataclass
 class Diagnosis:
-    """What ``twind diagnose`` found."""
+    """What ``twind diagnose`` found.
+
+    Attributes
+    ----------
+    nominal : FitResult
+        The nominal model refitted.
+    located : list of Located
+        Where it misses, element by element and band by band.
+    effects : list of EffectFit
+        The effects chosen, best first, then their rivals (``rival_of`` set).
+    final : FitResult
+        The model with the effects chosen.
+    unexplained : list of Located
+        Where the final model still misses.
+    separations : dict
+        For each (effect, rival): the excitation, response and frequency that tell them
+        apart best.
+    """
 
     nominal: FitResult
     located: list[Located]

@@ -264,7 +264,6 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     if args.output:
         print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
     if args.push:
-
         nominal, effect = result.final_model()
         with TwinClient(list(args.push)) as twin:
             twin.params(result.final.optic, effect=effect, **nominal)

@@ -104,7 +104,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     buf = engine.new_block(n_block)
     writer = None
     if args.record:
-
         writer = SessionWriter(args.record, twin.ifo, now_gps())
     sums = {p: 0.0 for p in ("exc", "in1", "in2", "out", "sen")}
     t0 = time.perf_counter()

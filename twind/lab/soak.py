@@ -83,7 +83,7 @@ class SoakReport:
             f"block + 10 ms = {1e3 * self.block_s + 10:.1f} ms): at the service, "
             f"{_ms(self.service_latency)}; at a subscriber in another process, "
             f"{_ms(subscriber)}",
-            f"hostile requests refused with a reason, of those sent: " + ", ".join(
+            "hostile requests refused with a reason, of those sent: " + ", ".join(
                 f"{verb} {self.hostile_refused.get(verb, 0)}/{n}"
                 for verb, n in self.hostile_sent.items()) + f"; {self.hostile_unanswered} "
             "unanswered",

@@ -396,7 +396,6 @@ def _decompress(chunk: _ChunkView, out: NDArray[np.uint8]) -> None:
     elif chunk.compression in ("lz4", ""):
         data = chunk.data
         if chunk.compression == "lz4":
-
             data = lz4.frame.decompress(data)
         n = len(data)
         if n == out.size:
@@ -768,7 +767,7 @@ def _read_file(path: Path, state: _State, problems: list[str], pool: ThreadPoolE
     else:
         reason = ""
     if not footer:
-        report_truncation(path, data_end, chunks, size, reason, problems, stacklevel=6)
+        report_truncation(path, data_end, chunks, size, reason, problems)
     if not state.config_seen and CONFIG_METADATA in state.metadata:
         state.configs.append(json.loads(state.metadata[CONFIG_METADATA].get("json", "{}")))
 

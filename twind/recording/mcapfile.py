@@ -25,7 +25,12 @@ from mcap.records import Channel as McapChannel, Chunk, DataEnd, Footer, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import MCAP0_MAGIC
 
-from twind.recording.session import DamagedRecordingWarning, RecordingError, TruncatedRecordingWarning
+from twind.recording.session import (
+    DamagedRecordingWarning,
+    RecordingError,
+    TruncatedRecordingWarning,
+    caller_level,
+)
 from twind.timeutil import unix_ns_to_gps
 
 
@@ -153,7 +158,7 @@ def iter_raw_messages(path: str | Path, problems: list[str] | None = None,
         else:
             reason = ""
     if not footer:
-        report_truncation(path, data_end, chunks, size, reason, problems, stacklevel=4)
+        report_truncation(path, data_end, chunks, size, reason, problems)
 
 
 def indexed_summary(fh: Any) -> Any:  # noqa: ANN401 - mcap.records.Summary or None
@@ -184,7 +189,7 @@ def indexed_chunks(fh: Any, summary: Any, offset: int, path: Path,  # noqa: ANN4
                     "rest is read by the file's index")
             if problems is not None:
                 problems.append(text)
-            warnings.warn(text, DamagedRecordingWarning, stacklevel=5)
+            warnings.warn(text, DamagedRecordingWarning, stacklevel=caller_level())
             continue
         yield records
 
@@ -197,7 +202,7 @@ def truncation_reason(err: Exception, size: int) -> str:
 
 
 def report_truncation(path: Path, data_end: bool, chunks: int, size: int, reason: str,
-                      problems: list[str] | None, stacklevel: int) -> None:
+                      problems: list[str] | None) -> None:
     """Warn (and note in `problems`) that `path` stops without its summary and footer."""
     where = "after its data" if data_end else f"after {chunks} complete chunk(s)"
     text = (f"{path}: the recording ends {where} without its summary and footer "
@@ -205,7 +210,7 @@ def report_truncation(path: Path, data_end: bool, chunks: int, size: int, reason
             + (f" [{reason}]" if reason else ""))
     if problems is not None:
         problems.append(text)
-    warnings.warn(text, TruncatedRecordingWarning, stacklevel=stacklevel)
+    warnings.warn(text, TruncatedRecordingWarning, stacklevel=caller_level())
 
 
 class JsonDecoderFactory(McapDecoderFactory):

@@ -4,6 +4,7 @@ and warnings of reading one."""
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -309,6 +310,19 @@ def scan_sample_block(data: bytes, topic: str) -> tuple[BlockHeader, str]:
     return header, header.channel or topic.removeprefix(f"{TOPIC_ROOT}/")
 
 
+def caller_level() -> int:
+    """The ``stacklevel`` that makes a warning raised by the function calling this one name
+    the first line outside :mod:`twind.recording`: the reader's caller, whichever of the
+    reader's paths warned."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and Path(frame.f_code.co_filename).parent == _HERE:
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+_HERE = Path(__file__).parent
+
+
 def warn_gaps(channels: dict[str, Channel], problems: list[str]) -> None:
     """One :class:`GapWarning` for the gaps of `channels`, also listed in `problems`."""
     gaps = [g for ch in channels.values() for g in ch.gaps]
@@ -319,7 +333,7 @@ def warn_gaps(channels: dict[str, Channel], problems: list[str]) -> None:
     text = (f"{len(gaps)} gap(s) in {len({g.channel for g in gaps})} channel(s): "
             + "; ".join(lines) + more)
     problems.append(text)
-    warnings.warn(text, GapWarning, stacklevel=3)
+    warnings.warn(text, GapWarning, stacklevel=caller_level())
 
 
 class Assembler:

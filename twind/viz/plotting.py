@@ -311,10 +311,26 @@ def _panel(ax: "Axes", cmp: "ModelComparison", i: int, j: int, zero: bool, worst
 
 
 def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
-    """Per element: measured ``IN1/EXC`` (the bins the fit used with their errors, the
-    others faded) with the starting and fitted models, and beneath it the residual of each
-    in units of the measurement's sigma (what the fit minimised), over the span of the bins
-    the fit used: a recording reaches Nyquist, its excitation does not."""
+    """A fit as a Bode matrix: per element, measured ``IN1/EXC`` (the bins the fit used with
+    their errors, the others faded) with the starting and fitted models, and beneath it the
+    residual of each in units of the measurement's sigma (what the fit minimised), over the
+    span of the bins the fit used: a recording reaches Nyquist, its excitation does not.
+
+    Parameters
+    ----------
+    tfs : TFSet
+        The measurement fitted.
+    cfg : OpticConfig
+        The model fitted.
+    result : FitResult
+    path : str
+        The PNG to write.
+
+    Returns
+    -------
+    str
+        `path`.
+    """
     used = FitData.from_tfset(tfs, result.min_coherence).mask
     f_used = tfs.frequency_hz[used.any(axis=(1, 2))]
     if f_used.size:

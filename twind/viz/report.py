@@ -122,8 +122,30 @@ def _bands(table_id: str, bands: Sequence[Located], empty: str) -> str:
 
 
 def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path) -> Path:
-    """Bode matrices before and after (measured, model, residual/sigma per bin), the JSON,
-    and an HTML page with both, in directory `out` (created; existing files are refused)."""
+    """The report of a diagnosis in directory `out` (created).
+
+    Parameters
+    ----------
+    diagnosis : Diagnosis
+    tfs : TFSet
+        The measurement it was made from.
+    cfg : OpticConfig
+        The nominal model.
+    out : path
+        The directory: ``nominal.png`` and ``augmented.png`` (measured, model, residual /
+        sigma per bin, before and after), ``diagnosis.json``, ``diagnosis.rrd`` and
+        ``index.html`` (:func:`report_page`).
+
+    Returns
+    -------
+    Path
+        The page.
+
+    Raises
+    ------
+    DiagnoseError
+        If `out` already holds a report's files: reports are never overwritten.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     names = ["nominal.png", "augmented.png", "diagnosis.json", "index.html", "diagnosis.rrd"]

@@ -63,6 +63,27 @@ def coherence_floor(averages: int, tests: int, at_least: float = 0.5,
     With ``n`` averages an undriven bin's estimate exceeds ``x`` with probability
     ``(1 - x)^(n - 1)`` (Carter, Knapp and Nuttall 1973): with 3 averages a quarter of the
     noise passes 0.5, and a recording's 800 000 bins reach it up to Nyquist.
+
+    Parameters
+    ----------
+    averages : int
+        Welch averages of the estimate (one: no bin can be told from noise).
+    tests : int
+        Bins (elements x frequencies) looked at together.
+    at_least : float
+        The floor whatever the averages.
+    false_alarm : float
+        Probability that noise alone passes in any of the `tests` bins.
+
+    Returns
+    -------
+    float
+        The coherence to reach (``inf`` with one average).
+
+    Examples
+    --------
+    >>> round(coherence_floor(10, 36012), 3)
+    0.813
     """
     if averages < 2:
         return math.inf  # one average's coherence is 1, whatever the signals
@@ -107,7 +128,14 @@ class TFSet:
         propagated to first order from the errors of both matrices, taken as independent.
         Both come from the same noise, so the sigma is conservative: the residuals of a
         twin recording against its model have about half the power it predicts
-        (tests/test_tf.py); the identification issue calibrates it.
+        (tests/test_tf.py).
+
+        Returns
+        -------
+        P : ndarray, shape (nf, excited, excited)
+            ``IN1/OUT`` (um/ct or urad/ct).
+        sigma : ndarray, shape (nf, excited, excited)
+            Standard error of its real and of its imaginary parts.
         """
         rows = [self.responses.index(d) for d in self.excited]
         m1 = self.tf["IN1"][:, rows, :]
@@ -121,9 +149,20 @@ class TFSet:
         return P, np.sqrt(var)
 
     def coherent(self, point: str = "IN1", at_least: float = 0.5) -> NDArray[np.bool_]:
-        """The elements of ``point``/EXC driven by their excitation, bin by bin: coherence of
-        at least `at_least` and beyond what noise alone reaches (:func:`coherence_floor`
-        over every element)."""
+        """The elements of ``point``/EXC driven by their excitation, bin by bin.
+
+        Parameters
+        ----------
+        point : str
+            ``IN1``, ``IN2`` or ``OUT``.
+        at_least : float
+            The coherence a bin must reach whatever the averages.
+
+        Returns
+        -------
+        ndarray of bool, shape (nf, responses, excited)
+            Where the coherence reaches :func:`coherence_floor` over every element.
+        """
         g2 = self.coherence[point]
         return g2 >= coherence_floor(self.averages, g2.size, at_least)
 
@@ -138,7 +177,11 @@ class TFSet:
         return (float(f[hit[0]]), float(f[hit[-1]])) if hit.size else None
 
     def band(self, lo: float, hi: float) -> TFSet:
-        """Only the frequencies in [lo, hi].
+        """Only the frequencies in [lo, hi] (Hz).
+
+        Returns
+        -------
+        TFSet
 
         Raises
         ------
@@ -161,16 +204,29 @@ class TFSet:
                      None if self.in1_correlation is None else self.in1_correlation[keep])
 
     def write(self, path: str | Path) -> Path:
-        """HDF5 (``.h5``/``.hdf5``: one complex dataset per test point, coherence, errors,
-        plant) or CSV (``.csv``: one row per frequency, columns named like
-        ``IN1_POS_per_PIT_re``). An existing file is refused."""
+        """Write the transfer functions, their coherence, errors and the plant.
+
+        Parameters
+        ----------
+        path : path
+            ``.h5``/``.hdf5`` (one complex dataset per test point) or ``.csv`` (one row per
+            frequency, columns named like ``IN1_POS_per_PIT_re``).
+
+        Returns
+        -------
+        Path
+
+        Raises
+        ------
+        TFError
+            If the file exists (never overwritten) or its suffix is neither.
+        """
         path = Path(path)
         if path.exists():
             msg = f"{path} exists; twind does not overwrite results"
             raise TFError(msg)
         P, Ps = self.plant()
         if path.suffix.lower() in (".h5", ".hdf5"):
-
             with h5py.File(path, "x") as f:
                 f.attrs.update(optic=self.optic, excited=self.excited, responses=self.responses,
                                averages=self.averages)
@@ -217,8 +273,24 @@ class TFSet:
 
 # ------------------------------------------------------------------------------ diaggui XML
 def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
-    """Transfer functions from diaggui XML files, one per excited DOF (dttxml's ``xfer``)."""
+    """Transfer functions from diaggui XML files, one per excited DOF (dttxml's ``xfer``).
 
+    Parameters
+    ----------
+    paths : sequence of path
+        diaggui "Fourier tools" measurements: in each, one ``_EXC`` channel and the IN1,
+        IN2 and OUT test points of the responses.
+
+    Returns
+    -------
+    TFSet
+
+    Raises
+    ------
+    TFError
+        If a file is not readable diaggui XML, has no single excitation, or the files
+        disagree on the optic or the frequencies.
+    """
     columns, freq, optic, averages = {}, None, None, None
     for path in paths:
         try:

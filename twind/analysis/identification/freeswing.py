@@ -143,13 +143,25 @@ def ringdown(optic: OpticConfig, duration_s: float = 1000.0, seed: int = 0,
     kicks the optic through its velocity damping (the step times the DOF's gain is
     `kick_ct_s` per coil the DOF drives, so SIDE's one coil kicks as hard as the four face
     coils together), then every damping gain goes to zero and the optic rings down for
-    `duration_s` with its noise. `plant` replaces the configured one
-    (an optic with physics the model leaves out).
+    `duration_s` with its noise.
+
+    Parameters
+    ----------
+    optic : OpticConfig
+        The optic, as configured.
+    duration_s : float
+        Seconds of ringdown.
+    seed : int
+        Seed of the twin's noise.
+    kick_ct_s : float
+        The kick per coil (ct s).
+    plant : Plant, optional
+        Replaces the configured plant (an optic with physics the model leaves out).
 
     Returns
     -------
     sen : ndarray, shape (5, n)
-        The OSEM signals (um) of the ringdown.
+        The OSEM signals (um) of the ringdown, rows UL, UR, LL, LR, SIDE.
     rate_hz : float
     """
     loop = optic.loop()
@@ -176,8 +188,29 @@ def ringdown(optic: OpticConfig, duration_s: float = 1000.0, seed: int = 0,
 
 
 def analyse(optic: OpticConfig, sen: NDArray[np.float64], rate_hz: float) -> FreeSwing:
-    """The modes, Qs, input matrix and OSEM gains of a ringdown (:func:`ringdown`'s, or the
-    five OSEM signals of a real one, um, any rate above :data:`DECIMATED_HZ`)."""
+    """The modes, Qs, input matrix and OSEM gains of a ringdown.
+
+    Parameters
+    ----------
+    optic : OpticConfig
+        The model the modes are matched to (their names, the configured input matrix).
+    sen : ndarray, shape (5, n)
+        The five OSEM signals (um), rows UL, UR, LL, LR, SIDE: :func:`ringdown`'s, or a
+        real optic's.
+    rate_hz : float
+        Their rate; any above :data:`DECIMATED_HZ`.
+
+    Returns
+    -------
+    FreeSwing
+        Frequencies and Qs with standard errors, the two halves' differences, the OSEM
+        gains and the input matrix that diagonalises them.
+
+    Raises
+    ------
+    TwindError
+        If `sen` is not five signals, the ringdown is too short, or a mode cannot be found.
+    """
     sen = np.asarray(sen, dtype=float)
     if sen.ndim != 2 or sen.shape[0] != len(OSEMS):
         msg = f"expected the {len(OSEMS)} OSEM signals ({', '.join(OSEMS)}), got shape {sen.shape}"
@@ -448,9 +481,21 @@ def _input_matrix(amp: NDArray, configured: NDArray) -> NDArray[np.float64]:
 
 def eigenmodes(optic: OpticConfig, plant: Plant | None = None
                ) -> tuple[dict[str, float], dict[str, float]]:
-    """The damped frequencies (Hz) and Qs of the optic's free modes (no damping loop), from
-    the eigenvalues of its plant (`plant`, default the configured one): what a ringdown
-    measures, each matched to the nearest of the model's undamped modes."""
+    """The damped frequencies and Qs of the optic's free modes (no damping loop), from the
+    eigenvalues of its plant: what a ringdown measures, each matched to the nearest of the
+    model's undamped modes.
+
+    Parameters
+    ----------
+    optic : OpticConfig
+    plant : Plant, optional
+        Default: the configured one.
+
+    Returns
+    -------
+    frequency_hz, q : dict of str to float
+        By DOF.
+    """
     plant = optic.loop().plant if plant is None else plant
     poles = np.linalg.eigvals(plant.osem_state_space()[0])
     poles = poles[poles.imag > 0]
