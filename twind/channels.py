@@ -14,12 +14,24 @@ UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
 
 
 def dof_channel(ifo: str, optic: str, dof: str, point: str) -> str:
-    """``C1:SUS-ETMX_SUSPOS_IN1`` for ``("C1", "ETMX", "POS", "IN1")``."""
+    """The name of a damping test point.
+
+    Examples
+    --------
+    >>> dof_channel("C1", "ETMX", "POS", "IN1")
+    'C1:SUS-ETMX_SUSPOS_IN1'
+    """
     return f"{ifo}:SUS-{optic}_SUS{dof}_{point}"
 
 
 def osem_channel(ifo: str, optic: str, osem: str) -> str:
-    """``C1:SUS-ETMX_ULSEN_OUT``: an OSEM's calibrated reading (um)."""
+    """The name of an OSEM's calibrated reading (um).
+
+    Examples
+    --------
+    >>> osem_channel("C1", "ETMX", "UL")
+    'C1:SUS-ETMX_ULSEN_OUT'
+    """
     return f"{ifo}:SUS-{optic}_{osem}SEN_OUT"
 
 

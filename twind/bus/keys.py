@@ -11,12 +11,24 @@ ROOT = "twin"
 
 
 def data_key(channel: str, root: str = ROOT) -> str:
-    """``twin/C1:SUS-ETMX_SUSPOS_IN1``."""
+    """The Zenoh key a channel's blocks are published under.
+
+    Examples
+    --------
+    >>> data_key("C1:SUS-ETMX_SUSPOS_IN1")
+    'twin/C1:SUS-ETMX_SUSPOS_IN1'
+    """
     return f"{root}/{channel}"
 
 
 def channel_of(key: str, root: str = ROOT) -> str:
-    """The channel name of a data key."""
+    """The channel name of a data key.
+
+    Examples
+    --------
+    >>> channel_of("twin/C1:SUS-ETMX_SUSPOS_IN1")
+    'C1:SUS-ETMX_SUSPOS_IN1'
+    """
     prefix = f"{root}/"
     if not key.startswith(prefix):
         msg = f"{key!r} is not a twin data key (root {root!r})"
@@ -30,6 +42,12 @@ def all_data(root: str = ROOT) -> str:
 
 
 def control_key(ifo: str, verb: str, root: str = ROOT) -> str:
-    """``twin/@/C1/status``: queryables of the service (status, inject, stop, params, filter)
-    and the ``events`` publication of injection events."""
+    """The key of a service queryable (``status``, ``inject``, ``stop``, ``params``,
+    ``filter``) or of the ``events`` publication of injection events.
+
+    Examples
+    --------
+    >>> control_key("C1", "status")
+    'twin/@/C1/status'
+    """
     return f"{root}/@/{ifo}/{verb}"
