@@ -484,8 +484,24 @@ def _alone(chosen: list[EffectFit], rival: EffectFit) -> FitResult:
 
 def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
                            ) -> tuple[str, str, float]:
-    """The excitation (DOF, response, frequency) where two fitted hypotheses differ most
-    relative to the IN1 noise: what to measure next to tell them apart."""
+    """What to measure next to tell two fitted hypotheses apart: the excitation where their
+    closed loops differ most relative to the IN1 noise.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The optic (its noise sets the scale).
+    a, b : FitResult
+        The two fits, each with its effect.
+
+    Returns
+    -------
+    excite : str
+        The DOF to excite.
+    measure : str
+        The response to measure.
+    frequency_hz : float
+    """
     f = np.logspace(-1, 2, 400)
     noise = in1_noise_asd(cfg, f)  # [f, response]
     ta, tb = (ClosedLoopModel(cfg, f, 0.0, r.effect)(r.as_dict()) for r in (a, b))

@@ -176,7 +176,30 @@ class _Transforms(threading.local):
 def welch_tf(x: NDArray, y: NDArray, rate: float, nperseg: int, overlap: float = 0.5,
              window: str = "hann") -> tuple[NDArray, NDArray, NDArray, int]:
     """``H = CSD(x, y) / PSD(x)``, coherence, and the number of averages, as
-    ``scipy.signal.csd``, ``welch`` and ``coherence`` give them: see :func:`welch_tfs`."""
+    ``scipy.signal.csd``, ``welch`` and ``coherence`` give them (see :func:`welch_tfs`).
+
+    Parameters
+    ----------
+    x : ndarray
+        The excitation.
+    y : ndarray
+        The response, as long as `x`.
+    rate : float
+        Sample rate (Hz).
+    nperseg : int
+        Samples per segment (resolution ``rate / nperseg``).
+    overlap : float
+        Fraction of a segment shared with the next.
+    window : str
+        scipy's window name.
+
+    Returns
+    -------
+    f : ndarray
+    h : ndarray of complex
+    coherence : ndarray
+    averages : int
+    """
     f, h, g2, n = welch_tfs(x, [y], rate, nperseg, overlap, window=window)
     return f, h[0], g2[0], n
 

@@ -160,7 +160,20 @@ class CandidateFit:
 def fit_candidate(optic: OpticConfig, measured: Mapping[str, float],
                   candidate: Candidate = NOMINAL) -> CandidateFit:
     """Solve the geometry (and the candidate's free parameter, for SIDE) for the measured
-    modes (:func:`twind.analysis.identification.modes.solve_geometry`) and compare every mode."""
+    modes (:func:`twind.analysis.identification.modes.solve_geometry`) and compare every mode.
+
+    Parameters
+    ----------
+    optic : OpticConfig
+    measured : mapping of str to float
+        The measured modes (Hz) by DOF.
+    candidate : Candidate
+        The physics tried (default: the model as it is).
+
+    Returns
+    -------
+    CandidateFit
+    """
     geometry, value, mech = solve_geometry(optic, measured, candidate.mechanics,
                                            free=bool(candidate.free) and "SIDE" in measured)
     params = dict(geometry, **({candidate.free: value} if candidate.free else {}))
@@ -292,8 +305,20 @@ class Comparison:
 
 def compare(optics: Mapping[str, OpticConfig],
             table: Mapping[str, Mapping[str, float]]) -> Comparison:
-    """Fit the nominal model and every candidate to every optic of `table` (measured modes,
-    Hz, by optic and DOF)."""
+    """Fit the nominal model and every candidate to every optic of `table`.
+
+    Parameters
+    ----------
+    optics : mapping of str to OpticConfig
+        By name.
+    table : mapping of str to mapping of str to float
+        Measured modes (Hz) by optic and DOF.
+
+    Returns
+    -------
+    Comparison
+        Every fit, by candidate, and the verdict over the optics.
+    """
     missing = [d for d in DOFS if any(d not in m for m in table.values())]
     if missing:
         msg = f"candidates need every optic's {', '.join(DOFS)}; missing {', '.join(missing)}"
