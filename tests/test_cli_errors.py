@@ -107,3 +107,11 @@ def test_version_and_help_for_every_option(capsys) -> None:  # noqa: ANN001
         return out
 
     assert silent(build_parser(), "twind") == []
+
+
+def test_bench_offers_the_suites_it_runs() -> None:
+    """The declared --suite choices (light, for --help) and the suites run are one list."""
+    from twind.cli.commands import BENCH_PROGRESS, BENCH_SUITES
+    from twind.cli.lab import SUITES
+
+    assert tuple(SUITES) == BENCH_SUITES and set(BENCH_PROGRESS) < set(SUITES)

@@ -88,3 +88,16 @@ def test_sensitivity_equals_the_inverse_and_refuses_a_singular_loop() -> None:
     P[7], k[7] = np.eye(4), 1.0
     with pytest.raises(np.linalg.LinAlgError, match="singular"):
         sensitivity(P, k)
+
+
+REFERENCE_MODES = [(0.689, 4.9), (0.847, 5.4), (1.073, 6.1), (1.075, 6.1)]
+"""The nominal ETMX's closed-loop suspension modes (Hz, Q) as the reference model states them
+(the seed's model description, alongside golden_tf.json; tests/data/README.md)."""
+
+
+def test_model_response_prints_the_reference_closed_loop_modes(tmp_path, capsys) -> None:  # noqa: ANN001
+    assert main(["model", "response", "--config", str(NOMINAL_ETMX), "--n", "20", "-o",
+                 str(tmp_path / "r.png")]) == 0
+    printed = [line.split() for line in capsys.readouterr().out.splitlines()
+               if line.startswith("closed-loop mode")]
+    assert [(float(w[2]), float(w[5])) for w in printed] == REFERENCE_MODES

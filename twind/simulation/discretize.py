@@ -176,6 +176,17 @@ def closed_loop_matrices(loop: DampingLoop, rate_hz: float) -> SS:
     return Acl, Bcl, Ccl, Dcl
 
 
+def closed_loop_modes(loop: DampingLoop, rate_hz: float, below_hz: float = 2.0
+                      ) -> list[tuple[float, float]]:
+    """The damped suspension modes of the engine's discrete closed loop: frequency (Hz) and
+    Q of each pole pair below `below_hz` (the filters' own poles lie above), lowest first.
+    """
+    z = np.linalg.eigvals(closed_loop_matrices(loop, rate_hz)[0])
+    s = np.log(z[(np.abs(z) > 0) & (z.imag > 0)]) * rate_hz  # delay states sit at z = 0
+    s = s[np.abs(s) < 2 * np.pi * below_hz]
+    return sorted((float(abs(p) / (2 * np.pi)), float(abs(p) / (-2 * p.real))) for p in s)
+
+
 def discrete_closed_loop(loop: DampingLoop, rate_hz: float):  # noqa: ANN201 - control.StateSpace
     """:func:`closed_loop_matrices` as a python-control discrete ``StateSpace``."""
 

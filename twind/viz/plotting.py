@@ -334,8 +334,8 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     used = FitData.from_tfset(tfs, result.min_coherence).mask
     f_used = tfs.frequency_hz[used.any(axis=(1, 2))]
     if f_used.size:
+        used = used[(tfs.frequency_hz >= f_used[0]) & (tfs.frequency_hz <= f_used[-1])]
         tfs = tfs.band(f_used[0], f_used[-1])
-        used = FitData.from_tfset(tfs, result.min_coherence).mask
     data = FitData.from_tfset(tfs, min_coherence=0.0)
     model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
     curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
