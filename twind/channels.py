@@ -16,6 +16,21 @@ UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
 def dof_channel(ifo: str, optic: str, dof: str, point: str) -> str:
     """The name of a damping test point.
 
+    Parameters
+    ----------
+    ifo : str
+        The interferometer prefix, e.g. ``C1``.
+    optic : str
+        E.g. ``ETMX``.
+    dof : str
+        ``POS``, ``PIT``, ``YAW`` or ``SIDE``.
+    point : str
+        ``EXC``, ``IN1``, ``IN2`` or ``OUT``.
+
+    Returns
+    -------
+    str
+
     Examples
     --------
     >>> dof_channel("C1", "ETMX", "POS", "IN1")
@@ -27,6 +42,19 @@ def dof_channel(ifo: str, optic: str, dof: str, point: str) -> str:
 def osem_channel(ifo: str, optic: str, osem: str) -> str:
     """The name of an OSEM's calibrated reading (um).
 
+    Parameters
+    ----------
+    ifo : str
+        The interferometer prefix, e.g. ``C1``.
+    optic : str
+        E.g. ``ETMX``.
+    osem : str
+        ``UL``, ``UR``, ``LL``, ``LR`` or ``SIDE``.
+
+    Returns
+    -------
+    str
+
     Examples
     --------
     >>> osem_channel("C1", "ETMX", "UL")
@@ -36,7 +64,24 @@ def osem_channel(ifo: str, optic: str, osem: str) -> str:
 
 
 def block_channels(ifo: str, block) -> Iterator[tuple[str, str, NDArray[np.float64]]]:  # noqa: ANN001
-    """Every channel of an engine block as ``(name, unit, samples)``."""
+    """Every channel of an engine block as ``(name, unit, samples)``.
+
+    Parameters
+    ----------
+    ifo : str
+        The interferometer prefix, e.g. ``C1``.
+    block : twind.simulation.engine.Block
+        One block of every test point of every optic.
+
+    Yields
+    ------
+    name : str
+        The channel, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``.
+    unit : str
+        ``um`` or ``urad`` for EXC, IN1 and IN2 and the OSEMs, ``ct`` for OUT.
+    samples : numpy.ndarray
+        A view of the block's samples of that channel.
+    """
     for o, optic in enumerate(block.optics):
         for d, dof in enumerate(DOFS):
             for point in TEST_POINTS:

@@ -247,13 +247,61 @@ class TwinClient:
         return reply
 
     def switch(self, optic: str, dof: str, fm: int, on: bool) -> dict:
-        """Switch stage FM`fm` (1-10) of `optic`'s `dof` damping filter module `on` or off;
-        the module's state, as :meth:`params` reports it."""
+        """Switch stage FM`fm` of `optic`'s `dof` damping filter module on or off.
+
+        The twin refuses the change, with the reason, unless the damping loop stays stable.
+
+        Parameters
+        ----------
+        optic : str
+            E.g. ``ETMX``.
+        dof : str
+            ``POS``, ``PIT``, ``YAW`` or ``SIDE``.
+        fm : int
+            The stage, 1-10.
+        on : bool
+            True to switch it on, False off.
+
+        Returns
+        -------
+        dict
+            The optic's parameters and filter modules after the change, as :meth:`params`
+            returns them.
+
+        Raises
+        ------
+        TwindError
+            With the twin's reason for a refused change.
+        """
         return self._filter({"optic": optic, "dof": dof, "fm": fm, "on": on})
 
     def set_gain(self, optic: str, dof: str, gain: float, ramp: float | None = None) -> dict:
-        """Ramp `optic`'s `dof` damping gain to `gain` over `ramp` seconds (default: the
-        module's ramp); the module's state, as :meth:`params` reports it."""
+        """Ramp `optic`'s `dof` damping gain to `gain`.
+
+        The twin refuses the change, with the reason, unless the damping loop stays stable.
+
+        Parameters
+        ----------
+        optic : str
+            E.g. ``ETMX``.
+        dof : str
+            ``POS``, ``PIT``, ``YAW`` or ``SIDE``.
+        gain : float
+            The new gain of the module.
+        ramp : float, optional
+            Seconds to ramp over (0-3600); by default the module's own ramp time.
+
+        Returns
+        -------
+        dict
+            The optic's parameters and filter modules after the change, as :meth:`params`
+            returns them.
+
+        Raises
+        ------
+        TwindError
+            With the twin's reason for a refused change.
+        """
         return self._filter({"optic": optic, "dof": dof, "gain": gain, "ramp": ramp})
 
     def _filter(self, request: dict) -> dict:

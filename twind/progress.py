@@ -42,7 +42,19 @@ class _Above:
 @contextmanager
 def shown(label: str, unit: str = "it") -> Iterator[None]:
     """Show the work done inside the block as a bar labelled `label`, counting `unit`:
-    on stderr when it is a terminal, not at all otherwise; gone when the block ends."""
+    on stderr when it is a terminal, not at all otherwise; gone when the block ends.
+
+    Parameters
+    ----------
+    label : str
+        What the bar is of, e.g. ``twind fit``.
+    unit : str
+        What one :func:`tick` counts, singular (the bar adds the plural ``s``).
+
+    Yields
+    ------
+    None
+    """
     global _bar
     outer, _bar = _bar, tqdm(desc=label, unit=f" {unit}s", file=sys.stderr, disable=None,
                              leave=False, mininterval=0.5, dynamic_ncols=True)

@@ -34,5 +34,15 @@ def dumps(obj: Any, **kw: Any) -> str:  # noqa: ANN401
 
 
 def dump(obj: Any, fp: IO[str], **kw: Any) -> None:  # noqa: ANN401
-    """:func:`json.dump` of :func:`finite` (`obj`); ``allow_nan`` is off."""
+    """:func:`json.dump` of :func:`finite` (`obj`); ``allow_nan`` is off.
+
+    Parameters
+    ----------
+    obj : object
+        Any value :func:`json.dump` takes, numpy scalars and arrays too.
+    fp : file
+        A text file open for writing.
+    **kw
+        As :func:`json.dump` takes them (``indent``, ``default``...).
+    """
     json.dump(finite(obj), fp, allow_nan=False, **kw)

@@ -173,7 +173,24 @@ def body_reading(values: dict[str, float], sigma: dict[str, float | None],
     it couples (at least a third of the largest coupling, angles taken at the face's
     edge); sigmas to first order (``None`` where undetermined); ``on_face`` when the point
     lies within `radius_m` of the centre (a point off the face is no body on it: another
-    mode, read by its pattern)."""
+    mode, read by its pattern).
+
+    Parameters
+    ----------
+    values : dict of str to float
+        The ``resonance``'s fitted parameters by its own names (``f_hz``, ``q``, ``g_POS``
+        ... ``g_SIDE``).
+    sigma : dict of str to float or None
+        Their sigmas, None where undetermined.
+    radius_m : float, optional
+        The optic's radius (m); default 0.0375, the SOS's.
+
+    Returns
+    -------
+    dict
+        ``coupled`` (DOFs), ``along`` (``"beam"`` or ``"side"``), ``mass_kg`` and its sigma;
+        when POS leads, also ``y0_m``, ``z0_m``, their sigmas and ``on_face``.
+    """
     g = {d: values[f"g_{d}"] for d in BODY_DOFS}
     s = {d: sigma.get(f"g_{d}") for d in BODY_DOFS}
     edge = radius_m or 0.0375
@@ -635,7 +652,27 @@ def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosi
     (its search's look-elsewhere cost and the hypotheses tried paid as ``diagnose`` pays
     them), and that fit's likelihood ratio over the nominal model: what the data hold for
     it, whatever the search finds. For a benchmark that knows the truth; (1, 0) when the
-    fit fails."""
+    fit fails.
+
+    Parameters
+    ----------
+    tfs : TFSet or sequence of TFSet
+        The measurements diagnosed.
+    cfg : OpticConfig
+        The optic; the fit starts at `diagnosis`'s refitted nominal parameters.
+    diagnosis : Diagnosis
+        The diagnosis of `tfs` (its nominal fit and first step).
+    effect : str
+        The catalogue entry weighed.
+    start : dict of str to float
+        `effect`'s parameters the fit starts from (the truth, for a benchmark).
+
+    Returns
+    -------
+    p_value : float
+    lr : float
+        The likelihood ratio over the nominal model, in the nulls' units.
+    """
     nominal = diagnosis.nominal
     first = next((c for c in diagnosis.first_step if c.effect == effect), None)
     paths = first.searched if first else []

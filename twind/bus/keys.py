@@ -13,6 +13,17 @@ ROOT = "twin"
 def data_key(channel: str, root: str = ROOT) -> str:
     """The Zenoh key a channel's blocks are published under.
 
+    Parameters
+    ----------
+    channel : str
+        The channel, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``.
+    root : str
+        The key root of the twin (``twin``).
+
+    Returns
+    -------
+    str
+
     Examples
     --------
     >>> data_key("C1:SUS-ETMX_SUSPOS_IN1")
@@ -23,6 +34,22 @@ def data_key(channel: str, root: str = ROOT) -> str:
 
 def channel_of(key: str, root: str = ROOT) -> str:
     """The channel name of a data key.
+
+    Parameters
+    ----------
+    key : str
+        A data key, as :func:`data_key` makes it.
+    root : str
+        The key root of the twin (``twin``).
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    ValueError
+        If `key` does not lie under `root`.
 
     Examples
     --------
@@ -44,6 +71,19 @@ def all_data(root: str = ROOT) -> str:
 def control_key(ifo: str, verb: str, root: str = ROOT) -> str:
     """The key of a service queryable (``status``, ``inject``, ``stop``, ``params``,
     ``filter``) or of the ``events`` publication of injection events.
+
+    Parameters
+    ----------
+    ifo : str
+        The twin's interferometer prefix, e.g. ``C1``.
+    verb : str
+        ``status``, ``inject``, ``stop``, ``params``, ``filter`` or ``events``.
+    root : str
+        The key root of the twin (``twin``).
+
+    Returns
+    -------
+    str
 
     Examples
     --------

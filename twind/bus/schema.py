@@ -41,7 +41,25 @@ def _pool(proto: str) -> descriptor_pool.DescriptorPool:
 
 
 def message_class(full_name: str, proto: str = TIMESERIES) -> type:
-    """The protobuf message class ``full_name`` (e.g. ``"twind.v1.SampleBlock"``)."""
+    """The protobuf message class ``full_name`` (e.g. ``"twind.v1.SampleBlock"``).
+
+    Parameters
+    ----------
+    full_name : str
+        The message's full name, package included.
+    proto : str
+        The .proto file that defines it, relative to ``schemas/``.
+
+    Returns
+    -------
+    type
+        A protobuf message class.
+
+    Raises
+    ------
+    TwindError
+        If the .proto file is missing or protoc cannot compile it.
+    """
     return message_factory.GetMessageClass(_pool(proto).FindMessageTypeByName(full_name))
 
 

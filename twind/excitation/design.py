@@ -83,7 +83,29 @@ class MultisinePlan:
 
 def multisine_tones(freq: float | None, f_stop: float | None, n_tones: int | None,
                     freqs: tuple[float, ...] | None) -> NDArray[np.float64]:
-    """The requested tones: `freqs` as given, or `n_tones` log-spaced from `freq` to `f_stop`."""
+    """The requested tones: `freqs` as given, or `n_tones` log-spaced from `freq` to `f_stop`.
+
+    Parameters
+    ----------
+    freq : float or None
+        Lowest tone (Hz), when `freqs` is None.
+    f_stop : float or None
+        Highest tone (Hz), when `freqs` is None and `n_tones` > 1.
+    n_tones : int or None
+        Number of tones, when `freqs` is None.
+    freqs : tuple of float or None
+        The tones (Hz), in any order; they take precedence over the three above.
+
+    Returns
+    -------
+    numpy.ndarray
+        The tones (Hz), ascending.
+
+    Examples
+    --------
+    >>> multisine_tones(1.0, 100.0, 3, None)
+    array([  1.,  10., 100.])
+    """
     if freqs is not None:
         return np.sort(np.asarray(freqs, dtype=float))
     assert freq is not None and n_tones is not None  # check() guarantees it

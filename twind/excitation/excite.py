@@ -131,7 +131,20 @@ def _information(args: argparse.Namespace, optic: Any, ifo: str, limits: Any) ->
 
 
 def plot_information(design: Any, path: str | Path) -> Path:
-    """Tone amplitudes per DOF, and the predicted uncertainties against white noise's."""
+    """Tone amplitudes per DOF, and the predicted uncertainties against white noise's.
+
+    Parameters
+    ----------
+    design : InformationDesign
+        As :func:`~twind.excitation.information.design_information` returns it.
+    path : path
+        The image file to write (its suffix picks the format, e.g. ``.png``).
+
+    Returns
+    -------
+    Path
+        `path`.
+    """
     fig = Figure(figsize=(8, 7))
     top, bottom = fig.subplots(2, 1)
     for i, dof in enumerate(design.tones):

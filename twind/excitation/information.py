@@ -76,7 +76,22 @@ class InformationDesign:
         return det_root(self.covariance_white) / det_root(self.covariance)
 
     def waveform(self, dof: str, n: int, rate_hz: float) -> NDArray[np.float64]:
-        """`n` samples of the DOF's multisine (Schroeder phases, exactly periodic)."""
+        """`n` samples of the DOF's multisine (Schroeder phases, exactly periodic).
+
+        Parameters
+        ----------
+        dof : str
+            One of the designed DOFs, e.g. ``POS``.
+        n : int
+            Number of samples; the period repeats as often as it takes.
+        rate_hz : float
+            Sample rate of the EXC test point (Hz).
+
+        Returns
+        -------
+        numpy.ndarray
+            The samples, um or urad at EXC.
+        """
         m = int(round(self.period_s * rate_hz))
         f, a = self.tones[dof], self.amps[dof]
         k = np.rint(f * self.period_s).astype(int)
@@ -86,7 +101,20 @@ class InformationDesign:
         return np.resize(period, n)
 
     def peak(self, dof: str, rate_hz: float) -> float:
-        """Largest |sample| of the DOF's multisine."""
+        """Largest |sample| of the DOF's multisine, to check against the twin's peak limit.
+
+        Parameters
+        ----------
+        dof : str
+            One of the designed DOFs, e.g. ``POS``.
+        rate_hz : float
+            Sample rate of the EXC test point (Hz).
+
+        Returns
+        -------
+        float
+            Over one period, um or urad at EXC.
+        """
         return float(np.max(np.abs(self.waveform(dof, int(round(self.period_s * rate_hz)),
                                                  rate_hz))))
 
@@ -124,7 +152,27 @@ class InformationDesign:
 
 def tone_fisher(cfg: OpticConfig, params: Sequence[str], dofs: Sequence[str],
                 f_hz: NDArray[np.float64], duration_s: float) -> NDArray[np.float64]:
-    """Fisher matrix per unit tone power, ``[dof, tone, p, p]``, over log-parameters."""
+    """Fisher matrix per unit tone power, ``[dof, tone, p, p]``, over log-parameters.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The optic at the parameters to linearise about.
+    params : sequence of str
+        The parameters (names as ``twind fit`` reports them).
+    dofs : sequence of str
+        The excited DOFs.
+    f_hz : numpy.ndarray
+        Tone frequencies (Hz).
+    duration_s : float
+        Seconds each tone is held.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``F[d, k]``: the information a unit power at EXC of DOF ``d`` and tone ``k`` gives,
+        summed over every IN1 response against its noise PSD.
+    """
     model = ClosedLoopModel(cfg, f_hz)
     base = {n: param_value(cfg.sus, n) for n in params}
     cols = [DOFS.index(d) for d in dofs]

@@ -233,7 +233,26 @@ class NoiseWave(Waveform):
 
 
 def n_samples(duration: float, rate_hz: float) -> int | None:
-    """Samples in `duration` seconds at `rate_hz` (rounded); None for an infinite duration."""
+    """Samples in `duration` seconds at `rate_hz` (rounded); None for an infinite duration.
+
+    Parameters
+    ----------
+    duration : float
+        Seconds; ``inf`` for an excitation that runs until stopped.
+    rate_hz : float
+        Sample rate (Hz).
+
+    Returns
+    -------
+    int or None
+
+    Examples
+    --------
+    >>> n_samples(2.5, 16384)
+    40960
+    >>> n_samples(float("inf"), 16384) is None
+    True
+    """
     return None if math.isinf(duration) else int(round(duration * rate_hz))
 
 

@@ -148,8 +148,34 @@ def information_benchmark(cfg: OpticConfig, drift: Mapping[str, float] = DRIFT,
 
     Each information round is designed at the previous round's fit (nominal first) and
     fitted on its own data; white noise of the same RMS, band and duration per DOF is
-    measured with 50 %-overlap Hann Welch at the same resolution.  Printed: each round's
+    measured with 50 %-overlap Hann Welch at the same resolution.  Reported: each round's
     ``det(Cov)^(1/p)`` over the parameters both identify, and its ratio to white noise's.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The nominal optic (the first round's design and every fit's start).
+    drift : mapping of str to float
+        Factor applied to each nominal parameter to make the "real" optic.
+    dofs : sequence of str
+        DOFs excited, each measured for the same time.
+    band : (float, float)
+        The excitations' band (Hz).
+    rms : float
+        RMS of each DOF's excitation (um or urad at EXC).
+    period_s : float
+        Multisine period and Welch segment (s): the resolution is ``1 / period_s``.
+    averages : int
+        Periods measured per DOF.
+    rounds : int
+        Information rounds, each designed at the previous one's fit.
+    seed : int
+        Seed of the white noise and of the twin's noise.
+
+    Returns
+    -------
+    list of str
+        The white-noise reference, then one line per round.
     """
 
     real = replace(cfg, sus=with_params(cfg.sus, {k: param_value(cfg.sus, k) * v

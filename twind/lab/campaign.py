@@ -48,7 +48,19 @@ class Twin(Protocol):
     """Where a campaign measures, and where it pushes what it learnt."""
 
     def measure(self, design: InformationDesign, averages: int) -> TFSet:
-        """TFs of the design's excitations, ``averages`` periods of each DOF."""
+        """TFs of the design's excitations, ``averages`` periods of each DOF.
+
+        Parameters
+        ----------
+        design : InformationDesign
+            The multisine of each excited DOF.
+        averages : int
+            Periods measured per DOF, after :data:`~twind.lab.measurement.SETTLE_S`.
+
+        Returns
+        -------
+        TFSet
+        """
 
     def push(self, values: dict[str, float]) -> None:
         """Give a twin the fitted parameters (nothing, when there is none to update)."""
@@ -61,6 +73,20 @@ class LocalTwin:
         self.real, self.seed, self.rounds = real, seed, 0
 
     def measure(self, design: InformationDesign, averages: int) -> TFSet:
+        """TFs of the design's multisines measured on the "real" optic (rectangular window,
+        high-passed below the lowest tone), each round with fresh noise.
+
+        Parameters
+        ----------
+        design : InformationDesign
+            The multisine of each excited DOF.
+        averages : int
+            Periods measured per DOF, after :data:`~twind.lab.measurement.SETTLE_S`.
+
+        Returns
+        -------
+        TFSet
+        """
         rate = self.real.sus.sample_rate_hz
         n = int(round((SETTLE_S + averages * design.period_s) * rate))
         exc = {d: design.waveform(d, n, rate) for d in design.tones}
@@ -88,7 +114,22 @@ class BusTwin:
         self.rounds = 0
 
     def measure(self, design: InformationDesign, averages: int) -> TFSet:
+        """Inject the design's multisines into the optic's EXCs one DOF after another,
+        record every DOF's EXC, IN1, IN2 and OUT to an MCAP file in :attr:`workdir`, and
+        estimate the TFs from it (rectangular window, the settling skipped, high-passed
+        below the lowest tone).
 
+        Parameters
+        ----------
+        design : InformationDesign
+            The multisine of each excited DOF.
+        averages : int
+            Periods injected per DOF, after :data:`~twind.lab.measurement.SETTLE_S`.
+
+        Returns
+        -------
+        TFSet
+        """
         rate = float(self.client.params(self.optic)["params"]["sample_rate_hz"])
         self.rounds += 1
         path = self.workdir / f"{self.optic}-round{self.rounds}.mcap"
@@ -200,7 +241,20 @@ def run_campaign(nominal: OpticConfig, twin: Twin, dofs: Sequence[str] = ("POS",
 
 def tones_only(tfs: TFSet, design: InformationDesign) -> TFSet:
     """`tfs` with every bin but its column's tones marked incoherent: between the tones of a
-    periodic excitation there is no excitation, and the ratio there is noise over zero."""
+    periodic excitation there is no excitation, and the ratio there is noise over zero.
+
+    Parameters
+    ----------
+    tfs : TFSet
+        A measurement of `design`, its bins from 0 Hz at the tones' spacing.
+    design : InformationDesign
+        The multisines, with the tones of each excited DOF.
+
+    Returns
+    -------
+    TFSet
+        A copy, its coherences zero off the tones (every test point).
+    """
     coherence = {p: c.copy() for p, c in tfs.coherence.items()}
     for j, dof in enumerate(tfs.excited):
         k = np.rint(design.tones[dof] / (tfs.frequency_hz[1] - tfs.frequency_hz[0])).astype(int)
@@ -219,7 +273,21 @@ def _progress(k: int, what: str, twin_s: float, rounds: list[Round]) -> None:
 
 
 def plot_rounds(rounds: list[Round], target: float, path: str | Path) -> Path:
-    """Relative uncertainty of each parameter after each round, against twin time."""
+    """Relative uncertainty of each parameter after each round, against twin time.
+
+    Parameters
+    ----------
+    rounds : list of Round
+        The campaign's rounds, in order.
+    target : float
+        The relative sigma aimed at, drawn as a line.
+    path : str or Path
+        The image to write (its suffix picks the format).
+
+    Returns
+    -------
+    Path
+    """
     fig = Figure(figsize=(7, 4.5))
     ax = fig.subplots()
     names = sorted({n for r in rounds for n in r.relative_sigma})

@@ -129,7 +129,19 @@ class Case:
 
 
 def drifted(cfg: OpticConfig, rng: np.random.Generator) -> OpticConfig:
-    """`cfg` with each nominal parameter drifted by :data:`SPREAD` (Gaussian)."""
+    """`cfg` with each nominal parameter drifted by :data:`SPREAD` (Gaussian).
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The nominal optic.
+    rng : numpy.random.Generator
+        Draws the drifts.
+
+    Returns
+    -------
+    OpticConfig
+    """
     values = {k: param_value(cfg.sus, k) * (1 + s * rng.standard_normal())
               for k, s in SPREAD.items()}
     return replace(cfg, sus=with_params(cfg.sus, values))
@@ -137,7 +149,8 @@ def drifted(cfg: OpticConfig, rng: np.random.Generator) -> OpticConfig:
 
 def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64],
            sus: SOSParams | None = None, shape: dict | None = None) -> tuple[Plant, dict]:
-    """`plant` with `effect` of `size` put in by hand, and its parameters in the names of docs/model.md.
+    """`plant` with `effect` of `size` put in by hand, and its parameters in the names of
+    docs/model.md.
 
     `direction` (4 values) spreads an imbalance over the face coils or OSEMs.
     ``wire_asymmetry`` is one wire loop's clamp raised by `size` (m) in the geometric
@@ -145,7 +158,37 @@ def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64
     ``resonance`` is a body of mass `size` (kg) attached as `shape` says (``f_hz``, ``q``,
     ``point_m``, ``axis``: :func:`attached_body`); ``channel_filter`` one channel's stage
     with its zero `size` (a fraction) above its pole (``kind``, ``channel``, ``pole_hz``:
-    :func:`one_stage`)."""
+    :func:`one_stage`).
+
+    Parameters
+    ----------
+    plant : Plant
+        The drifted optic's plant.
+    effect : str
+        One of :data:`MADE`.
+    size : float
+        The effect's size: face gains' scale, extra delay (s), the driver pole's ``1/f``
+        (s), SIDE's share in the face OSEMs, clamp rise (m), the heads' tilt towards VERT
+        (rad), body mass (kg) or the stage's zero-pole separation (fraction).
+    direction : ndarray
+        Four face gains (UL, UR, LL, LR) of an imbalance; the sign of its first picks a
+        ``wire_asymmetry``'s loop.
+    sus : SOSParams, optional
+        The suspension's parameters; needed for ``wire_asymmetry`` and ``bounce_roll``.
+    shape : dict, optional
+        Keyword arguments of :func:`attached_body` or :func:`one_stage`.
+
+    Returns
+    -------
+    plant : Plant
+    truth : dict
+        The effect's parameters in docs/model.md's names.
+
+    Raises
+    ------
+    ValueError
+        If `effect` is not one the corpus makes, or `sus` is missing where needed.
+    """
     if effect == "resonance":
         return attached_body(plant, sus, size, **(shape or {}))
     if effect == "channel_filter":
@@ -189,8 +232,23 @@ def raised_clamp(plant: Plant, sus: SOSParams, rise_m: float) -> tuple[Plant, di
 
     The change it makes to the POS/PIT/YAW stiffness comes from the geometric rigid body
     (equilibrium and Hessian of the wires), so the longer wire's softer pull, and with it
-    the POS<->YAW coupling, is not docs/model.md's formula put back; docs/model.md's ``delta_m`` is
-    the geometry's pendulum-centre offset."""
+    the POS<->YAW coupling, is not docs/model.md's formula put back; docs/model.md's
+    ``delta_m`` is the geometry's pendulum-centre offset.
+
+    Parameters
+    ----------
+    plant : Plant
+    sus : SOSParams
+        The suspension's parameters (the geometric model's wires).
+    rise_m : float
+        How far the clamp is raised (m); negative raises the -y loop's.
+
+    Returns
+    -------
+    plant : Plant
+    truth : dict
+        ``delta_m``: the pendulum-centre offset (m).
+    """
 
     offsets = np.zeros((2, 3))
     offsets[0 if rise_m >= 0 else 1, 2] = abs(rise_m)
@@ -221,9 +279,26 @@ def tilted_heads(plant: Plant, sus: SOSParams, towards_side: float, towards_vert
     point ``r``: ``n . (t + theta x r)``, with ``t = (POS, SIDE, VERT)`` and ``theta`` =
     (ROLL, PIT, -YAW) in the plant's sign convention; the modes' mass, stiffness and damping
     are the geometric model's (its roll a little above ``sqrt(k_v R2^2 / I_roll)``).
-    Nothing goes through the catalogue's ``bounce_roll``; docs/model.md's parameters come out of
-    the geometry: ``vertical`` = (sensing x actuation of VERT per face head), ``roll`` the
-    same of ROLL per unit lever, and the modes' frequencies."""
+    Nothing goes through the catalogue's ``bounce_roll``; docs/model.md's parameters come
+    out of the geometry: ``vertical`` = (sensing x actuation of VERT per face head),
+    ``roll`` the same of ROLL per unit lever, and the modes' frequencies.
+
+    Parameters
+    ----------
+    plant : Plant
+        A plant without VERT and ROLL coordinates.
+    sus : SOSParams
+        The suspension's parameters (the geometric model and the heads' lever).
+    towards_side, towards_vert : float
+        The heads' tilt (rad).
+
+    Returns
+    -------
+    plant : Plant
+        With VERT and ROLL, and the face heads' sensing and actuation rebuilt.
+    truth : dict
+        ``vertical``, ``roll``, ``f_vertical_hz``, ``f_roll_hz`` and ``roll_angle``.
+    """
 
     geo = geometric_mechanics(WireGeometry.from_params(sus))
     mech, extra = plant.mechanics, ("VERT", "ROLL")
@@ -270,7 +345,30 @@ def attached_body(plant: Plant, sus: SOSParams, mass_kg: float, f_hz: float, q: 
     ``theta = (ROLL, PIT, -YAW)`` as :func:`tilted_heads` has them; the body is a new
     coordinate of the mechanics in metres. Nothing goes through the catalogue's
     ``resonance``; the truth is given as the issue's reading: ``f_hz``, ``q``, ``mass_kg``,
-    the point and the DOFs it couples (``coupled``)."""
+    the point and the DOFs it couples (``coupled``).
+
+    Parameters
+    ----------
+    plant : Plant
+    sus : SOSParams
+        Unused (the signature :func:`hidden` calls).
+    mass_kg : float
+        The body's mass (kg).
+    f_hz : float
+        Its resonance (Hz) on the spring, the optic held still.
+    q : float
+        Its quality factor.
+    point_m : (float, float)
+        The face point (y, z) (m) from the centre.
+    axis : sequence of float
+        The pull's direction (POS, SIDE, VERT); normalised here.
+
+    Returns
+    -------
+    plant : Plant
+        With a new coordinate ``ATTACHED`` (m).
+    truth : dict
+    """
     mech = plant.mechanics
     n = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
     r = np.array([0.0, *point_m])
@@ -299,7 +397,26 @@ def one_stage(plant: Plant, separation: float, kind: str, channel: int, pole_hz:
               ) -> tuple[Plant, dict]:
     """`plant` with one coil driver's (``kind`` "coil") or OSEM readback's ("osem") own
     stage: a pole at `pole_hz` and a zero `separation` (a fraction, may be negative) above
-    it, put into the plant's channel filters, which the engine integrates as states."""
+    it, put into the plant's channel filters, which the engine integrates as states.
+
+    Parameters
+    ----------
+    plant : Plant
+    separation : float
+        The zero's distance above the pole, as a fraction of it.
+    kind : str
+        ``"coil"`` or ``"osem"``.
+    channel : int
+        Index into :data:`~twind.OSEMS` (0 is UL).
+    pole_hz : float
+        The stage's pole (Hz).
+
+    Returns
+    -------
+    plant : Plant
+    truth : dict
+        ``channel`` (the catalogue's name, ``coil_filter_UL``), ``pole_hz``, ``zero_hz``.
+    """
     zero = pole_hz * (1 + separation)
     stage = (kind, channel, pole_hz, zero)
     return (replace(plant, channel_filters=(*plant.channel_filters, stage)),
@@ -321,7 +438,31 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
     standard errors of `reference` (a measurement of the same kind, its bins as
     ``diagnose`` chooses them).
 
-    Returns the plant, its effect parameters, the largest change and the summed one."""
+    Parameters
+    ----------
+    real : OpticConfig
+        The drifted optic.
+    effect : str
+        One of :data:`MADE`.
+    reference : FitData
+        The bins and errors the effect is concealed against (:func:`reference_data`).
+    direction : ndarray
+        Four face gains of an imbalance (see :func:`hidden`).
+    target : float
+        The largest change of one bin, in its standard errors.
+    shape : dict, optional
+        As :func:`hidden`.
+
+    Returns
+    -------
+    plant : Plant
+    truth : dict
+        The effect's parameters, and ``_size``: the size to hide it again.
+    largest : float
+        Its largest change of one bin (standard errors).
+    present : float
+        Its change summed over the bins (chi^2 units).
+    """
     base = Plant.from_params(real.sus, real.mechanics())
     model = ClosedLoopModel.of(real, reference)
     rows, cols = _indices(reference)
@@ -361,7 +502,28 @@ def reference_data(cfg: OpticConfig, seed: int, excited: Sequence[str] = EXCITED
                    route: str = "xml", bw: float | None = None, averages: int = AVERAGES,
                    rms: float = RMS) -> FitData:
     """A corpus measurement of the nominal optic on `route`, its bins as ``diagnose``
-    chooses them: the errors the effects are concealed against."""
+    chooses them: the errors the effects are concealed against.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The nominal optic.
+    seed : int
+        Seed of the twin's noise and the excitation.
+    excited : sequence of str
+        DOFs excited in turn.
+    route : str
+        ``"xml"`` (bins up to :data:`STOP_HZ`) or ``"mcap"``.
+    bw : float, optional
+        Resolution (Hz); default the route's (:data:`ROUTE_BW`).
+    averages : int
+    rms : float
+        RMS of the white EXC.
+
+    Returns
+    -------
+    FitData
+    """
 
     tfs = measure_tfs(cfg, excited, bw=bw or ROUTE_BW[route], averages=averages, rms=rms,
                       seed=seed)
@@ -373,7 +535,28 @@ def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls:
                seed: int = 11, effects: Sequence[str] = EFFECTS) -> list[Case]:
     """The corpus: `nulls` drifted optics and `per_effect` of each kind of `effects`
     (a catalogue effect, ``resonance``, ``channel_filter`` or a pair ``"a+b"``), each
-    effect concealed."""
+    effect concealed.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The nominal optic.
+    reference : FitData
+        The bins and errors effects are concealed against (:func:`reference_data`).
+    per_effect : int
+        Cases of each kind of `effects`.
+    nulls : int
+        Cases with no effect.
+    seed : int
+        Seed of the drifts, directions and shapes.
+    effects : sequence of str
+        Kinds of effect hidden.
+
+    Returns
+    -------
+    list of Case
+        The nulls first.
+    """
     rng = np.random.default_rng(seed)
     cases = []
     for k in range(nulls):
@@ -458,7 +641,21 @@ class Score:
 def key_error(effect: str, truth: dict, fitted: dict) -> float:
     """Relative error of an effect's key parameter: the face gains' pitch- and yaw-like
     part (what the measurement determines), ``extra_s``, ``f_hz``, ``sensing``, ``delta_m``
-    or ``vertical`` (the bounce's coupling: its compliance is what IN1/EXC shows)."""
+    or ``vertical`` (the bounce's coupling: its compliance is what IN1/EXC shows).
+
+    Parameters
+    ----------
+    effect : str
+        A catalogue effect (not ``resonance`` or ``channel_filter``).
+    truth : dict
+        The hidden effect's parameters (:func:`hidden`).
+    fitted : dict
+        The claimed effect's parameters in the same names (``EffectFit.to_json``'s).
+
+    Returns
+    -------
+    float
+    """
     if effect in ("coil_imbalance", "osem_imbalance"):
         t = _SEEN @ np.array([truth["gains"][f] for f in FACES])
         g = _SEEN @ np.array([fitted["gains"][f] for f in FACES])
@@ -470,7 +667,22 @@ def key_error(effect: str, truth: dict, fitted: dict) -> float:
 
 def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResult
     """The key parameter's error in units of the fit's own sigma: RMS over the determined
-    components (pitch- and yaw-like gains), 1 on average when the sigmas are honest."""
+    components (pitch- and yaw-like gains), 1 on average when the sigmas are honest.
+
+    Parameters
+    ----------
+    effect : str
+        A catalogue effect (not ``resonance`` or ``channel_filter``).
+    truth : dict
+        The hidden effect's parameters (:func:`hidden`).
+    result : FitResult
+        The fit holding the claimed effect (alone or in a combination).
+
+    Returns
+    -------
+    float
+        NaN when the key combination is not determined.
+    """
     pre = f"{effect}." if result.effect and result.effect != effect else ""  # joint fits
     got = result.as_dict()
     if effect in ("coil_imbalance", "osem_imbalance"):
@@ -500,7 +712,22 @@ def score(case: Case, diagnosis, seconds: float,  # noqa: ANN001 - Diagnosis
     channel is, its key error its stage's low-frequency delay's; a resonance when a
     ``resonance`` is claimed within 15 % of its frequency, coupling no DOF the body leaves
     alone and POS among them, its key error the frequency's ("passed off" when no
-    resonance is claimed, catalogue effects are and nothing is left unexplained)."""
+    resonance is claimed, catalogue effects are and nothing is left unexplained).
+
+    Parameters
+    ----------
+    case : Case
+    diagnosis : Diagnosis or None
+        What ``diagnose`` found; None when it failed.
+    seconds : float
+        Measurement and diagnosis (s).
+    diagnosis_seconds : float
+        The diagnosis alone (s).
+
+    Returns
+    -------
+    Score
+    """
     if diagnosis is None:
         return Score(case, False, ["(failed)"], math.nan, math.nan, math.nan, math.nan,
                      seconds, diagnosis_seconds=diagnosis_seconds)
@@ -553,7 +780,17 @@ def stage_error(truth: dict, fitted: dict) -> float:
     stage's change is ``-j f (1/p - 1/z)`` to first order below its corners) against the
     truth's, relative to it. A concealed stage's corners lie close together and its change
     is seen below them: the data fix this slope, not each corner (a stage fitted hundreds of
-    Hz above the band has the same slope)."""
+    Hz above the band has the same slope).
+
+    Parameters
+    ----------
+    truth, fitted : dict
+        The hidden and the fitted stage: ``pole_hz`` and ``zero_hz``.
+
+    Returns
+    -------
+    float
+    """
     def delay(p: dict) -> float:
         return (1 / p["pole_hz"] - 1 / p["zero_hz"]) / (2 * math.pi)
 
@@ -592,7 +829,35 @@ def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - 
     """The case's measurement as users have it: ``"xml"`` (a diaggui set written from the
     twin's TFs, up to :data:`STOP_HZ`) or ``"mcap"`` (a session recorded from the twin's
     engine), each DOF of `excited` in turn, at resolution `bw` (default the route's), with
-    `averages` and an excitation of `rms`."""
+    `averages` and an excitation of `rms`.
+
+    Parameters
+    ----------
+    case : Case
+        The optic measured (its drifted parameters and its plant).
+    route : str
+        ``"xml"`` or ``"mcap"``.
+    workdir : Path
+        Where the files go (a new directory in it).
+    seed : int
+        Seed of the twin's noise and the excitation.
+    excited : sequence of str
+        DOFs excited in turn.
+    bw : float, optional
+        Resolution (Hz); default the route's (:data:`ROUTE_BW`).
+    averages : int
+    rms : float
+        RMS of the white EXC.
+
+    Returns
+    -------
+    TFSet
+
+    Raises
+    ------
+    ValueError
+        If `route` is neither.
+    """
 
     if route not in ROUTE_BW:
         msg = f"unknown route {route!r}: xml or mcap"
@@ -619,6 +884,30 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
     """Build the corpus, measure (at resolution `bw`, default :data:`ROUTE_BW`'s, with
     `averages` and excitation `rms`) and diagnose every case (each DOF of `excited` in
     turn), print a line each and the rates, each kind apart.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The nominal optic (every diagnosis's model).
+    route : str
+        ``"xml"`` (diaggui sets) or ``"mcap"`` (twin sessions).
+    per_effect : int
+        Cases of each kind of `effects`.
+    nulls : int
+        Cases with no effect.
+    seed : int
+        Seed of the corpus and, offset by case, of each measurement.
+    effects : sequence of str
+        Kinds of effect hidden (:func:`make_cases`).
+    say : callable
+        Takes each line of the report.
+    excited : sequence of str
+        DOFs excited in turn.
+    bw : float, optional
+        Resolution (Hz); default the route's.
+    averages : int
+    rms : float
+        RMS of the white EXC.
 
     Returns
     -------
@@ -753,6 +1042,19 @@ def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", s
     excited alike on the twin's engine and recorded as twin sessions (MCAP), then each
     diagnosed from its recording alone; reports (Bode matrices before and after, HTML,
     Rerun) under `out`/real and `out`/nominal.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The nominal optic.
+    out : str or Path
+        Directory of the recordings and reports (made if missing).
+    effect : str
+        One of :data:`MADE` with no shape (not ``resonance`` or ``channel_filter``).
+    seed : int
+        Seed of the drift, the effect's direction and the measurements.
+    say : callable
+        Takes each line of the report.
 
     Returns
     -------

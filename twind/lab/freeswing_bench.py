@@ -23,7 +23,24 @@ def benchmark(optic: OpticConfig, n: int = 8, duration_s: float = 1000.0, seed: 
     error (%), the worst OSEM gain error (% of each imbalance), the largest error in
     standard errors and the largest difference of the two halves (:attr:`FreeSwing.halves`),
     as each optic is done; then the worst of all and the RMS of the errors in standard
-    errors (1 when the standard errors are right)."""
+    errors (1 when the standard errors are right).
+
+    Parameters
+    ----------
+    optic : OpticConfig
+        The nominal optic: the drifts' centre and the analysis's model.
+    n : int
+        Random optics rung down.
+    duration_s : float
+        Length of each ringdown (s).
+    seed : int
+        Seed of the drifts; optic ``k``'s ringdown noise uses ``seed + k``.
+
+    Yields
+    ------
+    str
+        One line per optic, then the two summary lines.
+    """
     rng = np.random.default_rng(seed)
     worst, pulls = np.zeros(3), []
     for k in range(n):

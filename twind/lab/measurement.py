@@ -50,7 +50,24 @@ the fitted Qs by sigmas)."""
 
 def white_excitation(n: int, rate_hz: float, rms: float, f_max: float,
                      rng: np.random.Generator) -> NDArray[np.float64]:
-    """Gaussian noise of `rms`, low-passed at `f_max` (4th-order Butterworth)."""
+    """Gaussian noise of `rms`, low-passed at `f_max` (4th-order Butterworth).
+
+    Parameters
+    ----------
+    n : int
+        Samples.
+    rate_hz : float
+        Sample rate (Hz).
+    rms : float
+        RMS of the result (EXC units: um or urad).
+    f_max : float
+        The low-pass corner (Hz).
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray
+    """
     sos = signal.butter(4, f_max, fs=rate_hz, output="sos")
     x = signal.sosfilt(sos, rng.standard_normal(n))
     return x * (rms / np.std(x))

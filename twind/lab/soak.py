@@ -257,7 +257,34 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
          suspend: float = 6.0, pauses: int = 16) -> SoakReport:
     """Run the soak (see module docstring) and return its figures; `load` busy processes
     share the cores with it; after the injections a second subscriber is paused `pauses`
-    times for 0.1-0.4 s, then suspended for `suspend` seconds."""
+    times for 0.1-0.4 s, then suspended for `suspend` seconds.
+
+    Parameters
+    ----------
+    duration : float
+        Seconds of injections and hostile requests.
+    optics : str
+        The optics served: comma-separated names, or ``"all"``.
+    hostile : int
+        Hostile requests sent.
+    port : int
+        TCP port the service listens on (localhost).
+    injections_every : float
+        Seconds between the short sines injected.
+    config : str, optional
+        Configuration file; default the shipped one with the watchdog lowered to
+        :data:`SOAK_WATCHDOG_UM`.
+    load : int
+        Busy processes run beside it.
+    suspend : float
+        Seconds the second subscriber is suspended.
+    pauses : int
+        Short pauses of the second subscriber before it.
+
+    Returns
+    -------
+    SoakReport
+    """
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory(prefix="twind-soak-") as tmp:
         config = config or _watchful_config(Path(tmp))

@@ -77,7 +77,19 @@ class TFBenchmark:
 
 
 def session_channels(ifo: str = "C1", optic: str = "ETMX") -> list[str]:
-    """The 12 channels of the benchmark session, EXC, IN1, IN2, OUT of POS, PIT, YAW."""
+    """The 12 channels of the benchmark session, EXC, IN1, IN2, OUT of POS, PIT, YAW.
+
+    Parameters
+    ----------
+    ifo : str
+        Channel-name prefix (``C1``).
+    optic : str
+
+    Returns
+    -------
+    list of str
+        By DOF, then test point.
+    """
     return [dof_channel(ifo, optic, d, p) for d in EXCITED for p in POINTS]
 
 
@@ -161,7 +173,25 @@ def write_session(path: str | Path, duration: float = 3600.0, rate: float = 1638
 
 
 def time_from_session(path: str | Path, bw: float = 0.01) -> float:
-    """Wall seconds of :func:`twind.analysis.estimation.tf.from_session` on `path` (in this process)."""
+    """Wall seconds of :func:`twind.analysis.estimation.tf.from_session` on `path` (in this
+    process).
+
+    Parameters
+    ----------
+    path : str or Path
+        A benchmark session (:func:`write_session`).
+    bw : float
+        Welch resolution (Hz).
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    TwindError
+        If the TFs found are not of POS, PIT and YAW excited.
+    """
 
     t0 = time.perf_counter()
     tfs = from_session([path], bw=bw)
@@ -186,15 +216,44 @@ def _warm_up(workdir: Path, rate: float) -> float:
 
 
 def time_read_whole(path: str | Path, bw: float = 0.01) -> float:
-    """Wall seconds of :func:`twind.analysis.estimation.tf.from_session` reading the test points whole
-    before the Welch sums (its path for recordings with gaps or late events)."""
+    """Wall seconds of :func:`twind.analysis.estimation.tf.from_session` reading the test
+    points whole before the Welch sums (its path for recordings with gaps or late events).
+
+    Parameters
+    ----------
+    path : str or Path
+        A benchmark session (:func:`write_session`).
+    bw : float
+        Welch resolution (Hz).
+
+    Returns
+    -------
+    float
+    """
 
     with mock.patch.object(tf, "_streamed", lambda *_a, **_k: None):
         return time_from_session(path, bw)
 
 
 def time_cli(path: str | Path, bw: float = 0.01) -> float:
-    """Wall seconds of ``twind tf PATH --bw BW`` in a new Python process."""
+    """Wall seconds of ``twind tf PATH --bw BW`` in a new Python process.
+
+    Parameters
+    ----------
+    path : str or Path
+        A benchmark session (:func:`write_session`).
+    bw : float
+        Welch resolution (Hz).
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    TwindError
+        If the command fails.
+    """
     cmd = [sys.executable, "-m", "twind", "tf", str(path), "--bw", f"{bw:g}"]
     t0 = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True, check=False)

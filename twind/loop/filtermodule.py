@@ -58,7 +58,20 @@ class Stage:
 def design_sections(design: str, rate_hz: float) -> NDArray[np.float64]:
     """A foton design's discrete sections at `rate_hz`, computed once per design: the
     service checks every live filter or parameter change against them, and parsing and
-    discretising the designs is most of that check's work. Do not modify the result."""
+    discretising the designs is most of that check's work. Do not modify the result.
+
+    Parameters
+    ----------
+    design : str
+        A foton design string (e.g. ``zpk([1],[10],1,"n")``).
+    rate_hz : float
+        The model's sample rate (Hz).
+
+    Returns
+    -------
+    ndarray, shape (n, 6)
+        Read-only, shared by every caller.
+    """
     sos = zpk_to_sos(parse_design(design), rate_hz)
     sos.flags.writeable = False
     return sos

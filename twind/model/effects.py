@@ -95,7 +95,20 @@ values (the 40m's BounceRoll notches span 15.85-16.34 Hz and sit at 23.14 Hz).""
 
 def mode_bands(sus: SOSParams, reach_hz: float = 0.0) -> list[tuple[float, float]]:
     """The bands (Hz) :data:`MODE_SEARCH` looks for `sus`'s narrow modes in, each widened by
-    `reach_hz` (how far a spectral estimate's kernel carries a mode)."""
+    `reach_hz` (how far a spectral estimate's kernel carries a mode).
+
+    Parameters
+    ----------
+    sus : SOSParams
+        The suspension (its VERT and ROLL frequencies from the wire stiffness).
+    reach_hz : float
+        Added on both sides of each band (Hz).
+
+    Returns
+    -------
+    list of (float, float)
+        (lowest, highest) of each band (Hz), in :data:`MODE_SEARCH`'s order.
+    """
     nominal = sus.uncoupled_frequencies_hz()
     return [(lo * nominal[d] - reach_hz, hi * nominal[d] + reach_hz)
             for d, lo, hi in MODE_SEARCH.values()]
@@ -311,13 +324,50 @@ def effect_scale(effect: str) -> dict[str, float]:
 
 def param_name(effect: str, name: str, param: str) -> str:
     """The name `effect` (catalogue entry `name` itself or a combination holding it) gives
-    the entry's parameter `param`."""
+    the entry's parameter `param`.
+
+    Parameters
+    ----------
+    effect : str
+        The effect fitted: a catalogue entry, or a combination ``"a+b"``.
+    name : str
+        The entry in it.
+    param : str
+        One of the entry's parameters.
+
+    Returns
+    -------
+    str
+        `param` alone, or ``name.param`` in a combination.
+
+    Examples
+    --------
+    >>> param_name("loop_delay", "loop_delay", "extra_s")
+    'extra_s'
+    >>> param_name("coil_imbalance+loop_delay", "loop_delay", "extra_s")
+    'loop_delay.extra_s'
+    """
     return param if effect == name else f"{name}.{param}"
 
 
 def own_values(effect: str, name: str, values: Mapping[str, float]) -> dict[str, float]:
     """The values of catalogue entry `name`'s parameters, by its own names, among those of
-    `effect` (a combination holding it, or the entry itself)."""
+    `effect` (a combination holding it, or the entry itself).
+
+    Parameters
+    ----------
+    effect : str
+        The effect fitted: a catalogue entry, or a combination ``"a+b"``.
+    name : str
+        The entry in it.
+    values : mapping of str to float
+        Parameter values in `effect`'s names (others are ignored).
+
+    Returns
+    -------
+    dict of str to float
+        Those of `values` that are `name`'s, by the entry's own names.
+    """
     return {p: values[param_name(effect, name, p)] for p in entry(name).params
             if param_name(effect, name, p) in values}
 
@@ -354,9 +404,26 @@ def with_effect(plant: Plant, sus: SOSParams, effect: str, values: Mapping[str, 
 
 def model_names(effect: str, values: Mapping[str, float], sigma: Mapping[str, float | None]
                 ) -> tuple[dict, dict]:
-    """An effect's fitted parameters and their sigmas in the names of docs/model.md: the face gains
-    as ``{"gains": {"UL": ...}}``, a driver pole as ``f_hz`` (fitted as 1/f, which is
-    linear near the nominal model; its sigma propagated to first order)."""
+    """An effect's fitted parameters and their sigmas in the names of docs/model.md: the face
+    gains as ``{"gains": {"UL": ...}}``, a driver pole as ``f_hz`` (fitted as 1/f, which is
+    linear near the nominal model; its sigma propagated to first order).
+
+    Parameters
+    ----------
+    effect : str
+        A catalogue entry (one, not a combination nor a repeat like ``resonance#2``).
+    values : mapping of str to float
+        Its fitted parameters, by its own names.
+    sigma : mapping of str to float or None
+        Their sigmas, None where undetermined.
+
+    Returns
+    -------
+    params : dict
+    sigma : dict
+        Both in docs/model.md's names; a sigma None where undetermined (and for a pole
+        at infinity).
+    """
     if effect in ("coil_imbalance", "osem_imbalance"):
         return ({"gains": {f: values[f"gain_{f}"] for f in FACES}},
                 {"gains": {f: sigma[f"gain_{f}"] for f in FACES}})

@@ -62,7 +62,22 @@ class Mechanics:
         eigendecomposition of the state matrix: one matrix product for all frequencies
         instead of an inverse per frequency (a fit evaluates this thousands of times).
         Modes too close to defective for that (eigenvectors with condition number above
-        :data:`MODAL_CONDITION`) fall back to the inverses."""
+        :data:`MODAL_CONDITION`) fall back to the inverses.
+
+        Parameters
+        ----------
+        s : ndarray of complex
+            Complex frequencies ``2 pi j f`` (rad/s), one-dimensional.
+        left : ndarray, shape (a, n), optional
+            Applied on the left (e.g. the OSEMs' sensing); default the identity.
+        right : ndarray, shape (n, b), optional
+            Applied on the right (e.g. the coils' actuation); default the identity.
+
+        Returns
+        -------
+        ndarray of complex, shape (len(s), a, b)
+            Coordinate per generalised force (m/N, rad/(N m)) between `left` and `right`.
+        """
         s = np.asarray(s, dtype=complex)
         n = self.n
         left = np.eye(n) if left is None else np.asarray(left)

@@ -22,7 +22,20 @@ def _face_row(dofs: tuple[str, ...], y: float, z: float) -> NDArray[np.float64]:
 
 
 def sensing_matrix(p: SOSParams, mech: Mechanics) -> NDArray[np.float64]:
-    """OSEM readings (m) per unit generalised coordinate, shape (5, n), rows :data:`twind.OSEMS`."""
+    """OSEM readings (m) per unit generalised coordinate, shape (5, n), rows
+    :data:`twind.OSEMS`.
+
+    Parameters
+    ----------
+    p : SOSParams
+        The suspension (its OSEM lever arm).
+    mech : Mechanics
+        The coordinates read; those not POS, PIT, YAW or SIDE read nothing.
+
+    Returns
+    -------
+    ndarray, shape (5, n)
+    """
     h = p.osem_lever_m
     rows = [_face_row(mech.dofs, y * h, z * h) for y, z in FACE_POSITION.values()]
     rows.append(np.array([1.0 if d == "SIDE" else 0.0 for d in mech.dofs]))
@@ -34,6 +47,17 @@ def actuation_matrix(p: SOSParams, mech: Mechanics) -> NDArray[np.float64]:
 
     A face coil pushes along x at its OSEM's position with ``F = -alpha * drive``; the
     collocated coil therefore acts through the transpose of the sensing geometry.
+
+    Parameters
+    ----------
+    p : SOSParams
+        The suspension (OSEM lever arm, face and SIDE coil strengths in N/ct).
+    mech : Mechanics
+        The coordinates pushed.
+
+    Returns
+    -------
+    ndarray, shape (n, 5)
     """
     gains = np.array([p.coil_N_per_ct] * 4 + [p.side_coil_N_per_ct])
     return -sensing_matrix(p, mech).T * gains

@@ -54,7 +54,20 @@ class Plant:
 
     @classmethod
     def from_params(cls, p: SOSParams, mech: Mechanics) -> Plant:
-        """The nominal OSEM geometry and CDS matrices of docs/model.md around `mech`."""
+        """The nominal OSEM geometry and CDS matrices of docs/model.md around `mech`.
+
+        Parameters
+        ----------
+        p : SOSParams
+            The suspension (OSEM lever, coil strengths, loop delay).
+        mech : Mechanics
+            Its rigid-body dynamics (of either model).
+
+        Returns
+        -------
+        Plant
+            With no driver pole and no channel stage.
+        """
         return cls(mech, sensing_matrix(p, mech), actuation_matrix(p, mech),
                    input_matrix(p.osem_lever_m), output_matrix(), p.loop_delay_s)
 

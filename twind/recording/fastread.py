@@ -557,7 +557,23 @@ class SampleSink(Protocol):
                 x: NDArray[np.float64]) -> None:
         """Consecutive blocks of channel `name` as recorded: per block its sequence number,
         sample count, GPS start and rate; `x` their samples joined (never written again: the
-        sink may keep it)."""
+        sink may keep it).
+
+        Parameters
+        ----------
+        name : str
+            The channel, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``.
+        sequence : numpy.ndarray
+            Each block's sequence number.
+        n_samples : numpy.ndarray
+            Each block's number of samples.
+        gps : numpy.ndarray
+            Each block's GPS time of its first sample (s).
+        rate : numpy.ndarray
+            Each block's sample rate (Hz).
+        x : numpy.ndarray
+            The blocks' samples one after the other, ``n_samples.sum()`` of them.
+        """
 
     def event(self, event: dict[str, Any]) -> None:
         """An injection event."""

@@ -51,7 +51,20 @@ class RawMessage:
 
 def require_header(path: Path, size: int) -> None:
     """Refuse an empty file, or one too short for the MCAP magic that does not begin it: not
-    a recording (a file cut inside the magic is a recording killed at once, read as cut)."""
+    a recording (a file cut inside the magic is a recording killed at once, read as cut).
+
+    Parameters
+    ----------
+    path : Path
+        The file.
+    size : int
+        Its size in bytes.
+
+    Raises
+    ------
+    RecordingError
+        If the file is empty, or shorter than the magic and not a beginning of it.
+    """
     if size == 0:
         msg = (f"{path}: not an MCAP file (empty); give a recording twind record or twind "
                "serve --record wrote")
@@ -174,7 +187,31 @@ def indexed_summary(fh: Any) -> Any:  # noqa: ANN401 - mcap.records.Summary or N
 def indexed_chunks(fh: Any, summary: Any, offset: int, path: Path,  # noqa: ANN401
                   problems: list[str] | None) -> Iterator[list[Any]]:
     """The records of each indexed chunk from `offset` on; a damaged one is skipped, and
-    the time span it held reported (a warning, and in `problems`)."""
+    the time span it held reported (a warning, and in `problems`).
+
+    Parameters
+    ----------
+    fh : binary file
+        The recording, open for reading and seeking.
+    summary : mcap.records.Summary
+        Its summary, as :func:`indexed_summary` returns it.
+    offset : int
+        Byte offset in the file; chunks that start before it are skipped (already read).
+    path : Path
+        The file, for the report.
+    problems : list of str or None
+        Receives a description of each damaged chunk.
+
+    Yields
+    ------
+    list
+        The records of one chunk, in file order.
+
+    Warns
+    -----
+    DamagedRecordingWarning
+        For each damaged chunk, with the GPS span of its lost messages.
+    """
     for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         if index.chunk_start_offset < offset:
             continue
@@ -195,7 +232,19 @@ def indexed_chunks(fh: Any, summary: Any, offset: int, path: Path,  # noqa: ANN4
 
 
 def truncation_reason(err: Exception, size: int) -> str:
-    """Why reading stopped early, for the truncation report."""
+    """Why reading stopped early, for the truncation report.
+
+    Parameters
+    ----------
+    err : Exception
+        The error that stopped the reading.
+    size : int
+        The file's size in bytes.
+
+    Returns
+    -------
+    str
+    """
     if size < 8:
         return "shorter than the MCAP magic"
     return f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
@@ -203,7 +252,27 @@ def truncation_reason(err: Exception, size: int) -> str:
 
 def report_truncation(path: Path, data_end: bool, chunks: int, size: int, reason: str,
                       problems: list[str] | None) -> None:
-    """Warn (and note in `problems`) that `path` stops without its summary and footer."""
+    """Warn (and note in `problems`) that `path` stops without its summary and footer.
+
+    Parameters
+    ----------
+    path : Path
+        The file.
+    data_end : bool
+        Whether its DataEnd record was read (the data are complete).
+    chunks : int
+        Number of complete chunks read.
+    size : int
+        The file's size in bytes.
+    reason : str
+        Why reading stopped, as :func:`truncation_reason` gives it; "" for none.
+    problems : list of str or None
+        Receives the description.
+
+    Warns
+    -----
+    TruncatedRecordingWarning
+    """
     where = "after its data" if data_end else f"after {chunks} complete chunk(s)"
     text = (f"{path}: the recording ends {where} without its summary and footer "
             f"({size} bytes; the writer was killed or the disk filled?); read up to there"
@@ -221,5 +290,18 @@ class JsonDecoderFactory(McapDecoderFactory):
     """
 
     def decoder_for(self, message_encoding: str, schema: Any) -> Callable[[bytes], Any] | None:
-        """``json.loads`` for message encoding ``json``, else None."""
+        """``json.loads`` for message encoding ``json``, else None.
+
+        Parameters
+        ----------
+        message_encoding : str
+            The channel's message encoding.
+        schema : mcap.records.Schema or None
+            The channel's schema (not used: JSON needs none).
+
+        Returns
+        -------
+        callable or None
+            A decoder from the message bytes.
+        """
         return json.loads if message_encoding == "json" else None

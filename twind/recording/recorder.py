@@ -312,9 +312,22 @@ class Recorder:
         Signal handlers are installed only when called from the main thread, and restored
         on return.
 
+        Parameters
+        ----------
+        duration : float, optional
+            Seconds of wall clock to record; None records until a signal.
+        parent : int, optional
+            The process id of the process that started this recorder.
+
         Returns
         -------
         RecordingStats
+
+        Raises
+        ------
+        RecordingError
+            If `duration` is not positive, the recorder was started already, or writing
+            failed (e.g. the disk filled); the files hold what was written.
         """
         if duration is not None and not duration > 0:
             msg = f"duration must be positive, got {duration}"
@@ -542,6 +555,26 @@ def synthetic_block(channel: str, sequence: int, gps0: float = 1.4e9, n: int = 1
     Samples are Gaussian noise from a generator seeded by the channel name and sequence
     (`seed` overrides), so that they are as incompressible as the twin's noise and can be
     regenerated for checking.
+
+    Parameters
+    ----------
+    channel : str
+        The channel, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``.
+    sequence : int
+        The block's sequence number; its GPS start is ``gps0 + sequence * n / rate``.
+    gps0 : float
+        GPS time of block 0 (s).
+    n : int
+        Samples per block.
+    rate : float
+        Sample rate (Hz).
+    seed : int, optional
+        Seed of the noise, instead of one from `channel` and `sequence`.
+
+    Returns
+    -------
+    bytes
+        The encoded block (unit ``um``), as the twin publishes it.
     """
 
     s = seed if seed is not None else zlib.crc32(channel.encode()) * 1_000_003 + sequence
@@ -569,12 +602,30 @@ def recording_benchmark(seconds: float = 2.0, block_samples: int = 1024,
     real-time stream of the same blocks published by a subprocess over Zenoh on loopback
     and reports whether every block arrived.
 
+    Parameters
+    ----------
+    seconds : float
+        Seconds of 40m data to write.
+    block_samples : int
+        Samples per block.
+    rate : float
+        Sample rate of every channel (Hz).
+    path : path, optional
+        The MCAP file to write (and keep); by default a temporary one.
+    end_to_end : bool
+        Also time the stream over Zenoh.
+
     Returns
     -------
     dict
         ``blocks_per_s``, ``mb_per_s`` (payload, 10^6 bytes), ``x_realtime`` (throughput over
-        the 40m's rate), ``file_mb``, and with `end_to_end`: ``e2e_blocks``, ``e2e_expected``,
-        ``e2e_dropped``, ``e2e_max_backlog_mb``.
+        the 40m's rate), ``file_mb``, ``payload_mb``, and with `end_to_end`: ``e2e_blocks``,
+        ``e2e_expected``, ``e2e_dropped``, ``e2e_max_backlog_mb``.
+
+    Raises
+    ------
+    RecordingError
+        With `end_to_end`, if the publishing subprocess failed.
     """
 
     names = forty_meter_channels()

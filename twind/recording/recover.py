@@ -21,6 +21,13 @@ from twind.recording.writer import library_label
 def recover(source: str | Path, out: str | Path) -> tuple[int, list[str]]:
     """Write what `source` still holds to `out` (never overwritten).
 
+    Parameters
+    ----------
+    source : path
+        The killed or damaged MCAP file.
+    out : path
+        The MCAP file to write; removed again if writing fails.
+
     Returns
     -------
     messages : int

@@ -35,7 +35,20 @@ class GapWarning(TwindWarning):
 
 
 def rotated_name(out: str | Path, index: int) -> Path:
-    """``run-0001.mcap`` for ``("run.mcap", 1)``: the name of a rotated recording's file."""
+    """``run-0001.mcap`` for ``("run.mcap", 1)``: the name of a rotated recording's file.
+
+    Parameters
+    ----------
+    out : path
+        The name the recording was given; without a suffix, ``.mcap`` is added.
+    index : int
+        The file's number, from 1.
+
+    Returns
+    -------
+    Path
+        In the directory of `out`.
+    """
     out = Path(out)
     return out.with_name(f"{out.stem}-{index:04d}{out.suffix or '.mcap'}")
 
@@ -227,7 +240,24 @@ class Session:
 
 
 def some_names(names: Iterable[str], n: int = 4) -> str:
-    """The first `n` of `names` and how many more, for a message."""
+    """The first `n` of `names` and how many more, for a message.
+
+    Parameters
+    ----------
+    names : iterable of str
+        Channel names.
+    n : int
+        How many to name.
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> some_names(["C1:A", "C1:B", "C1:C"], n=2)
+    'C1:A, C1:B and 1 more'
+    """
     names = list(names)
     if not names:
         return "no channels"
@@ -247,7 +277,20 @@ class Block:
 
 
 def block_samples(data: bytes, header: BlockHeader) -> NDArray[np.float64]:
-    """The samples of the SampleBlock `data` whose header is `header`."""
+    """The samples of the SampleBlock `data` whose header is `header`.
+
+    Parameters
+    ----------
+    data : bytes
+        The block's protobuf bytes.
+    header : BlockHeader
+        As :func:`~twind.recording.writer.scan_block` gives it for `data`.
+
+    Returns
+    -------
+    numpy.ndarray
+        The samples, float64; a read-only view of `data` when they lie in one run.
+    """
     # a view on the message bytes: no copy until the channel is joined
     if len(header.runs) == 1:
         offset, n = header.runs[0]
@@ -259,7 +302,28 @@ def block_samples(data: bytes, header: BlockHeader) -> NDArray[np.float64]:
 
 
 def join_blocks(name: str, blocks: list[Block]) -> Channel:
-    """One channel from its blocks in recorded order: NaN in gaps, errors on overlaps."""
+    """One channel from its blocks in recorded order: NaN in gaps, errors on overlaps.
+
+    A block recorded twice in a row (same sequence number, GPS start and samples) is kept
+    once.
+
+    Parameters
+    ----------
+    name : str
+        The channel, for the gaps and messages.
+    blocks : list of Block
+        At least one, in recorded order.
+
+    Returns
+    -------
+    Channel
+
+    Raises
+    ------
+    RecordingError
+        If the sample rate is not positive or changes, or a block overlaps the one before
+        or lies off its sample grid.
+    """
     rate = blocks[0].rate
     if not rate > 0:
         msg = f"{name}: block {blocks[0].sequence} has sample rate {rate}"
@@ -301,7 +365,25 @@ def join_blocks(name: str, blocks: list[Block]) -> Channel:
 
 
 def scan_sample_block(data: bytes, topic: str) -> tuple[BlockHeader, str]:
-    """A block's header and channel name (its topic's, when the block names none)."""
+    """A block's header and channel name (its topic's, when the block names none).
+
+    Parameters
+    ----------
+    data : bytes
+        The block's protobuf bytes.
+    topic : str
+        The MCAP topic (or Zenoh key) it came under, e.g. ``twin/C1:SUS-ETMX_SUSPOS_IN1``.
+
+    Returns
+    -------
+    header : BlockHeader
+    name : str
+
+    Raises
+    ------
+    RecordingError
+        If `data` is not a SampleBlock.
+    """
     try:
         header = scan_block(data)
     except ValueError as err:
@@ -324,7 +406,19 @@ _HERE = Path(__file__).parent
 
 
 def warn_gaps(channels: dict[str, Channel], problems: list[str]) -> None:
-    """One :class:`GapWarning` for the gaps of `channels`, also listed in `problems`."""
+    """One :class:`GapWarning` for the gaps of `channels`, also listed in `problems`.
+
+    Parameters
+    ----------
+    channels : dict of str to Channel
+        The channels read.
+    problems : list of str
+        Receives the warning's text; nothing when there is no gap.
+
+    Warns
+    -----
+    GapWarning
+    """
     gaps = [g for ch in channels.values() for g in ch.gaps]
     if not gaps:
         return
@@ -344,8 +438,25 @@ class Assembler:
         self.wanted = wanted
 
     def add(self, data: bytes, topic: str = "") -> BlockHeader | None:
-        """Keep the SampleBlock `data` (published under `topic`) if its channel is wanted;
-        its header, or None."""
+        """Keep the SampleBlock `data` (published under `topic`) if its channel is wanted.
+
+        Parameters
+        ----------
+        data : bytes
+            The block's protobuf bytes.
+        topic : str
+            The topic or key it came under; names the channel when the block does not.
+
+        Returns
+        -------
+        BlockHeader or None
+            The block's header; None if its channel is not wanted.
+
+        Raises
+        ------
+        RecordingError
+            If `data` is not a SampleBlock.
+        """
         header, name = scan_sample_block(data, topic)
         if self.wanted is not None and name not in self.wanted:
             return None

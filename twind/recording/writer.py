@@ -350,6 +350,19 @@ class McapSession:
         """Append one injection event (JSON bytes as published, or a mapping).
 
         The log time is the event's ``gps`` field if it has one, else `gps`, else now.
+        Non-finite numbers in the event are written as null.
+
+        Parameters
+        ----------
+        data : bytes or mapping
+            The event: the JSON object published on ``twin/@/<ifo>/events``, or its mapping.
+        gps : float, optional
+            GPS time (s) to log it at when the event has no ``gps`` field.
+
+        Raises
+        ------
+        ValueError
+            If `data` is not JSON.
         """
         # refuse what a JSON decoder would choke on later; NaN, which Python's decoder
         # takes, is written as null (a real JSON reader takes no NaN)

@@ -46,6 +46,19 @@ def served_ringdown(client: TwinClient, optic: OpticConfig, duration_s: float, b
     :func:`~twind.recording.reader.getdata`). The gains come back (with their ramp)
     whatever happens, also on Ctrl-C.
 
+    Parameters
+    ----------
+    client : TwinClient
+        A client to the twin that runs the optic.
+    optic : OpticConfig
+        The optic as configured; its model's mode frequencies set the drive.
+    duration_s : float
+        Twin seconds of ringdown to read.
+    bus : zenoh.Config
+        Where to read the OSEMs from.
+    progress : callable
+        ``progress(line)`` is told each stage (drive, release).
+
     Returns
     -------
     sen : ndarray, shape (5, n)

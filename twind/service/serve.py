@@ -102,6 +102,13 @@ def limit_zenoh(conf: zenoh.Config, service: ServiceLimits) -> None:
       so a 500 MB request never reaches the twin's memory (its sender is not answered);
     - a subscriber that reads nothing for ``service.subscriber_wait_s`` has its session
       closed, instead of holding every block for Zenoh's 5 s.
+
+    Parameters
+    ----------
+    conf : zenoh.Config
+        The service's Zenoh configuration, changed in place.
+    service : ServiceLimits
+        The ``[service]`` table of the twin's configuration.
     """
     wanted = {"transport/link/rx/max_message_size": int(2 * service.request_bytes),
               "transport/link/tx/queue/congestion_control/block/wait_before_close":

@@ -160,7 +160,18 @@ class TwinService:
 
     # ---------------------------------------------------------------------------- pacing
     def run(self, duration: float | None = None, stop: threading.Event | None = None) -> None:
-        """Serve until `duration` twin seconds have passed or `stop` is set."""
+        """Serve until `duration` twin seconds have passed or `stop` is set.
+
+        Each block is computed and published once its span has passed on the wall clock
+        (scaled by the speed); a block done more than one block late counts as late.
+
+        Parameters
+        ----------
+        duration : float, optional
+            Twin seconds to serve; None serves until `stop`.
+        stop : threading.Event, optional
+            Set (from another thread or a signal handler) to end the service.
+        """
         stop = stop or threading.Event()
         t0 = self._t0 = time.monotonic()
         for k in itertools.count():
@@ -247,7 +258,20 @@ class TwinService:
         """The reply to one control request: `payload` (JSON) for `verb`, one of
         :data:`VERBS`. Never raises: a request that cannot be served is answered with
         ``"ok": false`` and the reason. A payload beyond ``service.request_bytes`` is
-        refused before it is copied out of Zenoh."""
+        refused before it is copied out of Zenoh.
+
+        Parameters
+        ----------
+        verb : str
+            ``status``, ``inject``, ``stop``, ``params`` or ``filter``.
+        payload : bytes or zenoh.ZBytes
+            The request's JSON object; empty for ``{}``.
+
+        Returns
+        -------
+        dict
+            The reply's JSON object.
+        """
         received = time.monotonic()
         try:
             # JSON parsing holds the interpreter lock the pacing thread needs
@@ -290,8 +314,23 @@ class TwinService:
                               for o in self.optics}}
 
     def inject(self, request: dict, received: float | None = None) -> dict:
-        """Accept an excitation (reply with its id) or refuse it with the reason; `received`
-        is when the request came (monotonic), for the latency ``status`` reports."""
+        """Accept an excitation (reply with its id) or refuse it with the reason.
+
+        Parameters
+        ----------
+        request : dict
+            An :class:`~twind.excitation.ExcitationRequest` as JSON: ``channel`` (an EXC
+            test point of this twin), ``waveform`` and its settings.
+        received : float, optional
+            When the request came (:func:`time.monotonic`), for the injection latency
+            ``status`` reports; by default the time of the call.
+
+        Returns
+        -------
+        dict
+            ``ok`` and ``accepted``; if accepted the excitation's ``id`` and ``start_gps``,
+            else the ``reason``.
+        """
         received = time.monotonic() if received is None else received
         try:
             req = ExcitationRequest.from_json(request)

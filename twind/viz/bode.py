@@ -32,7 +32,24 @@ def segment_length(n: int, rate_hz: float, min_averages: int = 8,
     """A Welch segment giving at least `min_averages` segments of `n` samples (50 % overlap
     gives about twice as many averages), at most 64 s long: a power of two, or, for a sine at
     `tone_hz`, a whole number of its periods, so that one bin falls on the tone (within
-    1e-4 of a bin) and the plotted point is at the frequency it was measured at."""
+    1e-4 of a bin) and the plotted point is at the frequency it was measured at.
+
+    Parameters
+    ----------
+    n : int
+        Samples of the measurement.
+    rate_hz : float
+        Sample rate (Hz).
+    min_averages : int
+        Fewest non-overlapping segments wanted.
+    tone_hz : float, optional
+        Frequency of a sine excitation (Hz).
+
+    Returns
+    -------
+    int
+        Samples per segment; all `n` when even 16-sample segments would be too few.
+    """
     longest = min(n // min_averages, int(64 * rate_hz))
     if longest < 16:
         return max(1, n)
@@ -52,6 +69,26 @@ def measure(exc: NDArray[np.float64], outputs: dict[str, NDArray[np.float64]], r
     Only the bins where the excitation carries power are kept: ``P_xx`` above `dynamic_range`
     times its peak (40 dB by default) and ``f > 0``. Elsewhere the ratio of two noise
     estimates means nothing.
+
+    Parameters
+    ----------
+    exc : numpy.ndarray
+        Samples of the excitation (EXC).
+    outputs : dict of str to numpy.ndarray
+        Samples of each response (IN1, IN2, ...), by name.
+    rate_hz : float
+        Sample rate (Hz).
+    nperseg : int, optional
+        Welch segment length; by default :func:`segment_length`'s.
+    dynamic_range : float
+        Lowest ``P_xx`` kept, as a fraction of its peak.
+    tone_hz : float, optional
+        Frequency of a sine excitation (Hz).
+
+    Returns
+    -------
+    dict of str to TransferFunction
+        By the names of `outputs`; empty of bins if `exc` is all zeros.
     """
     exc = np.asarray(exc, dtype=float)
     nperseg = nperseg or segment_length(exc.size, rate_hz,

@@ -74,7 +74,23 @@ class Decimator:
         return self._t0_ns + np.round(index * (NS / self.rate_in)).astype(np.int64)
 
     def feed(self, gps_start: float, samples: NDArray[np.float64]) -> Decimated:
-        """Filter one block; returns the decimated samples that fall in it."""
+        """Filter one block; returns the decimated samples that fall in it.
+
+        A block that does not start where the one before ended (within half a sample)
+        restarts the filter, in steady state at its first sample.
+
+        Parameters
+        ----------
+        gps_start : float
+            GPS time of the block's first sample (s).
+        samples : numpy.ndarray
+            The block's samples, at `rate_in`.
+
+        Returns
+        -------
+        Decimated
+            The output samples, with GPS times (ns) corrected for the filter's delay.
+        """
         x = np.asarray(samples, dtype=float)
         start_ns = int(round(gps_start * NS))
         tolerance = NS / self.rate_in / 2

@@ -51,7 +51,21 @@ def blueprint(optics: Iterable[str], bode: Iterable[str] = (),  # noqa: ANN201
               timeline: str = "gps"):
     """The default layout: a tab per optic (a time-series view per DOF and one of the OSEMs),
     a tab of Bode views (one per excitation and transfer function: magnitude, phase,
-    coherence) when there are any, and the events log below."""
+    coherence) when there are any, and the events log below.
+
+    Parameters
+    ----------
+    optics : iterable of str
+        The optics to give a tab, e.g. ``ETMX``.
+    bode : iterable of str
+        Entity paths of the transfer functions, ``bode/<optic>/<dof>/<excitation>/IN1_EXC``.
+    timeline : str
+        The timeline the time panel shows first (``gps``, ``utc`` or ``frequency_hz``).
+
+    Returns
+    -------
+    rerun.blueprint.Blueprint
+    """
 
     tabs = []
     for optic in optics:

@@ -51,7 +51,20 @@ class Measured:
     good: NDArray[np.bool_] | None = None
 
     def trusted(self, i: int, j: int) -> NDArray[np.bool_]:
-        """The trusted points of element (i, j)."""
+        """The trusted points of element (i, j): finite, and good if :attr:`good` is given.
+
+        Parameters
+        ----------
+        i : int
+            Row: the response DOF's index.
+        j : int
+            Column: the excitation DOF's index.
+
+        Returns
+        -------
+        numpy.ndarray of bool
+            One per frequency.
+        """
         finite = np.isfinite(self.h[:, i, j])
         return finite if self.good is None else finite & self.good[:, i, j]
 
@@ -187,10 +200,19 @@ def _residuals(ax: Axes, f: NDArray, m: Measured, models: Mapping[str, NDArray],
 
 
 def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Path:
-    """Measured transfer functions (:class:`twind.analysis.estimation.diaggui.Transfer`) as a Bode plot.
+    """Measured transfer functions as a Bode plot.
 
     Magnitude with its standard error, phase and coherence share the frequency axis; points
     below :data:`MIN_COHERENCE` are faded.
+
+    Parameters
+    ----------
+    transfers : sequence of Transfer
+        As :mod:`twind.analysis.estimation.diaggui` reads them from a diaggui file.
+    path : path
+        The PNG to write.
+    title : str
+        The figure's title; by default the kinds of measurement and their averages.
 
     Returns
     -------
@@ -226,8 +248,25 @@ def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Pa
 
 def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: ANN001
                    path: str | Path) -> Path:
-    """A free-swinging check (:class:`twind.analysis.identification.freeswing.FreeSwing`) as a figure: the
-    OSEM spectra with the modes found and the model's, and both input matrices as maps."""
+    """A free-swinging check as a figure: the OSEM spectra (0.3-1.5 Hz) with the modes found
+    and the model's, and both input matrices as maps.
+
+    Parameters
+    ----------
+    result : FreeSwing
+        As :mod:`twind.analysis.identification.freeswing` finds it.
+    sen : numpy.ndarray, shape (5, n)
+        The OSEM readings (um), UL, UR, LL, LR, SIDE.
+    rate_hz : float
+        Their sample rate (Hz).
+    path : path
+        The PNG to write.
+
+    Returns
+    -------
+    Path
+        The PNG written.
+    """
     fig = Figure(figsize=(11, 7))
     spec = fig.add_subplot(2, 1, 1)
     q = max(1, int(rate_hz / 16))

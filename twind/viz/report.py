@@ -34,8 +34,20 @@ img { max-width: 100% }
 
 
 def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
-    """The HTML page of `diagnosis`, with `images` as ``(title, file)`` pairs (relative to
-    the page)."""
+    """The HTML page of `diagnosis`: the verdict, the tables, then the figures.
+
+    Parameters
+    ----------
+    diagnosis : Diagnosis
+        As ``twind diagnose`` finds it.
+    images : sequence of (str, str)
+        The figures as ``(title, file)`` pairs, the file's path relative to the page.
+
+    Returns
+    -------
+    str
+        The page's HTML, every text escaped.
+    """
     d = diagnosis
     optic = html.escape(d.nominal.optic)
     parts = [f"<h1>twind diagnose: {optic}</h1>",

@@ -90,7 +90,22 @@ class Transfer:
         return np.abs(self.tf) * np.sqrt((1 - g2) / (2 * self.averages * g2))
 
     def band(self, lo: float, hi: float) -> Transfer:
-        """The points from `lo` to `hi` Hz."""
+        """The points from `lo` to `hi` Hz.
+
+        Parameters
+        ----------
+        lo, hi : float
+            The band's edges (Hz), both kept.
+
+        Returns
+        -------
+        Transfer
+
+        Raises
+        ------
+        TFError
+            If no point lies in the band.
+        """
         keep = (self.frequency_hz >= lo) & (self.frequency_hz <= hi)
         if not keep.any():
             msg = (f"{self.name}: no point in {lo:g}-{hi:g} Hz; measured "
@@ -306,7 +321,33 @@ def write_measurement_set(tfs: TFSet, directory: str | Path, ifo: str = "C1",
                           stop_hz: float | None = None) -> list[Path]:
     """One diaggui file per excited DOF of `tfs` (``<OPTIC>_<DOF>_exc.xml``, as
     example_null), for TFs whose excitation PSD is known (``tfs.exc_psd``); with `stop_hz`,
-    the bins up to it alone, as diaggui keeps its StopFrequency (example_null: 30 Hz)."""
+    the bins up to it alone, as diaggui keeps its StopFrequency (example_null: 30 Hz).
+
+    Parameters
+    ----------
+    tfs : TFSet
+        The measurement, with its excitation PSDs.
+    directory : str or Path
+        Where the files go (made if missing).
+    ifo : str
+        The interferometer prefix of the channel names (``C1``).
+    rate_hz : float
+        Sample rate (Hz) recorded for every channel.
+    gps : float
+        GPS start time recorded in the files.
+    stop_hz : float, optional
+        The last frequency (Hz) written; default every bin.
+
+    Returns
+    -------
+    list of Path
+        One file per excited DOF.
+
+    Raises
+    ------
+    TFError
+        If `tfs` carries no excitation PSD, or a file exists already.
+    """
 
     if not tfs.exc_psd:
         msg = "these TFs carry no excitation PSD (measure them with twind's own tools)"

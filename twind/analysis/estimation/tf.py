@@ -179,6 +179,11 @@ class TFSet:
     def band(self, lo: float, hi: float) -> TFSet:
         """Only the frequencies in [lo, hi] (Hz).
 
+        Parameters
+        ----------
+        lo, hi : float
+            The band's edges (Hz), both kept.
+
         Returns
         -------
         TFSet
@@ -340,7 +345,24 @@ def _warn_unusable(path: str | Path, name: str, exc: str, h: NDArray, g2: NDArra
 
 def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201
     """``numerator/denominator`` of a diaggui measurement (a ``dttxml.DiagAccess`` or a
-    path): frequencies, transfer function, coherence and number of averages."""
+    path): frequencies, transfer function, coherence and number of averages.
+
+    Parameters
+    ----------
+    acc : dttxml.DiagAccess or str or Path
+        The open measurement, or its file.
+    numerator : str
+        Channel B, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``.
+    denominator : str
+        Channel A, e.g. ``C1:SUS-ETMX_SUSPOS_EXC``.
+
+    Returns
+    -------
+    frequency_hz : ndarray
+    tf : ndarray of complex
+    coherence : ndarray
+    averages : int
+    """
 
     if not hasattr(acc, "xfer"):
         acc = dttxml.DiagAccess(str(acc))
@@ -351,7 +373,30 @@ def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201
 
 def assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
     """A TFSet from ``columns[excited][(response, point)] = (tf, coherence)``, or
-    ``(tf, coherence, sigma)`` from an estimator with its own errors."""
+    ``(tf, coherence, sigma)`` from an estimator with its own errors.
+
+    Parameters
+    ----------
+    optic : str
+        The optic's name (``ETMX``).
+    freq : ndarray
+        The frequencies (Hz) every column shares.
+    columns : dict
+        By excited DOF, a dict of ``(response DOF, point)`` to its arrays; point ``IN1``,
+        ``IN2`` or ``OUT``.
+    averages : int
+        Averages of the estimates.
+
+    Returns
+    -------
+    TFSet
+        Responses are the DOFs with IN1, IN2 and OUT in every column.
+
+    Raises
+    ------
+    TFError
+        If nothing is excited, or an excited DOF lacks IN1, IN2 or OUT in some column.
+    """
     excited = [d for d in DOFS if d in columns]
     responses = [d for d in DOFS if all((d, p) in columns[e] for e in excited for p in POINTS)]
     if not excited or not set(excited) <= set(responses):
@@ -480,7 +525,27 @@ def lpm_column(x: NDArray[np.float64], ys: Sequence[NDArray[np.float64]], rate: 
                keys: Sequence[tuple[str, str]], max_hz: float | None = None
                ) -> tuple[LPMEstimate, dict]:
     """One excitation's LPM estimate, its IN1 responses' errors correlated, and
-    :func:`assemble`'s column of it; `keys` name `ys` ((response DOF, point), in order)."""
+    :func:`assemble`'s column of it; `keys` name `ys` ((response DOF, point), in order).
+
+    Parameters
+    ----------
+    x : ndarray
+        The EXC samples.
+    ys : sequence of ndarray
+        The responses' samples, each as long as `x`.
+    rate : float
+        Sample rate (Hz).
+    keys : sequence of (str, str)
+        ``(response DOF, point)`` of each of `ys`.
+    max_hz : float, optional
+        Estimates up to here are those of the whole band (default: Nyquist).
+
+    Returns
+    -------
+    estimate : LPMEstimate
+    column : dict
+        ``(response DOF, point)`` to ``(tf, coherence, sigma)``.
+    """
     est = lpm_tfs(x, ys, rate, max_hz=max_hz,
                   correlated=[i for i, (_, p) in enumerate(keys) if p == "IN1"])
     return est, {k: (est.tf[i], est.coherence[i], est.sigma[i]) for i, k in enumerate(keys)}
@@ -488,7 +553,20 @@ def lpm_column(x: NDArray[np.float64], ys: Sequence[NDArray[np.float64]], rate: 
 
 def with_lpm(tfs: TFSet, estimates: Mapping[str, LPMEstimate]) -> TFSet:
     """`tfs` marked as LPM estimates, with their kernel and IN1 error correlation, from the
-    estimate of each excited DOF (its IN1 responses correlated, in `tfs.responses`' order)."""
+    estimate of each excited DOF (its IN1 responses correlated, in `tfs.responses`' order).
+
+    Parameters
+    ----------
+    tfs : TFSet
+        The assembled LPM estimates; changed in place.
+    estimates : mapping of str to LPMEstimate
+        The estimate of each excited DOF.
+
+    Returns
+    -------
+    TFSet
+        `tfs` itself.
+    """
     first = estimates[tfs.excited[0]]
     tfs.window = "lpm"
     tfs.kernel = Kernel(first.offsets_hz,
@@ -614,6 +692,21 @@ def highpassed(signals: Sequence[NDArray], rate: float, f_hz: float, skip: int
     error barely changes from one short segment to the next, so the coherence cannot see
     it; filtering excitation and response alike leaves their ratio, and the periodic steady
     state, untouched.
+
+    Parameters
+    ----------
+    signals : sequence of ndarray
+        EXC and responses, from the excitation's start.
+    rate : float
+        Sample rate (Hz).
+    f_hz : float
+        The high-pass corner (Hz).
+    skip : int
+        Samples dropped from the start of each.
+
+    Returns
+    -------
+    list of ndarray
     """
     sos = signal.butter(8, f_hz, btype="highpass", fs=rate, output="sos")
     return [signal.sosfilt(sos, np.asarray(x, dtype=float))[skip:] for x in signals]

@@ -444,7 +444,23 @@ class WelchStream:
     def samples(self, name: str, sequence: NDArray[np.int64], n_samples: NDArray[np.int64],
                 gps: NDArray[np.float64], rate: NDArray[np.float64],
                 x: NDArray[np.float64]) -> None:
-        """Blocks of one channel (see :class:`~twind.recording.fastread.SampleSink`)."""
+        """Blocks of one channel (see :class:`~twind.recording.fastread.SampleSink`).
+
+        Parameters
+        ----------
+        name : str
+            The channel, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``.
+        sequence : ndarray of int
+            Each block's sequence number.
+        n_samples : ndarray of int
+            Each block's sample count.
+        gps : ndarray
+            Each block's GPS start time (s).
+        rate : ndarray
+            Each block's sample rate (Hz).
+        x : ndarray
+            The blocks' samples joined; kept, never written.
+        """
         tail = self.tails.get(name)
         if tail is None:
             tail = self.tails[name] = _Tail(float(gps[0]), float(rate[0]))

@@ -98,7 +98,20 @@ class Candidate:
     stiffen: Callable[[Mechanics, OpticConfig, float], Mechanics]
 
     def mechanics(self, optic: OpticConfig, value: float = 0.0) -> Mechanics:
-        """The optic's rigid-body dynamics with the candidate in."""
+        """The optic's rigid-body dynamics with the candidate in.
+
+        Parameters
+        ----------
+        optic : OpticConfig
+        value : float
+            The candidate's free parameter (a stiffness, N/m); unused when its size is
+            predicted.
+
+        Returns
+        -------
+        Mechanics
+            Of the candidate's model (:attr:`model`), stiffened.
+        """
         return self.stiffen(replace(optic, model=self.model).mechanics(), optic, value)
 
 

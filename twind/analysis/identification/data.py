@@ -35,8 +35,8 @@ class FitData:
     Attributes
     ----------
     frequency_hz : ndarray, shape (nf,)
-    rows, cols : list of int
-        Model indices (into POS, PIT, YAW, SIDE) of the responses and excited DOFs.
+    responses, excited : list of str
+        The DOFs (POS, PIT, YAW, SIDE) whose IN1 was read and those excited.
     H, sigma : ndarray, shape (nf, nr, ne)
         Measured ``IN1/EXC`` and the standard error of its real and imaginary parts.
     mask : ndarray of bool, shape (nf, nr, ne)
@@ -73,6 +73,27 @@ class FitData:
         frequencies where the excited DOF's own response is coherent (``twind diagnose``).
         In the bands `whole` (Hz) every bin is used, coherent or not: chosen by frequency
         alone, their errors are not biased by the choice (where a narrow mode may lie).
+
+        Parameters
+        ----------
+        tfs : TFSet
+            The measurement; its IN1/EXC is fitted.
+        min_coherence : float
+            The neighbour-averaged coherence a bin must reach; <= 0 for every response
+            where the excitation reached the optic.
+        band : (float, float), optional
+            Only the bins in this band (Hz).
+        whole : sequence of (float, float)
+            Bands (Hz) used bin by bin, whatever their coherence.
+
+        Returns
+        -------
+        FitData
+
+        Raises
+        ------
+        FitError
+            If no bin is usable.
         """
         f = tfs.frequency_hz
         H, sigma = tfs.tf["IN1"], tfs.sigma("IN1")
@@ -133,7 +154,20 @@ class FitData:
                         ) -> NDArray[np.complex128]:
         """What a model change `dT` at bins `at` (sorted; shape (..., len(at), nr, ne))
         takes off :meth:`whiten`'s residuals there, as complex numbers: one per used entry,
-        in the order whose real parts, then imaginary parts, :meth:`whiten` lists."""
+        in the order whose real parts, then imaginary parts, :meth:`whiten` lists.
+
+        Parameters
+        ----------
+        dT : ndarray of complex, shape (..., len(at), nr, ne)
+            The change of the modelled IN1/EXC at those bins.
+        at : ndarray of int
+            Frequency indices of the bins, sorted.
+
+        Returns
+        -------
+        ndarray of complex, shape (..., used)
+            One per used entry of those bins.
+        """
         used = self.mask[at]
         if self.correlation is None:
             return dT[..., used] / self.sigma[at][used]

@@ -66,7 +66,21 @@ class ClosedLoopModel:
 
     @classmethod
     def of(cls, cfg: OpticConfig, data: FitData, effect: str | None = None) -> ClosedLoopModel:
-        """The model at `data`'s frequencies, as its estimator sees the TF."""
+        """The model at `data`'s frequencies, as its estimator sees the TF.
+
+        Parameters
+        ----------
+        cfg : OpticConfig
+            The optic and its damping loop.
+        data : FitData
+            The measured bins (their frequencies, resolution, kernel and excited DOFs).
+        effect : str, optional
+            A catalogue entry (or combination) the model holds.
+
+        Returns
+        -------
+        ClosedLoopModel
+        """
         return cls(cfg, data.frequency_hz, data.resolution_hz, effect, data.kernel,
                    data.excited)
 
@@ -180,7 +194,22 @@ def hann_kernel(resolution_hz: float, width_hz: float
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Offsets (bins) and weights of a Hann-windowed estimate's power kernel,
     ``(sinc d / (1 - d^2))^2`` out to 3 bins (99.99 % of it), sampled finely enough for a
-    feature `width_hz` wide (a quarter of it, 1/16 to 1/4 bin)."""
+    feature `width_hz` wide (a quarter of it, 1/16 to 1/4 bin).
+
+    Parameters
+    ----------
+    resolution_hz : float
+        The estimate's bin width (Hz).
+    width_hz : float
+        The narrowest feature to resolve (Hz): a mode's full width.
+
+    Returns
+    -------
+    offsets : ndarray
+        In bins, from -3 to 3.
+    weights : ndarray
+        Summing to 1.
+    """
     step = float(np.clip(0.25 * width_hz / resolution_hz, 1 / 16, 1 / 4))
     d = np.linspace(-3.0, 3.0, 2 * round(3 / step) + 1)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -45,7 +45,26 @@ def normal_modes(optic: OpticConfig) -> dict[str, tuple[float, np.ndarray]]:
 
 
 def mechanics_modes(mech: Mechanics, name: str = "") -> dict[str, tuple[float, np.ndarray]]:
-    """:func:`normal_modes` of given rigid-body dynamics (`name` for messages)."""
+    """:func:`normal_modes` of given rigid-body dynamics (`name` for messages).
+
+    Parameters
+    ----------
+    mech : Mechanics
+        The rigid-body dynamics.
+    name : str
+        The optic's name, for messages.
+
+    Returns
+    -------
+    dict of str to (float, ndarray)
+        Frequency (Hz) and shape of each POS, PIT, YAW and SIDE mode, labelled by the DOF
+        that holds most of its kinetic energy.
+
+    Raises
+    ------
+    TwindError
+        If two modes fall in one DOF.
+    """
     w2, vectors = scipy.linalg.eigh(mech.K, mech.M)
     energy = (vectors**2) * np.diag(mech.M)[:, None]
     found: dict[str, tuple[float, np.ndarray]] = {}
@@ -157,6 +176,17 @@ def solve_geometry(optic: OpticConfig, measured: Mapping[str, float],
     Least squares on the log of the frequencies; a trial whose modes cannot be labelled (two
     mostly one DOF) or do not oscillate is steered away from.
 
+    Parameters
+    ----------
+    optic : OpticConfig
+        The optic as configured (the starting point and every parameter not solved).
+    measured : mapping of str to float
+        Measured mode frequencies (Hz) by DOF; POS, PIT and YAW among them are solved for.
+    stiffen : callable, optional
+        ``(optic, value) -> Mechanics``: the dynamics of a trial optic (default: its own).
+    free : bool
+        Solve `value` for SIDE too (SIDE must be in `measured`).
+
     Returns
     -------
     geometry : dict of str to float
@@ -191,7 +221,18 @@ def solve_geometry(optic: OpticConfig, measured: Mapping[str, float],
 
 
 def with_params(optic: OpticConfig, params: dict[str, float]) -> OpticConfig:
-    """`optic` with some suspension parameters changed."""
+    """`optic` with some suspension parameters changed.
+
+    Parameters
+    ----------
+    optic : OpticConfig
+    params : dict of str to float
+        New values by :class:`~twind.model.params.SOSParams` field name (SI units).
+
+    Returns
+    -------
+    OpticConfig
+    """
     return OpticConfig(optic.name, optic.sus.updated(**params), optic.damping, optic.noise,
                        optic.model, optic.source)
 

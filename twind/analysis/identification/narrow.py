@@ -55,7 +55,19 @@ probability (over the frequencies searched) starts uncoupled at its nominal freq
 
 def bands(cfg: OpticConfig, resolution_hz: float) -> list[tuple[float, float]]:
     """The bands (Hz) a narrow mode of `cfg`'s optic can touch: each search range widened
-    by the Hann kernel's reach."""
+    by the Hann kernel's reach.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+    resolution_hz : float
+        The measurement's bin width (Hz).
+
+    Returns
+    -------
+    list of (float, float)
+        (lowest, highest) of each band (Hz): VERT's, then ROLL's.
+    """
     return mode_bands(cfg.sus, _REACH_BINS * resolution_hz)
 
 
@@ -150,7 +162,23 @@ def p_value(lr: float, dof: int, path: float) -> float:
     the best of a search: ``P(chi2_dof > lr) + path lr^((dof-1)/2) e^(-lr/2) /
     (2^(dof/2) Gamma(dof/2))``, with `path` the search's :func:`search` path. A mode seen
     only through its compliance below resonance hardly turns as its frequency sweeps, and
-    is charged little for the search; one seen at its peak is charged for every width."""
+    is charged little for the search; one seen at its peak is charged for every width.
+
+    Parameters
+    ----------
+    lr : float
+        The likelihood ratio at the best trial.
+    dof : int
+        Directions the effect adds, less the searched parameters `path` pays for (at
+        least 1 is taken).
+    path : float
+        The search's look-elsewhere path (rad); 0 for no search.
+
+    Returns
+    -------
+    float
+        At most 1.
+    """
     dof, lr = max(dof, 1), max(lr, 0.0)
     upcross = path * math.exp((dof - 1) / 2 * math.log(max(lr, 1e-300)) - lr / 2
                               - dof / 2 * math.log(2) - math.lgamma(dof / 2))
@@ -433,6 +461,19 @@ def search_resonance(data: FitData, cfg: OpticConfig, values: Mapping[str, float
                      ) -> tuple[dict[str, float], list[float], Scan]:
     """Start values of a ``resonance`` for `data`, anywhere in its band, around the nominal
     model at `values` (`free` and `effect` as in :func:`search`).
+
+    Parameters
+    ----------
+    data : FitData
+        The measured bins searched.
+    cfg : OpticConfig
+    values : mapping of str to float
+        The refitted nominal parameters (and `effect`'s).
+    free : sequence of str
+        Those refitted with the resonance: what they can absorb of a mode is not its
+        evidence.
+    effect : str, optional
+        Effects already in the model (a catalogue entry or a combination).
 
     Returns
     -------

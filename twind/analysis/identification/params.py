@@ -21,7 +21,19 @@ class FitError(TwindError):
 
 # ------------------------------------------------------------------------------ parameters
 def param_value(sus: SOSParams, name: str) -> float:
-    """The value of fit parameter `name` (``Q_<DOF>`` reads ``sus.Q``)."""
+    """The value of fit parameter `name` (``Q_<DOF>`` reads ``sus.Q``).
+
+    Parameters
+    ----------
+    sus : SOSParams
+    name : str
+        One of :data:`FIT_PARAMS` (or any other field of `sus`).
+
+    Returns
+    -------
+    float
+        In SI units.
+    """
     if name.startswith("Q_"):
         return float(sus.Q[name[2:]])
     return float(getattr(sus, name))
@@ -42,7 +54,18 @@ def read_truth(path: str | Path) -> dict[str, float]:
 
 
 def with_params(sus: SOSParams, values: Mapping[str, float]) -> SOSParams:
-    """A copy of `sus` with fit parameters set (``Q_POS`` etc. go into ``Q``)."""
+    """A copy of `sus` with fit parameters set (``Q_POS`` etc. go into ``Q``).
+
+    Parameters
+    ----------
+    sus : SOSParams
+    values : mapping of str to float
+        New values by fit parameter name (or any other field of `sus`).
+
+    Returns
+    -------
+    SOSParams
+    """
     return sus.updated(**values)
 
 

@@ -146,7 +146,31 @@ class FitResult:
 
 def name_null(names: list[str], null: NDArray, values: NDArray, cov: NDArray,
                log: NDArray[np.bool_]) -> tuple[list[str], dict[str, dict[str, float]]]:
-    """Name each unidentifiable direction; for a pair, also the product that is determined."""
+    """Name each unidentifiable direction; for a pair, also the product that is determined.
+
+    Parameters
+    ----------
+    names : list of str
+        The fitted parameters.
+    null : ndarray, shape (len(names), k)
+        Orthonormal basis of the unidentifiable directions in the fit's coordinates.
+    values : ndarray
+        The fitted values, by `names`.
+    cov : ndarray, shape (len(names), len(names))
+        Covariance of the fit's coordinates (log of a physical parameter, scaled offset of
+        an effect's).
+    log : ndarray of bool
+        Which coordinates are logarithms (physical parameters).
+
+    Returns
+    -------
+    unidentifiable : list of str
+        One name per direction: a product of powers (``a*b/c^0.5``) or, with an effect's
+        parameter in it, a sum (``a - b``).
+    determined : dict of str to dict
+        For each pair of physical parameters, the product the data fix: its ``value`` and
+        ``sigma``.
+    """
     unident, determined = [], {}
     for v in null.T:
         involved = list(np.flatnonzero(np.abs(v) > NULL_COMPONENT * np.abs(v).max()))
