@@ -20,6 +20,7 @@ from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.simulation.discretize import discrete_closed_loop, module_sections
 from twind.simulation.engine import Engine
 from twind.simulation.noise import CHANNELS, NoiseSpec
+from twind.simulation.rng import fill_normal, seed_states
 
 R = 16384.0  # model rate, Hz
 RI = int(R)
@@ -112,6 +113,26 @@ def test_seeds(etmx) -> None:
         # ... and so are the five OSEMs of one run
         for k in range(j):
             assert abs(np.corrcoef(np.diff(a.sen[0, j]), np.diff(a.sen[0, k]))[0, 1]) < 0.1
+
+
+def test_threads_do_not_change_the_result(cfg) -> None:
+    loops = [cfg.optics[k].loop() for k in ("ETMX", "ITMX", "MC2")]
+    exc = np.random.default_rng(4).standard_normal((3, 4, 3000)) * 0.05
+    one = Engine(loops, seed=5, threads=1).step(3000, exc=exc)
+    two = Engine([cfg.optics[k].loop() for k in ("ETMX", "ITMX", "MC2")], seed=5,
+                 threads=2).step(3000, exc=exc)
+    for p in POINTS:
+        assert np.array_equal(getattr(one, p), getattr(two, p)), p
+
+
+def test_white_noise_is_standard_normal() -> None:
+    out = np.empty(2_000_000)
+    fill_normal(seed_states(11, 1)[0], 1.0, out)
+    assert stats.kstest(out, "norm").pvalue > 1e-3
+    # the ziggurat's tail (beyond 3.654) and wedges are drawn by other branches: their mass too
+    tail = np.mean(np.abs(out) > 3.6541528853610088)
+    expected = 2 * stats.norm.sf(3.6541528853610088)
+    assert abs(tail - expected) < 5 * np.sqrt(expected / out.size), (tail, expected)
 
 
 # --------------------------------------------------------------------------------------------

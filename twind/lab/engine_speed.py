@@ -1,9 +1,10 @@
 """Engine benchmarks, every figure measured side by side in one run (machines are noisy).
 
-``twind bench`` prints: the engine's speed on one optic and on the 40m; its speed and largest
-output difference against python-control's ``forced_response`` on the same discrete closed
-loop; and the marginal speed of ``twind simulate`` (200 s minus 20 s of simulated time over
-the wall-time difference, so start-up and compilation cancel).
+``twind bench`` prints: the engine's speed on one optic and on the 40m, the median and the
+best of repeated runs, quiet and again with another process keeping one core busy; its speed
+and largest output difference against python-control's ``forced_response`` on the same
+discrete closed loop; and the marginal speed of ``twind simulate`` (200 s minus 20 s of
+simulated time over the wall-time difference, so start-up and compilation cancel).
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import re
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 
 import control
 import numpy as np
@@ -22,18 +25,51 @@ from twind.simulation.engine import Engine
 from twind.simulation.noise import NoiseSpec
 
 
-def engine_speed(optics: list, seconds: float, seed: int = 0) -> float:
-    """Simulated seconds per wall second of an engine over `optics` (noise on, 1 s blocks)."""
+def engine_speed(optics: list, seconds: float, seed: int = 0, repeats: int = 5
+                 ) -> tuple[float, float]:
+    """Simulated seconds per wall second of an engine over `optics` (noise on, 1 s blocks).
+
+    Parameters
+    ----------
+    optics : list of OpticConfig
+        The optics the engine runs.
+    seconds : float
+        Simulated seconds per run.
+    seed : int
+        Noise seed.
+    repeats : int
+        Runs timed, after one that compiles and warms up.
+
+    Returns
+    -------
+    median, best : float
+        Of the runs' speeds (x real time).
+    """
     rate = optics[0].sus.sample_rate_hz
     engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics}, seed=seed,
                     rate_hz=rate)
     n = int(rate)
     buf = engine.new_block(n)
-    engine.step(n, out=buf)  # compile and warm up
-    t0 = time.perf_counter()
-    for _ in range(int(seconds)):
-        engine.step(n, out=buf)
-    return int(seconds) / (time.perf_counter() - t0)
+    engine.step(n, out=buf)
+    speeds = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(max(1, int(seconds))):
+            engine.step(n, out=buf)
+        speeds.append(max(1, int(seconds)) / (time.perf_counter() - t0))
+    return float(np.median(speeds)), float(max(speeds))
+
+
+@contextmanager
+def one_core_loaded() -> Iterator[None]:
+    """Another process spinning on one core for as long as the block runs."""
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.2)  # let it start and take its core
+        yield
+    finally:
+        spin.kill()
+        spin.wait()
 
 
 def against_forced_response(optic, seconds: float, seed: int = 1) -> dict[str, float]:  # noqa: ANN001
@@ -83,14 +119,17 @@ def run_benchmarks(config: str | None = None, seconds: float = 20.0, marginal: b
     """Print every benchmark figure (see module docstring)."""
     twin = load_config(config)
     etmx = twin.optics.get("ETMX", next(iter(twin.optics.values())))
-    one = engine_speed([etmx], seconds)
-    rate = etmx.sus.sample_rate_hz
-    print(f"engine, 1 optic ({etmx.name}), noise on: {one:8.1f} x real time "
-          f"({one * rate:.3g} samples/s)")
     every = list(twin.optics.values())
-    many = engine_speed(every, max(2.0, seconds / 4))
-    print(f"engine, {len(every)} optics ({twin.source}): {many:8.1f} x real time "
-          f"({many * rate * len(every):.3g} optic-samples/s)")
+    rate = etmx.sus.sample_rate_hz
+    for label, load in (("quiet", nullcontext()), ("one core loaded", one_core_loaded())):
+        with load:
+            one = engine_speed([etmx], seconds / 5)
+            many = engine_speed(every, max(1.0, seconds / 20))
+        print(f"engine, 1 optic ({etmx.name}), noise on, {label}: median {one[0]:7.1f}, best "
+              f"{one[1]:7.1f} x real time ({one[0] * rate:.3g} samples/s)")
+        print(f"engine, {len(every)} optics ({twin.source}), {label}: median {many[0]:7.1f}, "
+              f"best {many[1]:7.1f} x real time ({many[0] * rate * len(every):.3g} "
+              f"optic-samples/s)")
     fr = against_forced_response(etmx, min(seconds, 5.0))
     print(f"python-control forced_response, same closed loop, {fr['samples']} samples: "
           f"engine {fr['engine_s']:.3f} s, control {fr['control_s']:.3f} s, "

@@ -6,28 +6,39 @@ State is carried across blocks and the noise comes from per-optic streams of one
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS
 from twind.loop.damping import DampingLoop
-from twind.loop.filtermodule import IDENTITY_SECTION
 from twind.simulation.discretize import (
     bilinear,
     delay_samples,
     modal,
     stage_sections,
 )
-from twind.simulation.kernel import N_DOF, N_OSEM, advance, shaped_noise
-from twind.simulation.noise import CHANNELS as NOISE_CHANNELS
+from twind.simulation.kernel import (
+    CHUNK,
+    N_DOF,
+    N_NOISE,
+    N_OSEM,
+    N_SP,
+    PLANT_ROWS,
+    Arrays,
+    advance_parallel,
+    advance_serial,
+)
 from twind.simulation.noise import NoiseSpec
 from twind.simulation.rng import seed_states
+from twind.simulation.simd import LANES, SECTION_ROWS
 
-N_NOISE = len(NOISE_CHANNELS)
-CHUNK = 2048  # samples per kernel call and per noise draw: small enough to stay in cache
+_COEFFICIENTS = [0, 1, 2, 4, 5]  # b0, b1, b2, a1, a2 of a scipy section (a0 = 1)
+_IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0])  # cascade4's rows of a section passing its input
 
 
 @dataclass(frozen=True)
@@ -53,6 +64,20 @@ class Block:
         return arr[self.optics.index(optic), DOFS.index(dof)]
 
 
+@contextmanager
+def _threads(n: int) -> Iterator[None]:
+    """numba's parallel loops on `n` threads, handing out one iteration (optic) at a time, so
+    a thread held up by other work on its core takes fewer optics instead of holding the step."""
+    threads, chunk = nb.get_num_threads(), nb.get_parallel_chunksize()
+    nb.set_num_threads(n)
+    nb.set_parallel_chunksize(1)
+    try:
+        yield
+    finally:
+        nb.set_parallel_chunksize(chunk)
+        nb.set_num_threads(threads)
+
+
 def _padded(shape: tuple[int, int, int]) -> NDArray[np.float64]:
     """Zeros of `shape` whose rows do not lie a multiple of 4 KiB apart (see kernel)."""
     n = shape[-1]
@@ -73,47 +98,51 @@ class Engine:
         Seed of all noise streams.
     rate_hz : float
         Model rate.
+    threads : int, optional
+        Threads to share the optics among (default: numba's, but one for a single optic);
+        each optic runs on one thread for a whole step.
     """
 
     def __init__(self, loops: Sequence[DampingLoop], noise: NoiseSpec | Mapping[str, NoiseSpec]
-                 = NoiseSpec(), seed: int = 0, rate_hz: float = 16384.0) -> None:
+                 = NoiseSpec(), seed: int = 0, rate_hz: float = 16384.0,
+                 threads: int | None = None) -> None:
         self.loops = list(loops)
         self.optics = tuple(lp.name for lp in self.loops)
         self.rate_hz = float(rate_hz)
         self.samples = 0
+        self.threads = min(len(self.loops), threads or nb.config.NUMBA_NUM_THREADS)
         specs = [noise[n] if isinstance(noise, Mapping) else noise for n in self.optics]
-        self._build_plants()
+        n_opt = len(self.loops)
+        self._order: list[NDArray[np.int64]] = [np.zeros(0, dtype=np.int64)] * n_opt
+        self._to_modal: list[NDArray[np.float64]] = [np.zeros((0, 0))] * n_opt
+        plants = [self._discrete_plant(lp) for lp in self.loops]
+        self._stage_sos = [[stage_sections(lp, d, self.rate_hz) for d in DOFS] for lp in self.loops]
+        ns = LANES * -(-max(len(p[0][0]) for p in plants) // LANES)
+        self._a = self._allocate(n_opt, ns, specs)
+        for o, plant in enumerate(plants):
+            self._set_plant(o, *plant)
         self._build_filters()
         self._build_noise(specs, seed)
 
-    def _build_plants(self) -> None:
-        n_opt = len(self.loops)
-        modes = []
-        feedthrough, self._to_modal = [], []
-        for lp in self.loops:
-            mode, Dd, vr = self._discrete_plant(lp)
-            modes.append(mode)
-            feedthrough.append(Dd)
-            self._to_modal.append(vr)
-        ns = max(len(m[0]) for m in modes)
-        self._a_diag = np.zeros((n_opt, ns))
-        self._a_off = np.zeros((n_opt, ns))
-        self._partner = np.tile(np.arange(ns), (n_opt, 1))
-        self._bdrive = np.zeros((n_opt, ns, N_DOF))
-        self._bsp = np.zeros((n_opt, ns, 3))
-        self._cs = np.zeros((n_opt, N_OSEM, ns))  # OSEM um per modal state
-        # the kernel's OSEM signals are in um, so the input matrix loses its calibration
-        self._inmat = np.array([lp.plant.input_matrix * 1e-6 for lp in self.loops])
-        self._ds = 1e6 * np.array(feedthrough)  # OSEM um per coil count and per sp m, rad
-        for o, (a_diag, a_off, partner, B, C) in enumerate(modes):
-            k = len(a_diag)
-            self._a_diag[o, :k], self._a_off[o, :k], self._partner[o, :k] = a_diag, a_off, partner
-            self._bdrive[o, :k], self._bsp[o, :k] = B[:, :N_DOF], B[:, N_DOF:]
-            self._cs[o, :, :k] = C * 1e6
-        self._x = np.zeros((n_opt, ns))
-        self._ndelay = np.array([delay_samples(lp.plant.delay_s, self.rate_hz) for lp in self.loops])
-        self._dbuf = np.zeros((n_opt, self._ndelay.max(), N_DOF))
-        self._dpos = np.zeros(n_opt, dtype=np.int64)
+    def _allocate(self, n_opt: int, ns: int, specs: Sequence[NoiseSpec]) -> Arrays:
+        ndelay = np.array([delay_samples(lp.plant.delay_s, self.rate_hz) for lp in self.loops])
+        nmax = max(1, max(len(sos) for stages in self._stage_sos for sos, _ in stages))
+        z = np.zeros
+        return Arrays(
+            plant=z((n_opt, ns * PLANT_ROWS)), sp_to_x=z((n_opt, N_SP * ns)),
+            x_to_in1=z((n_opt, ns * LANES)), u_to_in1=z((n_opt, N_DOF * LANES)),
+            noise_to_in1=z((n_opt, N_NOISE * LANES)),
+            sen_face=z((n_opt, (ns + N_DOF + N_NOISE) * LANES)), sen_side=z((n_opt, ns + N_DOF + N_NOISE)),
+            x=z((n_opt, ns)), filters=z((n_opt, nmax * SECTION_ROWS * LANES)),
+            nsec=np.full(n_opt, nmax, dtype=np.int64),
+            gain=z((n_opt, N_DOF)), gain_target=z((n_opt, N_DOF)), gain_step=z((n_opt, N_DOF)),
+            ramp_left=z((n_opt, N_DOF), dtype=np.int64), limit=z((n_opt, N_DOF)),
+            delay=z((n_opt, ndelay.max() * LANES)), delay_pos=z(n_opt, dtype=np.int64),
+            ndelay=ndelay, sigma=z((n_opt, N_NOISE)),
+            noise_filters=z((n_opt, 2, SECTION_ROWS * LANES)),
+            rng=z((n_opt, N_NOISE, 4), dtype=np.uint64), noise=z((n_opt, N_NOISE, CHUNK + 8)),
+            noise_pos=np.full(n_opt, CHUNK, dtype=np.int64), ext=z((n_opt, CHUNK * LANES)),
+            xsp=z((n_opt, CHUNK * ns)))
 
     def _discrete_plant(self, lp: DampingLoop) -> tuple[tuple, NDArray, NDArray]:
         A, Bc, Bs, C = lp.plant.osem_state_space()
@@ -122,67 +151,95 @@ class Engine:
         mode = modal(Ad, Bd, Cd)
         return mode[:5], Dd, mode[5]
 
+    def _set_plant(self, o: int, mode: tuple, Dd: NDArray, vr: NDArray) -> None:
+        """Write optic `o`'s modal plant into the kernel's rows, mode pairs on even states."""
+        a_diag, a_off, partner, B, C = mode
+        paired = [i for i in range(len(a_diag)) if partner[i] != i]
+        order = np.array(paired + [i for i in range(len(a_diag)) if partner[i] == i])
+        k, ns = len(order), self._a.x.shape[1]
+        rows = np.zeros((ns, PLANT_ROWS))
+        rows[:k, 0], rows[:k, 1], rows[:k, 2:] = a_diag[order], a_off[order], B[order, :N_DOF]
+        self._a.plant[o] = rows.reshape(ns // LANES, LANES, PLANT_ROWS).transpose(0, 2, 1).ravel()
+        sp = np.zeros((N_SP, ns))
+        sp[:, :k] = B[order, N_DOF:].T
+        self._a.sp_to_x[o] = sp.ravel()
+        inmat = self.loops[o].plant.input_matrix
+        c = np.zeros((N_OSEM, ns))
+        c[:, :k] = C[:, order]
+        self._a.x_to_in1[o] = (inmat @ c).T.ravel()
+        self._a.u_to_in1[o] = (inmat @ Dd[:, :N_DOF]).T.ravel()
+        self._a.noise_to_in1[o] = np.hstack([inmat, inmat @ Dd[:, N_DOF:]]).T.ravel()
+        # the OSEM readings in um: 1e6 (C x + D u + n)
+        sen = 1e6 * np.hstack([c, Dd[:, :N_DOF], np.eye(N_OSEM), Dd[:, N_DOF:]])
+        self._a.sen_face[o], self._a.sen_side[o] = sen[:LANES].T.ravel(), sen[LANES]
+        self._order[o], self._to_modal[o] = order, vr[:, order]
+
     def update_plant(self, optic: str, loop: DampingLoop) -> None:
         """Replace an optic's plant while running; its motion carries over.
 
         The state is mapped through physical coordinates (positions and velocities), so
         the optic keeps moving as it was and only the dynamics from now on change.
+
+        Parameters
+        ----------
+        optic : str
+            The optic whose plant changes.
+        loop : DampingLoop
+            The loop with the new plant (its filters are not read).
+
+        Raises
+        ------
+        ValueError
+            If the new plant has a different number of states.
         """
         o, _ = self._where(optic, DOFS[0])
-        (a_diag, a_off, partner, B, C), Dd, vr = self._discrete_plant(loop)
-        k = len(a_diag)
-        if k != len(self._to_modal[o]):
-            msg = f"{optic}: the new plant has {k} states, the running one {len(self._to_modal[o])}"
+        mode, Dd, vr = self._discrete_plant(loop)
+        k = len(self._order[o])
+        if len(mode[0]) != k:
+            msg = f"{optic}: the new plant has {len(mode[0])} states, the running one {k}"
             raise ValueError(msg)
-        physical = self._to_modal[o] @ self._x[o, :k]
-        self._x[o, :k] = np.linalg.solve(vr, physical)
-        self._a_diag[o, :k], self._a_off[o, :k], self._partner[o, :k] = a_diag, a_off, partner
-        self._bdrive[o, :k], self._bsp[o, :k] = B[:, :N_DOF], B[:, N_DOF:]
-        self._cs[o, :, :k] = C * 1e6
-        self._ds[o] = 1e6 * Dd
-        self._to_modal[o] = vr
+        physical = self._to_modal[o] @ self._a.x[o, :k]
         self.loops[o].plant = loop.plant
+        self._set_plant(o, mode, Dd, vr)
+        self._a.x[o, :k] = np.linalg.solve(self._to_modal[o], physical)
 
     def _build_filters(self) -> None:
-        n_opt = len(self.loops)
-        self._stage_sos = [[stage_sections(lp, d, self.rate_hz) for d in DOFS] for lp in self.loops]
-        nmax = max(1, max(len(sos) for lay in self._stage_sos for sos, _ in lay))
-        # kernel layout [optic, section, coefficient, dof]; short cascades padded with identity
-        self._sos = np.tile(IDENTITY_SECTION[None, :, None], (n_opt, nmax, 1, N_DOF))
+        a = self._a
+        # [optic, section, row, dof]: b0, b1, b2, a1, a2 and two states; identity-padded
+        self._sections = a.filters.reshape(len(self.loops), -1, SECTION_ROWS, LANES)
+        self._sections[:] = _IDENTITY[None, None, :, None]
         for o, lp in enumerate(self.loops):
             for d, dof in enumerate(DOFS):
                 sos, where = self._stage_sos[o][d]
-                self._sos[o, : len(sos), :, d] = sos
+                self._sections[o, : len(sos), :5, d] = sos[:, _COEFFICIENTS]
                 for fm, rows in where.items():
                     if fm not in lp.modules[dof].on:
-                        self._sos[o, rows, :, d] = IDENTITY_SECTION
-        self._nsec = np.full(n_opt, nmax, dtype=np.int64)
-        self._zi = np.zeros((n_opt, nmax, 2, N_DOF))
-        self._gain = np.array([[lp.modules[d].gain for d in DOFS] for lp in self.loops], dtype=float)
-        self._gain_target = self._gain.copy()
-        self._gain_step = np.zeros((n_opt, N_DOF))
-        self._ramp_left = np.zeros((n_opt, N_DOF), dtype=np.int64)
-        self._limit = np.array([[lp.modules[d].limit for d in DOFS] for lp in self.loops], dtype=float)
-        self._tripped = np.zeros(n_opt, dtype=bool)
+                        self._sections[o, rows, :5, d] = _IDENTITY[:5]
+        a.gain[:] = [[lp.modules[d].gain for d in DOFS] for lp in self.loops]
+        a.gain_target[:] = a.gain
+        a.limit[:] = [[lp.modules[d].limit for d in DOFS] for lp in self.loops]
+        self._tripped = np.zeros(len(self.loops), dtype=bool)
 
     def _build_noise(self, specs: Sequence[NoiseSpec], seed: int) -> None:
-        shaped = [s.shaping(self.rate_hz) for s in specs]
-        self._noise_sos = np.array([sos for sos, _ in shaped])
-        self._noise_sigma = np.array([sigma for _, sigma in shaped])
-        self._noise_zi = np.zeros((len(specs), N_NOISE, 2))
-        self._rng = np.array([seed_states(seed, N_NOISE, key=name) for name in self.optics])
-        # noise comes in whole chunks, whatever the block sizes, so results do not depend on
-        # them; the next chunk is drawn on the second thread while the loops run
-        self._noise = _padded((len(specs), N_NOISE, CHUNK))
-        self._noise_next = _padded((len(specs), N_NOISE, CHUNK))
-        for o in range(len(specs)):
-            shaped_noise(CHUNK, self._noise_sigma[o], self._noise_sos[o], self._noise_zi[o],
-                         self._rng[o], self._noise[o])
-        self._noise_pos = 0
-        self._next_ready = False
+        for o, spec in enumerate(specs):
+            sos, sigma = spec.shaping(self.rate_hz)
+            self._a.sigma[o] = sigma
+            rows = self._a.noise_filters[o].reshape(2, SECTION_ROWS, LANES)
+            rows[:, :5] = sos[:, _COEFFICIENTS].reshape(2, LANES, 5).transpose(0, 2, 1)
+            self._a.rng[o] = seed_states(seed, N_NOISE, key=self.optics[o])
 
     def new_block(self, n: int) -> Block:
-        """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again."""
+        """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again.
+
+        Parameters
+        ----------
+        n : int
+            Samples per block.
+
+        Returns
+        -------
+        Block
+        """
         n_opt = len(self.loops)
         arrays = [_padded((n_opt, N_DOF, n)) for _ in range(4)]
         return Block(self.optics, self.samples, self.rate_hz, *arrays, _padded((n_opt, N_OSEM, n)))
@@ -203,6 +260,11 @@ class Engine:
         -------
         Block
             The block's test points; its ``start_sample`` counts from the engine's start.
+
+        Raises
+        ------
+        ValueError
+            If `n` is negative or `exc` or `out` have the wrong shape.
         """
         n_opt = len(self.loops)
         if n < 0:
@@ -219,27 +281,15 @@ class Engine:
             raise ValueError(msg)
         else:
             block.exc[:] = exc
-        start = 0
-        while start < n:
-            c = min(n - start, CHUNK - self._noise_pos if self._noise_pos < CHUNK else CHUNK)
-            self._chunk(block, start, c)
-            start += c
+        points = (block.exc, block.in1, block.in2, block.out, block.sen)
+        if self.threads > 1:
+            with _threads(self.threads):
+                advance_parallel(self._a, n, *points)
+        else:
+            advance_serial(self._a, n, *points)
         block = replace(block, start_sample=self.samples)
         self.samples += n
         return block
-
-    def _chunk(self, block: Block, a: int, c: int) -> None:
-        if self._noise_pos == CHUNK:
-            self._noise, self._noise_next = self._noise_next, self._noise
-            self._noise_pos, self._next_ready = 0, False
-        advance(c, a, self._noise_pos, self._a_diag, self._a_off, self._partner, self._bdrive,
-                self._bsp, self._cs, self._ds, self._inmat, self._sos, self._nsec, self._zi,
-                self._gain, self._gain_target, self._gain_step, self._ramp_left, self._limit,
-                self._dbuf, self._dpos, self._ndelay, self._x, self._noise, block.exc,
-                block.in1, block.in2, block.out, block.sen, not self._next_ready, CHUNK,
-                self._noise_sigma, self._noise_sos, self._noise_zi, self._rng, self._noise_next)
-        self._noise_pos += c
-        self._next_ready = True
 
     def _where(self, optic: str, dof: str) -> tuple[int, int]:
         if optic not in self.optics:
@@ -262,12 +312,12 @@ class Engine:
         if self._tripped[o]:
             return
         steps = int(round(ramp * self.rate_hz))
-        self._gain_target[o, d] = gain
+        self._a.gain_target[o, d] = gain
         if steps == 0:
-            self._gain[o, d], self._ramp_left[o, d] = gain, 0
+            self._a.gain[o, d], self._a.ramp_left[o, d] = gain, 0
         else:
-            self._gain_step[o, d] = (gain - self._gain[o, d]) / steps
-            self._ramp_left[o, d] = steps
+            self._a.gain_step[o, d] = (gain - self._a.gain[o, d]) / steps
+            self._a.ramp_left[o, d] = steps
 
     def trip(self, optic: str) -> None:
         """Zero an optic's damping outputs and reset its motion and filter histories, as a
@@ -275,15 +325,15 @@ class Engine:
         then only sets what rearm restores)."""
         o, _ = self._where(optic, DOFS[0])
         self._tripped[o] = True
-        self._gain[o] = self._gain_target[o] = 0.0
-        self._ramp_left[o] = 0
-        self._x[o] = self._zi[o] = self._dbuf[o] = 0.0
+        self._a.gain[o] = self._a.gain_target[o] = 0.0
+        self._a.ramp_left[o] = 0
+        self._a.x[o] = self._sections[o, :, 5:] = self._a.delay[o] = 0.0
 
     def rearm(self, optic: str) -> None:
         """Restore a tripped optic's module gains (at once, from rest)."""
         o, _ = self._where(optic, DOFS[0])
         self._tripped[o] = False
-        self._gain[o] = self._gain_target[o] = [self.loops[o].modules[d].gain for d in DOFS]
+        self._a.gain[o] = self._a.gain_target[o] = [self.loops[o].modules[d].gain for d in DOFS]
 
     def tripped(self, optic: str) -> bool:
         """Whether `optic`'s watchdog holds its outputs at zero."""
@@ -305,6 +355,6 @@ class Engine:
         if (fm in module.on) == on:
             return  # as CDS: pressing a button into the state it is in does nothing
         rows = where[fm]
-        self._sos[o, rows, :, d] = sos[rows] if on else IDENTITY_SECTION
-        self._zi[o, rows, :, d] = 0.0
+        self._sections[o, rows, :5, d] = sos[rows][:, _COEFFICIENTS] if on else _IDENTITY[:5]
+        self._sections[o, rows, 5:, d] = 0.0
         module.on = (module.on | {fm}) if on else (module.on - {fm})

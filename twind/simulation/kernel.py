@@ -1,136 +1,245 @@
-"""Compiled loops of the engine: noise for a block, then every optic's loop sample by sample.
+"""Compiled loops of the engine: every optic's damping loop, sample by sample, with its noise.
 
-:func:`advance` closes the damping loops sample by sample and, on the other thread, draws
-and shapes the next chunk of noise (each channel its own stream) with :func:`shaped_noise`. Everything that persists between blocks lives in the arrays passed
-in, so a block boundary changes nothing in the result.
+One optic is one task: :func:`run_optic` draws the optic's noise a chunk at a time and closes
+its loop for a whole step, so optics share nothing and :func:`advance` hands them to the cores
+one at a time, a core that is held up by other work taking fewer. Everything that persists
+between steps lives in the :class:`Arrays`, so a step boundary changes nothing in the result.
 
-Rows of the ``[optic, channel, sample]`` arrays the loops read and write are padded so that
-they never lie a multiple of 4 KiB apart: such rows evict each other from the cache.
+Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulation.simd`):
 
-Speed notes: inside the sample loop nothing is sliced (a numba array view costs more than a
-filter section's arithmetic); the four DOFs' filter cascades are written out side by side, so
-their four dependency chains overlap; the plant is in modal form (two multiplies a state).
-The plant is bilinear-discretised, so its inputs of this cycle (the coil drives, which are
-OUT of ``ndelay >= 1`` cycles ago, and the suspension point) also feed through to the OSEMs.
+- IN1 of POS, PIT, YAW, SIDE: ``C x + D u + N n``, the plant's modal state ``x``, the coil
+  drives ``u`` (OUT of ``ndelay`` cycles ago: the plant is bilinear, so its inputs of this
+  cycle feed through) and the noise ``n``, all projected on the DOFs once at build time;
+- IN2 = IN1 + EXC; the filter cascades, one lane each; OUT = gain x cascade, limited;
+- the OSEM readings ``sen`` from the same state, inputs and noise;
+- the modal plant's next state, four states a vector (each state couples only to its pair).
+
+Noise is drawn in chunks of :data:`CHUNK` samples, whatever the step sizes, first white (one
+xoshiro stream per channel), then shaped, the eight channels' sections two vectors wide.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba as nb
 import numpy as np
+from numpy.typing import NDArray
 
-from twind.simulation.rng import FI, KI, WI, normal
+from twind.simulation.rng import fill_normal
+from twind.simulation.simd import LANES, add4, cascade4, fma4, load4, store4, swap_pairs
 
 N_DOF = 4  # POS, PIT, YAW, SIDE
 N_OSEM = 5  # UL, UR, LL, LR, SIDE
+N_NOISE = 8  # the five OSEMs, then the suspension point's x, y and yaw
+N_SP = 3
+CHUNK = 2048  # samples per noise draw: small enough to stay in cache
+PLANT_ROWS = 2 + N_DOF  # per group of 4 modal states: a_diag, a_off, then B of each drive
+
+
+class Arrays(NamedTuple):
+    """Everything the kernel reads and keeps, stacked over optics (first axis).
+
+    Flat rows of 4 lanes (``[optic, row * 4 + lane]``) hold the vectors the kernel loads.
+    """
+
+    plant: NDArray[np.float64]  # per 4 modal states: PLANT_ROWS rows (see PLANT_ROWS)
+    sp_to_x: NDArray[np.float64]  # [optic, sp channel * ns + state]: B of the suspension point
+    x_to_in1: NDArray[np.float64]  # per state: its C on the 4 DOFs
+    u_to_in1: NDArray[np.float64]  # per drive: its feedthrough D on the 4 DOFs
+    noise_to_in1: NDArray[np.float64]  # per noise channel: its part of the 4 DOFs' IN1
+    sen_face: NDArray[np.float64]  # per state, drive and noise channel: UL, UR, LL, LR in um
+    sen_side: NDArray[np.float64]  # [optic, ns + 4 + 8]: the same of SIDE
+    x: NDArray[np.float64]  # [optic, ns] modal state
+    filters: NDArray[np.float64]  # cascade4 layout, the four DOFs' cascades as lanes
+    nsec: NDArray[np.int64]
+    gain: NDArray[np.float64]  # [optic, 4], and its ramp: target, step, samples left
+    gain_target: NDArray[np.float64]
+    gain_step: NDArray[np.float64]
+    ramp_left: NDArray[np.int64]
+    limit: NDArray[np.float64]  # [optic, 4]; 0 for none
+    delay: NDArray[np.float64]  # [optic, ndelay * 4]: OUT of the last ndelay cycles
+    delay_pos: NDArray[np.int64]
+    ndelay: NDArray[np.int64]
+    sigma: NDArray[np.float64]  # [optic, 8] white standard deviation of each noise channel
+    noise_filters: NDArray[np.float64]  # [optic, 2, cascade4 layout]: two cascades of a section
+    rng: NDArray[np.uint64]  # [optic, 8, 4] xoshiro256** states
+    noise: NDArray[np.float64]  # [optic, 8, CHUNK + pad] the current chunk of shaped noise
+    noise_pos: NDArray[np.int64]  # samples of the current chunk used
+    ext: NDArray[np.float64]  # [optic, CHUNK * 4] scratch: the noise's part of IN1
+    xsp: NDArray[np.float64]  # [optic, CHUNK * ns] scratch: the noise's part of the next x
 
 
 @nb.njit(nogil=True, cache=True)
-def shaped_noise(n, sigma, sos, zi, states, out):
-    """One optic's noise: white Gaussian noise through one section per channel.
-
-    Parameters: `sigma` (channels,) white standard deviations; `sos` (channels, 6) shaping
-    sections; `zi` (channels, 2) their states; `states` (channels, 4) xoshiro streams;
-    `out` (channels, n) the result.
-    """
-    for c in range(sigma.shape[0]):
-        b0, b1, b2, a1, a2 = sos[c, 0], sos[c, 1], sos[c, 2], sos[c, 4], sos[c, 5]
-        z0, z1, g, st = zi[c, 0], zi[c, 1], sigma[c], states[c]
-        if g == 0.0:
-            out[c, :n] = 0.0
-            continue
-        for k in range(n):
-            w = g * normal(st, KI, WI, FI)
-            v = b0 * w + z0
-            z0 = b1 * w - a1 * v + z1
-            z1 = b2 * w - a2 * v
-            out[c, k] = v
-        zi[c, 0], zi[c, 1] = z0, z1
+def draw_noise(sigma, filters, states, out):
+    """One optic's next chunk of noise: white Gaussian noise, one stream per channel, then
+    each channel's shaping section (channels 0-3 and 4-7 as the lanes of two cascades)."""
+    n = CHUNK
+    for c in range(N_NOISE):
+        if sigma[c] == 0.0:
+            out[c] = 0.0
+        else:
+            fill_normal(states[c], sigma[c], out[c, :n])
+    lo, hi = filters[0], filters[1]
+    for k in range(n):
+        a = cascade4(lo, 1, (out[0, k], out[1, k], out[2, k], out[3, k]))
+        b = cascade4(hi, 1, (out[4, k], out[5, k], out[6, k], out[7, k]))
+        out[0, k], out[1, k], out[2, k], out[3, k] = a
+        out[4, k], out[5, k], out[6, k], out[7, k] = b
 
 
 @nb.njit(nogil=True, cache=True, fastmath={"contract"})
-def _run_optic(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cs, ds, inmat, sos, nsec, zi, gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x,
-               noise, exc, in1, in2, out, sen):
-    ns = x.shape[0]
-    xn = np.empty(ns)
-    u = np.empty(N_DOF + 3)  # the plant's inputs this cycle: coil drives (delayed OUT), x/y/yaw sp
-    y = np.empty(N_DOF)
-    osem = np.empty(N_OSEM)
-    pos = dpos[0]
+def _noise_inputs(noise_to_in1, sp_to_x, noise, p, n, ext, xsp):
+    """The noise's part of each cycle's IN1 (``ext[4 k:4 k + 4]``) and of the plant's next
+    state (``xsp[ns k:ns k + ns]``), for `n` cycles from noise sample `p`."""
+    ns = xsp.shape[0] // CHUNK
+    zero = (0.0, 0.0, 0.0, 0.0)
     for k in range(n):
-        t, q = a + k, npos + k
+        y = zero
+        for j in range(N_NOISE):
+            y = fma4(noise_to_in1, LANES * j, noise[j, p + k], y)
+        store4(ext, LANES * k, y)
+        for g in range(ns // LANES):
+            xg = zero
+            for m in range(N_SP):
+                xg = fma4(sp_to_x, m * ns + LANES * g, noise[N_OSEM + m, p + k], xg)
+            store4(xsp, ns * k + LANES * g, xg)
+
+
+@nb.njit(inline="always", fastmath={"contract"})
+def _in1(x_to_in1, u_to_in1, ext, x, u, k):
+    """The four DOFs' IN1 of cycle `k`: noise, then state (two sums), then the drives last,
+    as they are the loop's critical path."""
+    ya = load4(ext, LANES * k)
+    yb = (0.0, 0.0, 0.0, 0.0)
+    for g in range(x.shape[0] // LANES):
+        i = LANES * LANES * g
+        ya = fma4(x_to_in1, i, x[LANES * g], ya)
+        yb = fma4(x_to_in1, i + LANES, x[LANES * g + 1], yb)
+        ya = fma4(x_to_in1, i + 2 * LANES, x[LANES * g + 2], ya)
+        yb = fma4(x_to_in1, i + 3 * LANES, x[LANES * g + 3], yb)
+    ya = fma4(u_to_in1, 0, u[0], ya)
+    yb = fma4(u_to_in1, LANES, u[1], yb)
+    ya = fma4(u_to_in1, 2 * LANES, u[2], ya)
+    yb = fma4(u_to_in1, 3 * LANES, u[3], yb)
+    return add4(ya, yb)
+
+
+@nb.njit(inline="always", fastmath={"contract"})
+def _next_state(plant, xsp, x, u, k):
+    """Advance the modal state `x` by one cycle, four states a vector."""
+    ns = x.shape[0]
+    for g in range(ns // LANES):
+        xg = load4(x, LANES * g)
+        base = PLANT_ROWS * LANES * g
+        xn = fma4(plant, base, xg, load4(xsp, ns * k + LANES * g))
+        xn = fma4(plant, base + LANES, swap_pairs(xg), xn)
         for d in range(N_DOF):
-            u[d] = dbuf[pos, d]
-        for m in range(3):
-            u[N_DOF + m] = noise[N_OSEM + m, q]
-        for j in range(N_OSEM):
-            acc = 1e6 * noise[j, q]
-            for i in range(ns):
-                acc += cs[j, i] * x[i]
-            for m in range(N_DOF + 3):
-                acc += ds[j, m] * u[m]
-            osem[j] = acc
-            sen[j, t] = acc
-        for d in range(N_DOF):
-            acc = 0.0
-            for j in range(N_OSEM):
-                acc += inmat[d, j] * osem[j]
-            in1[d, t] = acc
-            y[d] = acc + exc[d, t]
-            in2[d, t] = y[d]
-        v0, v1, v2, v3 = y[0], y[1], y[2], y[3]
-        for m in range(nsec):
-            w0 = sos[m, 0, 0] * v0 + zi[m, 0, 0]
-            w1 = sos[m, 0, 1] * v1 + zi[m, 0, 1]
-            w2 = sos[m, 0, 2] * v2 + zi[m, 0, 2]
-            w3 = sos[m, 0, 3] * v3 + zi[m, 0, 3]
-            zi[m, 0, 0] = sos[m, 1, 0] * v0 - sos[m, 4, 0] * w0 + zi[m, 1, 0]
-            zi[m, 0, 1] = sos[m, 1, 1] * v1 - sos[m, 4, 1] * w1 + zi[m, 1, 1]
-            zi[m, 0, 2] = sos[m, 1, 2] * v2 - sos[m, 4, 2] * w2 + zi[m, 1, 2]
-            zi[m, 0, 3] = sos[m, 1, 3] * v3 - sos[m, 4, 3] * w3 + zi[m, 1, 3]
-            zi[m, 1, 0] = sos[m, 2, 0] * v0 - sos[m, 5, 0] * w0
-            zi[m, 1, 1] = sos[m, 2, 1] * v1 - sos[m, 5, 1] * w1
-            zi[m, 1, 2] = sos[m, 2, 2] * v2 - sos[m, 5, 2] * w2
-            zi[m, 1, 3] = sos[m, 2, 3] * v3 - sos[m, 5, 3] * w3
-            v0, v1, v2, v3 = w0, w1, w2, w3
-        y[0], y[1], y[2], y[3] = v0, v1, v2, v3
-        for d in range(N_DOF):
-            if ramp_left[d] > 0:
-                ramp_left[d] -= 1
-                gain[d] = gain_target[d] if ramp_left[d] == 0 else gain[d] + gain_step[d]
-            o = y[d] * gain[d]
-            if limit[d] > 0.0:
-                o = min(max(o, -limit[d]), limit[d])
-            out[d, t] = o
-            dbuf[pos, d] = o
+            xn = fma4(plant, base + LANES * (2 + d), u[d], xn)
+        store4(x, LANES * g, xn)
+
+
+@nb.njit(inline="always", fastmath={"contract"})
+def _osem_cycle(face, side, x, u, noise, q, sen, t):
+    """The five OSEM readings (um) of this cycle into ``sen[:, t]``: UL, UR, LL, LR as the
+    lanes of a vector, SIDE alone; rows of `face` and entries of `side` are per state,
+    drive and noise channel."""
+    ns = x.shape[0]
+    va, vb = (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)
+    sa = sb = 0.0
+    for i in range(0, ns, 2):
+        va = fma4(face, LANES * i, x[i], va)
+        vb = fma4(face, LANES * (i + 1), x[i + 1], vb)
+        sa += side[i] * x[i]
+        sb += side[i + 1] * x[i + 1]
+    for d in range(0, N_DOF, 2):
+        va = fma4(face, LANES * (ns + d), u[d], va)
+        vb = fma4(face, LANES * (ns + d + 1), u[d + 1], vb)
+        sa += side[ns + d] * u[d]
+        sb += side[ns + d + 1] * u[d + 1]
+    for m in range(0, N_NOISE, 2):
+        va = fma4(face, LANES * (ns + N_DOF + m), noise[m, q], va)
+        vb = fma4(face, LANES * (ns + N_DOF + m + 1), noise[m + 1, q], vb)
+        sa += side[ns + N_DOF + m] * noise[m, q]
+        sb += side[ns + N_DOF + m + 1] * noise[m + 1, q]
+    sen[0, t], sen[1, t], sen[2, t], sen[3, t] = add4(va, vb)
+    sen[4, t] = sa + sb
+
+
+@nb.njit(nogil=True, cache=True)
+def _ramp(gain, gain_target, gain_step, ramp_left):
+    """One cycle of every ramping gain."""
+    for d in range(N_DOF):
+        if ramp_left[d] > 0:
+            ramp_left[d] -= 1
+            gain[d] = gain_target[d] if ramp_left[d] == 0 else gain[d] + gain_step[d]
+
+
+@nb.njit(inline="always")
+def _clip(v, lim):
+    return min(max(v, -lim), lim) if lim > 0.0 else v
+
+
+@nb.njit(nogil=True, cache=True, fastmath={"contract"})
+def _close(s, o, n, a, p, exc, in1, in2, out, sen):
+    """Close optic `o`'s loop for `n` cycles from block sample `a`, keeping each cycle's
+    state and drives in `history`; the noise's inputs are in ``s.ext`` and ``s.xsp``."""
+    x, delay, filters, ext, xsp = s.x[o], s.delay[o], s.filters[o], s.ext[o], s.xsp[o]
+    x_to_in1, u_to_in1, plant = s.x_to_in1[o], s.u_to_in1[o], s.plant[o]
+    sen_face, sen_side, noise = s.sen_face[o], s.sen_side[o], s.noise[o]
+    gain, gain_target, gain_step = s.gain[o], s.gain_target[o], s.gain_step[o]
+    limit, ramp_left = s.limit[o], s.ramp_left[o]
+    nsec, ndelay, pos = s.nsec[o], s.ndelay[o], s.delay_pos[o]
+    limited = np.any(limit > 0.0)
+    u = load4(delay, LANES * pos)
+    for k in range(n):
+        t = a + k
+        y = _in1(x_to_in1, u_to_in1, ext, x, u, k)
+        y2 = (y[0] + exc[0, t], y[1] + exc[1, t], y[2] + exc[2, t], y[3] + exc[3, t])
+        in1[0, t], in1[1, t], in1[2, t], in1[3, t] = y
+        in2[0, t], in2[1, t], in2[2, t], in2[3, t] = y2
+        w = cascade4(filters, nsec, y2)
+        if ramp_left[0] + ramp_left[1] + ramp_left[2] + ramp_left[3] > 0:
+            _ramp(gain, gain_target, gain_step, ramp_left)
+        v = (w[0] * gain[0], w[1] * gain[1], w[2] * gain[2], w[3] * gain[3])
+        if limited:
+            v = (_clip(v[0], limit[0]), _clip(v[1], limit[1]), _clip(v[2], limit[2]),
+                 _clip(v[3], limit[3]))
+        out[0, t], out[1, t], out[2, t], out[3, t] = v
+        _osem_cycle(sen_face, sen_side, x, u, noise, p + k, sen, t)
+        store4(delay, LANES * pos, v)
         pos = pos + 1 if pos + 1 < ndelay else 0
-        for i in range(ns):
-            acc = a_diag[i] * x[i] + a_off[i] * x[partner[i]]
-            for m in range(3):
-                acc += bsp[i, m] * u[N_DOF + m]
-            for d in range(N_DOF):
-                acc += bdrive[i, d] * u[d]
-            xn[i] = acc
-        for i in range(ns):
-            x[i] = xn[i]
-    dpos[0] = pos
+        _next_state(plant, xsp, x, u, k)
+        u = v if ndelay == 1 else load4(delay, LANES * pos)
+    s.delay_pos[o] = pos
+
+
+@nb.njit(nogil=True, cache=True)
+def run_optic(s, o, n, exc, in1, in2, out, sen):
+    """Advance optic `o` by `n` samples, drawing its noise as the chunks run out; the test
+    points go to ``in1[:, :n]`` etc. (arrays ``[dof, sample]`` of this optic)."""
+    a = 0
+    while a < n:
+        if s.noise_pos[o] == CHUNK:
+            draw_noise(s.sigma[o], s.noise_filters[o], s.rng[o], s.noise[o])
+            s.noise_pos[o] = 0
+        p = s.noise_pos[o]
+        c = min(n - a, CHUNK - p)
+        _noise_inputs(s.noise_to_in1[o], s.sp_to_x[o], s.noise[o], p, c, s.ext[o], s.xsp[o])
+        _close(s, o, c, a, p, exc, in1, in2, out, sen)
+        s.noise_pos[o] += c
+        a += c
+
+
+@nb.njit(nogil=True, cache=True)
+def advance_serial(s, n, exc, in1, in2, out, sen):
+    """:func:`run_optic` on every optic, one after the other, on this thread."""
+    for o in range(s.x.shape[0]):
+        run_optic(s, o, n, exc[o], in1[o], in2[o], out[o], sen[o])
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
-def advance(n, a, npos, a_diag, a_off, partner, bdrive, bsp, cs, ds, inmat, sos, nsec, zi, gain, gain_target, gain_step, ramp_left, limit, dbuf, dpos, ndelay, x,
-            noise, exc, in1, in2, out, sen, draw, n_draw, sigma, noise_sos, noise_zi, rng,
-            noise_next):
-    """Close every optic's loop for `n` samples from sample `a` of the block arrays, with
-    noise from sample `npos` of `noise`; meanwhile, when `draw`, fill `noise_next` with the
-    next `n_draw` noise samples. Loops and draws interleave as tasks so that two threads
-    share them; see :class:`twind.simulation.engine.Engine`."""
-    for task in nb.prange(2 * x.shape[0]):
-        o = task // 2
-        if task % 2 == 0:
-            _run_optic(n, a, npos, a_diag[o], a_off[o], partner[o], bdrive[o], bsp[o],
-                       cs[o], ds[o], inmat[o], sos[o], nsec[o], zi[o], gain[o],
-                       gain_target[o], gain_step[o], ramp_left[o], limit[o], dbuf[o],
-                       dpos[o:o + 1], ndelay[o], x[o], noise[o], exc[o], in1[o], in2[o],
-                       out[o], sen[o])
-        elif draw:
-            shaped_noise(n_draw, sigma[o], noise_sos[o], noise_zi[o], rng[o], noise_next[o])
+def advance_parallel(s, n, exc, in1, in2, out, sen):
+    """:func:`run_optic` on every optic, the optics shared among numba's threads."""
+    for o in nb.prange(s.x.shape[0]):
+        run_optic(s, o, n, exc[o], in1[o], in2[o], out[o], sen[o])

@@ -1,0 +1,168 @@
+"""Four-lane vector arithmetic for the engine's kernels, as numba intrinsics.
+
+The damping loop does the same arithmetic on POS, PIT, YAW and SIDE at once, but numba's
+optimiser does not pack such side-by-side scalar code into vector instructions (it cannot
+prove that a filter's states and coefficients do not overlap). These intrinsics emit LLVM's
+``<4 x double>`` operations directly; in compiled code a *vector* is a ``UniTuple(float64, 4)``,
+which LLVM keeps in one register between calls.
+
+Arrays passed in are C-contiguous float64 arrays of any shape, indexed by their flat element
+offset; no bounds are checked, so callers keep ``i + 4 <= a.size``.
+"""
+
+from __future__ import annotations
+
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+LANES = 4
+VECTOR = types.UniTuple(types.float64, LANES)
+_V = ir.VectorType(ir.DoubleType(), LANES)
+_I32 = ir.IntType(32)
+
+SECTION_ROWS = 7
+"""Rows of :func:`cascade4`'s layout per section: b0, b1, b2, a1, a2 and the two states."""
+
+
+def _vector(builder: ir.IRBuilder, tup: ir.Value) -> ir.Value:
+    vec = ir.Constant(_V, ir.Undefined)
+    for d in range(LANES):
+        vec = builder.insert_element(vec, builder.extract_value(tup, d), ir.Constant(_I32, d))
+    return vec
+
+
+def _tuple(context, builder: ir.IRBuilder, vec: ir.Value) -> ir.Value:  # noqa: ANN001
+    return context.make_tuple(builder, VECTOR, [builder.extract_element(vec, ir.Constant(_I32, d))
+                                                for d in range(LANES)])
+
+
+def _pointer(context, builder: ir.IRBuilder, arrty, arr: ir.Value, i: ir.Value) -> ir.Value:  # noqa: ANN001
+    data = context.make_array(arrty)(context, builder, arr).data
+    return builder.bitcast(builder.gep(data, [i]), _V.as_pointer())
+
+
+def _fma(builder: ir.IRBuilder, a: ir.Value, b: ir.Value, c: ir.Value) -> ir.Value:
+    fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V, [_V] * 3),
+                                        "llvm.fma.v4f64")
+    return builder.call(fn, [a, b, c])
+
+
+def _splat(builder: ir.IRBuilder, s: ir.Value) -> ir.Value:
+    vec = builder.insert_element(ir.Constant(_V, ir.Undefined), s, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(vec, vec, ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES))
+
+
+def _is_array(a: types.Type) -> bool:
+    return isinstance(a, types.Array) and a.dtype == types.float64 and a.layout == "C"
+
+
+@intrinsic
+def load4(typingctx, a, i):  # noqa: ANN001, ANN201
+    """``(a[i], a[i+1], a[i+2], a[i+3])`` of the flat array `a`."""
+    if not (_is_array(a) and isinstance(i, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        ptr = _pointer(context, builder, sig.args[0], args[0], args[1])
+        return _tuple(context, builder, builder.load(ptr, align=8))
+    return VECTOR(a, i), codegen
+
+
+@intrinsic
+def store4(typingctx, a, i, v):  # noqa: ANN001, ANN201
+    """``a[i:i+4] = v`` of the flat array `a`."""
+    if not (_is_array(a) and isinstance(i, types.Integer) and v == VECTOR):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        ptr = _pointer(context, builder, sig.args[0], args[0], args[1])
+        builder.store(_vector(builder, args[2]), ptr, align=8)
+        return context.get_dummy_value()
+    return types.none(a, i, v), codegen
+
+
+@intrinsic
+def fma4(typingctx, a, i, s, acc):  # noqa: ANN001, ANN201
+    """``acc + a[i:i+4] * s``: `s` a scalar or a vector, one rounding per lane."""
+    if not (_is_array(a) and isinstance(i, types.Integer) and acc == VECTOR
+            and (s == VECTOR or isinstance(s, types.Float))):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        arr, idx, scale, total = args
+        ptr = _pointer(context, builder, sig.args[0], arr, idx)
+        factor = _vector(builder, scale) if sig.args[2] == VECTOR else _splat(builder, scale)
+        out = _fma(builder, builder.load(ptr, align=8), factor, _vector(builder, total))
+        return _tuple(context, builder, out)
+    return VECTOR(a, i, s, acc), codegen
+
+
+@intrinsic
+def add4(typingctx, v, w):  # noqa: ANN001, ANN201
+    """``v + w`` lane by lane."""
+    if not (v == VECTOR and w == VECTOR):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        out = builder.fadd(_vector(builder, args[0]), _vector(builder, args[1]))
+        return _tuple(context, builder, out)
+    return VECTOR(v, w), codegen
+
+
+@intrinsic
+def swap_pairs(typingctx, v):  # noqa: ANN001, ANN202
+    """``(v[1], v[0], v[3], v[2])``: each state's mode partner in the modal plant."""
+    if v != VECTOR:
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        vec = _vector(builder, args[0])
+        mask = ir.Constant(ir.VectorType(_I32, LANES), [1, 0, 3, 2])
+        return _tuple(context, builder, builder.shuffle_vector(vec, vec, mask))
+    return VECTOR(v), codegen
+
+
+@intrinsic
+def cascade4(typingctx, f, nsec, v):  # noqa: ANN001, ANN201
+    """Four cascades of second-order sections, one per lane, advanced by one sample.
+
+    Parameters
+    ----------
+    f : ndarray
+        ``nsec`` sections of :data:`SECTION_ROWS` rows of 4 lanes each: ``b0, b1, b2, a1,
+        a2`` (``a0 = 1``) and the transposed-direct-form-II states ``z0, z1``, updated here.
+    nsec : int
+        Sections in each cascade.
+    v : vector
+        This sample's input of each cascade.
+
+    Returns
+    -------
+    vector
+        The output of each cascade.
+    """
+    if not (_is_array(f) and isinstance(nsec, types.Integer) and v == VECTOR):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        arr, n, first = args
+        vptr = cgutils.alloca_once_value(builder, _vector(builder, first))
+        step = ir.Constant(n.type, SECTION_ROWS * LANES)
+        with cgutils.for_range(builder, n) as loop:
+            base = builder.mul(loop.index, step)
+
+            def row(r: int) -> ir.Value:
+                i = builder.add(base, ir.Constant(n.type, r * LANES))
+                return _pointer(context, builder, sig.args[0], arr, i)
+            b0, b1, b2, a1, a2, z0, z1 = (builder.load(row(r), align=8) for r in range(7))
+            x = builder.load(vptr)
+            w = _fma(builder, b0, x, z0)
+            builder.store(_fma(builder, b1, x, _fma(builder, builder.fneg(a1), w, z1)), row(5),
+                          align=8)
+            builder.store(_fma(builder, b2, x, builder.fneg(builder.fmul(a2, w))), row(6),
+                          align=8)
+            builder.store(w, vptr)
+        return _tuple(context, builder, builder.load(vptr))
+    return VECTOR(f, nsec, v), codegen
