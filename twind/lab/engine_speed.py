@@ -73,7 +73,23 @@ def one_core_loaded() -> Iterator[None]:
 
 
 def against_forced_response(optic, seconds: float, seed: int = 1) -> dict[str, float]:  # noqa: ANN001
-    """Engine and python-control on the same closed loop and the same broadband EXC."""
+    """Engine and python-control on the same closed loop and the same broadband EXC.
+
+    Parameters
+    ----------
+    optic : OpticConfig
+        The optic (noise off).
+    seconds : float
+        Simulated seconds.
+    seed : int
+        Seed of the EXC.
+
+    Returns
+    -------
+    dict
+        ``engine_s``, ``control_s``, their ``ratio``, ``max_rel_diff`` (largest difference
+        over the output RMS) and ``samples``.
+    """
     rate = optic.sus.sample_rate_hz
     n = int(seconds * rate)
     exc = np.random.default_rng(seed).standard_normal((1, 4, n))
@@ -98,6 +114,25 @@ def simulate_marginal(config: str | None, short: float = 20.0, long: float = 200
 
     Each duration runs `repeats` times, alternating, and the shortest wall time counts:
     process start-up varies by tenths of a second, as much as 180 s of simulation takes.
+
+    Parameters
+    ----------
+    config : str or None
+        Twin configuration file (None: the shipped 40m).
+    short, long : float
+        Simulated durations (s).
+    repeats : int
+        Runs of each.
+
+    Returns
+    -------
+    dict
+        ``wall_short_s``, ``wall_long_s`` and ``marginal_x_real_time``.
+
+    Raises
+    ------
+    RuntimeError
+        If ``twind simulate`` prints no speed.
     """
     walls = {short: np.inf, long: np.inf}
     for _ in range(repeats):
@@ -116,7 +151,18 @@ def simulate_marginal(config: str | None, short: float = 20.0, long: float = 200
 
 
 def run_benchmarks(config: str | None = None, seconds: float = 20.0, marginal: bool = True) -> None:
-    """Print every benchmark figure (see module docstring)."""
+    """Print every benchmark figure (see module docstring).
+
+    Parameters
+    ----------
+    config : str or None
+        Twin configuration file (None: the shipped 40m).
+    seconds : float
+        Sets the runs' lengths: `seconds` / 5 of one optic, `seconds` / 20 (at least 1 s) of
+        all, each repeated 5 times.
+    marginal : bool
+        Whether to time ``twind simulate`` too (a minute more).
+    """
     twin = load_config(config)
     etmx = twin.optics.get("ETMX", next(iter(twin.optics.values())))
     every = list(twin.optics.values())

@@ -25,14 +25,44 @@ SS = tuple  # (A, B, C, D) of a discrete state space, numpy arrays
 
 
 def bilinear(A: NDArray, B: NDArray, C: NDArray, dt: float) -> SS:
-    """Bilinear discretisation of ``x' = A x + B u, y = C x``; returns ``(Ad, Bd, Cd, Dd)``."""
+    """Bilinear discretisation of ``x' = A x + B u, y = C x``; returns ``(Ad, Bd, Cd, Dd)``.
+
+    Parameters
+    ----------
+    A, B, C : ndarray
+        Continuous state, input and output matrices.
+    dt : float
+        Model cycle (s).
+
+    Returns
+    -------
+    Ad, Bd, Cd, Dd : ndarray
+        The discrete matrices; ``Dd`` is the feedthrough the trapezoidal rule adds.
+    """
     Ad, Bd, Cd, Dd, _ = signal.cont2discrete((A, B, C, np.zeros((C.shape[0], B.shape[1]))),
                                              dt, method="bilinear")
     return Ad, Bd, Cd, Dd
 
 
 def delay_samples(delay_s: float, rate_hz: float) -> int:
-    """The loop delay as a whole number of model cycles."""
+    """The loop delay as a whole number of model cycles.
+
+    Parameters
+    ----------
+    delay_s : float
+        The loop delay (s).
+    rate_hz : float
+        Model rate.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ValueError
+        If the delay is not a whole number (at least one) of cycles.
+    """
     n = delay_s * rate_hz
     if abs(n - round(n)) > 1e-6 or round(n) < 1:
         msg = f"loop delay {delay_s} s is not a whole number (>= 1) of cycles at {rate_hz} Hz"
@@ -46,6 +76,18 @@ def balance(sos: NDArray[np.float64], rate_hz: float) -> NDArray[np.float64]:
     A cascade whose first section carries the whole gain (1e-23 for an all-pole roll-off)
     passes signals through a huge dynamic range; spreading it keeps each section's peak gain
     equal, which the state-space checks and the round-off of long runs both need.
+
+    Parameters
+    ----------
+    sos : ndarray, shape (n, 6)
+        Sections with ``a0 = 1``.
+    rate_hz : float
+        Model rate, for the sections' peak gains.
+
+    Returns
+    -------
+    ndarray, shape (n, 6)
+        The same response, each section's numerator scaled.
     """
     if len(sos) == 0:
         return sos
@@ -73,7 +115,24 @@ def _balanced_shares(coefficients: bytes, n: int, rate_hz: float) -> NDArray[np.
 
 
 def stage_sections(loop: DampingLoop, dof: str, rate_hz: float) -> tuple[NDArray, dict[int, slice]]:
-    """Every defined stage's balanced sections for `dof`, and the rows of each FM."""
+    """Every defined stage's balanced sections for `dof`, and the rows of each FM.
+
+    Parameters
+    ----------
+    loop : DampingLoop
+        The optic's loop.
+    dof : str
+        POS, PIT, YAW or SIDE.
+    rate_hz : float
+        Model rate.
+
+    Returns
+    -------
+    sos : ndarray, shape (n, 6)
+        Every stage's sections, on or off, with ``a0 = 1``.
+    where : dict of int to slice
+        The rows of each FM in `sos`.
+    """
     sos, where = loop.modules[dof].section_layout(rate_hz)
     sos = sos / sos[:, 3:4]  # the kernel takes a0 = 1
     for rows in where.values():
@@ -82,7 +141,21 @@ def stage_sections(loop: DampingLoop, dof: str, rate_hz: float) -> tuple[NDArray
 
 
 def module_sections(loop: DampingLoop, dof: str, rate_hz: float) -> NDArray[np.float64]:
-    """Sections the engine runs for `dof`: switched-off stages as identity sections."""
+    """Sections the engine runs for `dof`: switched-off stages as identity sections.
+
+    Parameters
+    ----------
+    loop : DampingLoop
+        The optic's loop.
+    dof : str
+        POS, PIT, YAW or SIDE.
+    rate_hz : float
+        Model rate.
+
+    Returns
+    -------
+    ndarray, shape (n, 6)
+    """
     sos, where = stage_sections(loop, dof, rate_hz)
     for fm, rows in where.items():
         if fm not in loop.modules[dof].on:
@@ -102,6 +175,16 @@ def modal(Ad: NDArray, B: NDArray, C: NDArray) -> tuple[NDArray, ...]:
         Input and output matrices in the modal coordinates (the feedthrough is unchanged).
     to_modal : ndarray, shape (n, n)
         ``x = to_modal @ z``: the physical state of modal state ``z``.
+
+    Parameters
+    ----------
+    Ad, B, C : ndarray
+        Discrete state, input and output matrices.
+
+    Raises
+    ------
+    ValueError
+        If the modes are nearly degenerate (no well-conditioned modal basis).
     """
     # LAPACK returns each complex pair together, positive imaginary part first, as cdf2rdf wants
     w, v = np.linalg.eig(Ad)
@@ -155,6 +238,17 @@ def closed_loop_matrices(loop: DampingLoop, rate_hz: float) -> SS:
     (12 rows). It shares the engine's discretisation (:func:`bilinear`, the sections) but not
     its kernel, so python-control's ``forced_response`` on it checks the kernel; the golden
     and Welch tests check the discretisation.
+
+    Parameters
+    ----------
+    loop : DampingLoop
+        The optic's loop.
+    rate_hz : float
+        Model rate.
+
+    Returns
+    -------
+    A, B, C, D : ndarray
     """
     A, Bc, _, C = loop.plant.osem_state_space()
     Ad, Bd, Cd, Dd = bilinear(A, Bc @ loop.plant.output_matrix, C, 1.0 / rate_hz)
@@ -180,6 +274,19 @@ def closed_loop_modes(loop: DampingLoop, rate_hz: float, below_hz: float = 2.0
                       ) -> list[tuple[float, float]]:
     """The damped suspension modes of the engine's discrete closed loop: frequency (Hz) and
     Q of each pole pair below `below_hz` (the filters' own poles lie above), lowest first.
+
+    Parameters
+    ----------
+    loop : DampingLoop
+        The optic's loop.
+    rate_hz : float
+        Model rate.
+    below_hz : float
+        Highest mode frequency kept.
+
+    Returns
+    -------
+    list of (float, float)
     """
     z = np.linalg.eigvals(closed_loop_matrices(loop, rate_hz)[0])
     s = np.log(z[(np.abs(z) > 0) & (z.imag > 0)]) * rate_hz  # delay states sit at z = 0
@@ -188,6 +295,18 @@ def closed_loop_modes(loop: DampingLoop, rate_hz: float, below_hz: float = 2.0
 
 
 def discrete_closed_loop(loop: DampingLoop, rate_hz: float):  # noqa: ANN201 - control.StateSpace
-    """:func:`closed_loop_matrices` as a python-control discrete ``StateSpace``."""
+    """:func:`closed_loop_matrices` as a python-control discrete ``StateSpace``.
+
+    Parameters
+    ----------
+    loop : DampingLoop
+        The optic's loop.
+    rate_hz : float
+        Model rate.
+
+    Returns
+    -------
+    control.StateSpace
+    """
 
     return control.ss(*closed_loop_matrices(loop, rate_hz), 1.0 / rate_hz)

@@ -59,7 +59,22 @@ class Block:
     sen: NDArray[np.float64]
 
     def channel(self, optic: str, dof: str, point: str) -> NDArray[np.float64]:
-        """Samples of e.g. ``("ETMX", "POS", "IN1")``."""
+        """Samples of e.g. ``("ETMX", "POS", "IN1")``.
+
+        Parameters
+        ----------
+        optic : str
+            One of the block's optics.
+        dof : str
+            POS, PIT, YAW or SIDE.
+        point : str
+            EXC, IN1, IN2 or OUT.
+
+        Returns
+        -------
+        ndarray
+            A view of the block's samples.
+        """
         arr = getattr(self, point.lower())
         return arr[self.optics.index(optic), DOFS.index(dof)]
 
@@ -301,7 +316,26 @@ class Engine:
         return self.optics.index(optic), DOFS.index(dof)
 
     def set_gain(self, optic: str, dof: str, gain: float, ramp_s: float | None = None) -> None:
-        """Ramp a filter module's gain linearly to `gain` over `ramp_s` (its own ramp if None)."""
+        """Ramp a filter module's gain linearly to `gain` over `ramp_s` (its own ramp if None).
+
+        Parameters
+        ----------
+        optic : str
+            The optic.
+        dof : str
+            POS, PIT, YAW or SIDE.
+        gain : float
+            The new gain.
+        ramp_s : float, optional
+            Ramp time (s), 0 to 3600; the module's own when None.
+
+        Raises
+        ------
+        KeyError
+            If the optic or the DOF is unknown.
+        ValueError
+            If the gain is not finite or the ramp out of range.
+        """
         o, d = self._where(optic, dof)
         module = self.loops[o].modules[dof]
         ramp = module.ramp_s if ramp_s is None else ramp_s
@@ -345,6 +379,22 @@ class Engine:
         A stage switched on starts from rest, as CDS's "zero history" input switching does;
         the file's switching types (ramped or crossing-triggered outputs, always-on inputs)
         are not modelled: the switch is immediate.
+
+        Parameters
+        ----------
+        optic : str
+            The optic.
+        dof : str
+            POS, PIT, YAW or SIDE.
+        fm : int
+            The stage, 1 to 10.
+        on : bool
+            On or off.
+
+        Raises
+        ------
+        KeyError
+            If the optic or the DOF is unknown or FM`fm` holds no filter.
         """
         o, d = self._where(optic, dof)
         sos, where = self._stage_sos[o][d]

@@ -73,7 +73,19 @@ class Arrays(NamedTuple):
 @nb.njit(nogil=True, cache=True)
 def draw_noise(sigma, filters, states, out):
     """One optic's next chunk of noise: white Gaussian noise, one stream per channel, then
-    each channel's shaping section (channels 0-3 and 4-7 as the lanes of two cascades)."""
+    each channel's shaping section (channels 0-3 and 4-7 as the lanes of two cascades).
+
+    Parameters
+    ----------
+    sigma : ndarray, shape (8,)
+        White standard deviation of each channel (0: the channel is zero).
+    filters : ndarray, shape (2, 28)
+        The shaping sections in :func:`~twind.simulation.simd.cascade4`'s layout.
+    states : ndarray of uint64, shape (8, 4)
+        Each channel's xoshiro256** stream, advanced.
+    out : ndarray, shape (8, >= CHUNK)
+        Filled with the chunk's shaped noise.
+    """
     n = CHUNK
     for c in range(N_NOISE):
         if sigma[c] == 0.0:
@@ -217,7 +229,23 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
 @nb.njit(nogil=True, cache=True)
 def run_optic(s, o, n, exc, in1, in2, out, sen):
     """Advance optic `o` by `n` samples, drawing its noise as the chunks run out; the test
-    points go to ``in1[:, :n]`` etc. (arrays ``[dof, sample]`` of this optic)."""
+    points go to ``in1[:, :n]`` etc. (arrays ``[dof, sample]`` of this optic).
+
+    Parameters
+    ----------
+    s : Arrays
+        The engine's arrays.
+    o : int
+        The optic.
+    n : int
+        Cycles to run.
+    exc : ndarray, shape (4, n)
+        EXC of each DOF.
+    in1, in2, out : ndarray, shape (4, n)
+        Filled with the test points.
+    sen : ndarray, shape (5, n)
+        Filled with the OSEM readings (um).
+    """
     a = 0
     while a < n:
         if s.noise_pos[o] == CHUNK:
@@ -233,13 +261,33 @@ def run_optic(s, o, n, exc, in1, in2, out, sen):
 
 @nb.njit(nogil=True, cache=True)
 def advance_serial(s, n, exc, in1, in2, out, sen):
-    """:func:`run_optic` on every optic, one after the other, on this thread."""
+    """:func:`run_optic` on every optic, one after the other, on this thread.
+
+    Parameters
+    ----------
+    s : Arrays
+        The engine's arrays.
+    n : int
+        Cycles to run.
+    exc, in1, in2, out, sen : ndarray
+        Per optic as :func:`run_optic` takes them (first axis the optic).
+    """
     for o in range(s.x.shape[0]):
         run_optic(s, o, n, exc[o], in1[o], in2[o], out[o], sen[o])
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
 def advance_parallel(s, n, exc, in1, in2, out, sen):
-    """:func:`run_optic` on every optic, the optics shared among numba's threads."""
+    """:func:`run_optic` on every optic, the optics shared among numba's threads.
+
+    Parameters
+    ----------
+    s : Arrays
+        The engine's arrays.
+    n : int
+        Cycles to run.
+    exc, in1, in2, out, sen : ndarray
+        Per optic as :func:`run_optic` takes them (first axis the optic).
+    """
     for o in nb.prange(s.x.shape[0]):
         run_optic(s, o, n, exc[o], in1[o], in2[o], out[o], sen[o])

@@ -47,6 +47,19 @@ def seed_states(seed: int, n: int, key: str = "") -> NDArray[np.uint64]:
 
     `key` (an optic's name) selects its own family of streams, so an optic's noise does not
     depend on which other optics run beside it.
+
+    Parameters
+    ----------
+    seed : int
+        The run's seed.
+    n : int
+        Streams wanted.
+    key : str
+        The family of streams (an optic's name; empty for the seed's own).
+
+    Returns
+    -------
+    ndarray of uint64, shape (n, 4)
     """
     spawn_key = (zlib.crc32(key.encode()),) if key else ()
     children = np.random.SeedSequence(seed, spawn_key=spawn_key).spawn(n)
