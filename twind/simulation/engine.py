@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
@@ -153,9 +153,10 @@ class Engine:
             gain=z((n_opt, N_DOF)), gain_target=z((n_opt, N_DOF)), gain_step=z((n_opt, N_DOF)),
             ramp_left=z((n_opt, N_DOF), dtype=np.int64), limit=z((n_opt, N_DOF)),
             delay=z((n_opt, ndelay.max() * LANES)), delay_pos=z(n_opt, dtype=np.int64),
-            ndelay=ndelay, sigma=z((n_opt, N_NOISE)),
-            noise_filters=z((n_opt, 2, SECTION_ROWS * LANES)),
-            rng=z((n_opt, N_NOISE, 4), dtype=np.uint64), noise=z((n_opt, N_NOISE, CHUNK + 8)),
+            ndelay=ndelay, noise_filters=z((n_opt, 2, SECTION_ROWS * LANES)),
+            rng=z((n_opt, 4, N_NOISE), dtype=np.uint64), retry=z((n_opt, N_NOISE, 4), dtype=np.uint64),
+            noise=z((n_opt, CHUNK * N_NOISE)), bits=z((n_opt, CHUNK * N_NOISE), dtype=np.uint64),
+            outside=z((n_opt, CHUNK), dtype=np.uint8),
             noise_pos=np.full(n_opt, CHUNK, dtype=np.int64), ext=z((n_opt, CHUNK * LANES)),
             xsp=z((n_opt, CHUNK * ns)))
 
@@ -238,10 +239,12 @@ class Engine:
     def _build_noise(self, specs: Sequence[NoiseSpec], seed: int) -> None:
         for o, spec in enumerate(specs):
             sos, sigma = spec.shaping(self.rate_hz)
-            self._a.sigma[o] = sigma
             rows = self._a.noise_filters[o].reshape(2, SECTION_ROWS, LANES)
-            rows[:, :5] = sos[:, _COEFFICIENTS].reshape(2, LANES, 5).transpose(0, 2, 1)
-            self._a.rng[o] = seed_states(seed, N_NOISE, key=self.optics[o])
+            sections = sos[:, _COEFFICIENTS]
+            sections[:, :3] *= sigma[:, None]  # the white level in each numerator
+            rows[:, :5] = sections.reshape(2, LANES, 5).transpose(0, 2, 1)
+            self._a.rng[o] = seed_states(seed, N_NOISE, key=self.optics[o]).T
+            self._a.retry[o] = seed_states(seed, N_NOISE, key=f"{self.optics[o]}/retry")
 
     def new_block(self, n: int) -> Block:
         """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again.
@@ -302,7 +305,7 @@ class Engine:
                 advance_parallel(self._a, n, *points)
         else:
             advance_serial(self._a, n, *points)
-        block = replace(block, start_sample=self.samples)
+        block = Block(self.optics, self.samples, self.rate_hz, *points)
         self.samples += n
         return block
 

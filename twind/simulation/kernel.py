@@ -14,8 +14,9 @@ Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulat
 - the OSEM readings ``sen`` from the same state, inputs and noise;
 - the modal plant's next state, four states a vector (each state couples only to its pair).
 
-Noise is drawn in chunks of :data:`CHUNK` samples, whatever the step sizes, first white (one
-xoshiro stream per channel), then shaped, the eight channels' sections two vectors wide.
+Noise is drawn in chunks of :data:`CHUNK` samples, whatever the step sizes: white, the eight
+channels' xoshiro streams as one 8-wide vector (:func:`~twind.simulation.rng.fill_normal8`),
+then shaped, one section per channel, the white level in its numerator.
 """
 
 from __future__ import annotations
@@ -26,8 +27,17 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from twind.simulation.rng import fill_normal
-from twind.simulation.simd import LANES, add4, cascade4, fma4, load4, store4, swap_pairs
+from twind.simulation.rng import fill_normal8
+from twind.simulation.simd import (
+    LANES,
+    add4,
+    cascade4,
+    filter8,
+    fma4,
+    load4,
+    store4,
+    swap_pairs,
+)
 
 N_DOF = 4  # POS, PIT, YAW, SIDE
 N_OSEM = 5  # UL, UR, LL, LR, SIDE
@@ -61,43 +71,37 @@ class Arrays(NamedTuple):
     delay: NDArray[np.float64]  # [optic, ndelay * 4]: OUT of the last ndelay cycles
     delay_pos: NDArray[np.int64]
     ndelay: NDArray[np.int64]
-    sigma: NDArray[np.float64]  # [optic, 8] white standard deviation of each noise channel
     noise_filters: NDArray[np.float64]  # [optic, 2, cascade4 layout]: two cascades of a section
-    rng: NDArray[np.uint64]  # [optic, 8, 4] xoshiro256** states
-    noise: NDArray[np.float64]  # [optic, 8, CHUNK + pad] the current chunk of shaped noise
+    rng: NDArray[np.uint64]  # [optic, 4, 8] xoshiro256** states, a column per noise channel
+    retry: NDArray[np.uint64]  # [optic, 8, 4] each channel's stream for the ziggurat's slow path
+    noise: NDArray[np.float64]  # [optic, CHUNK * 8] the current chunk of shaped noise
+    bits: NDArray[np.uint64]  # [optic, CHUNK * 8] scratch of fill_normal8
+    outside: NDArray[np.uint8]  # [optic, CHUNK] scratch of fill_normal8
     noise_pos: NDArray[np.int64]  # samples of the current chunk used
     ext: NDArray[np.float64]  # [optic, CHUNK * 4] scratch: the noise's part of IN1
     xsp: NDArray[np.float64]  # [optic, CHUNK * ns] scratch: the noise's part of the next x
 
 
 @nb.njit(nogil=True, cache=True)
-def draw_noise(sigma, filters, states, out):
-    """One optic's next chunk of noise: white Gaussian noise, one stream per channel, then
-    each channel's shaping section (channels 0-3 and 4-7 as the lanes of two cascades).
+def draw_noise(states, retry, filters, out, bits, outside):
+    """One optic's next chunk of noise, ``out[8 k + c]`` channel c's k-th sample: white
+    Gaussian noise, the eight channels' streams as one vector (:func:`fill_normal8`), then
+    each channel's shaping section, its white level in its numerator (channels 0-3 and 4-7
+    as the lanes of two cascades).
 
     Parameters
     ----------
-    sigma : ndarray, shape (8,)
-        White standard deviation of each channel (0: the channel is zero).
+    states, retry : ndarray of uint64
+        The channels' streams, as :func:`~twind.simulation.rng.fill_normal8` takes them.
     filters : ndarray, shape (2, 28)
         The shaping sections in :func:`~twind.simulation.simd.cascade4`'s layout.
-    states : ndarray of uint64, shape (8, 4)
-        Each channel's xoshiro256** stream, advanced.
-    out : ndarray, shape (8, >= CHUNK)
-        Filled with the chunk's shaped noise.
+    out : ndarray, shape (8 CHUNK,)
+        Filled with the chunk.
+    bits, outside : ndarray
+        Scratch for :func:`~twind.simulation.rng.fill_normal8`.
     """
-    n = CHUNK
-    for c in range(N_NOISE):
-        if sigma[c] == 0.0:
-            out[c] = 0.0
-        else:
-            fill_normal(states[c], sigma[c], out[c, :n])
-    lo, hi = filters[0], filters[1]
-    for k in range(n):
-        a = cascade4(lo, 1, (out[0, k], out[1, k], out[2, k], out[3, k]))
-        b = cascade4(hi, 1, (out[4, k], out[5, k], out[6, k], out[7, k]))
-        out[0, k], out[1, k], out[2, k], out[3, k] = a
-        out[4, k], out[5, k], out[6, k], out[7, k] = b
+    fill_normal8(states, retry, out, bits, outside)
+    filter8(filters, out, out.shape[0] // N_NOISE)
 
 
 @nb.njit(nogil=True, cache=True, fastmath={"contract"})
@@ -109,12 +113,12 @@ def _noise_inputs(noise_to_in1, sp_to_x, noise, p, n, ext, xsp):
     for k in range(n):
         y = zero
         for j in range(N_NOISE):
-            y = fma4(noise_to_in1, LANES * j, noise[j, p + k], y)
+            y = fma4(noise_to_in1, LANES * j, noise[N_NOISE * (p + k) + j], y)
         store4(ext, LANES * k, y)
         for g in range(ns // LANES):
             xg = zero
             for m in range(N_SP):
-                xg = fma4(sp_to_x, m * ns + LANES * g, noise[N_OSEM + m, p + k], xg)
+                xg = fma4(sp_to_x, m * ns + LANES * g, noise[N_NOISE * (p + k) + N_OSEM + m], xg)
             store4(xsp, ns * k + LANES * g, xg)
 
 
@@ -153,29 +157,37 @@ def _next_state(plant, xsp, x, u, k):
 
 @nb.njit(inline="always", fastmath={"contract"})
 def _osem_cycle(face, side, x, u, noise, q, sen, t):
-    """The five OSEM readings (um) of this cycle into ``sen[:, t]``: UL, UR, LL, LR as the
-    lanes of a vector, SIDE alone; rows of `face` and entries of `side` are per state,
-    drive and noise channel."""
+    """The five OSEM readings (um) of this cycle into ``sen[:, t]``.
+
+    UL, UR, LL, LR are the lanes of a vector summed over the inputs (states, drives, noise
+    channels: the rows of `face`), in four partial sums; SIDE is the dot product of `side`
+    with the inputs, four inputs a vector.
+    """
     ns = x.shape[0]
-    va, vb = (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)
-    sa = sb = 0.0
-    for i in range(0, ns, 2):
+    zero = (0.0, 0.0, 0.0, 0.0)
+    va, vb, vc, vd = zero, zero, zero, zero
+    for i in range(0, ns, LANES):
         va = fma4(face, LANES * i, x[i], va)
         vb = fma4(face, LANES * (i + 1), x[i + 1], vb)
-        sa += side[i] * x[i]
-        sb += side[i + 1] * x[i + 1]
-    for d in range(0, N_DOF, 2):
-        va = fma4(face, LANES * (ns + d), u[d], va)
-        vb = fma4(face, LANES * (ns + d + 1), u[d + 1], vb)
-        sa += side[ns + d] * u[d]
-        sb += side[ns + d + 1] * u[d + 1]
-    for m in range(0, N_NOISE, 2):
-        va = fma4(face, LANES * (ns + N_DOF + m), noise[m, q], va)
-        vb = fma4(face, LANES * (ns + N_DOF + m + 1), noise[m + 1, q], vb)
-        sa += side[ns + N_DOF + m] * noise[m, q]
-        sb += side[ns + N_DOF + m + 1] * noise[m + 1, q]
-    sen[0, t], sen[1, t], sen[2, t], sen[3, t] = add4(va, vb)
-    sen[4, t] = sa + sb
+        vc = fma4(face, LANES * (i + 2), x[i + 2], vc)
+        vd = fma4(face, LANES * (i + 3), x[i + 3], vd)
+    va = fma4(face, LANES * ns, u[0], va)
+    vb = fma4(face, LANES * (ns + 1), u[1], vb)
+    vc = fma4(face, LANES * (ns + 2), u[2], vc)
+    vd = fma4(face, LANES * (ns + 3), u[3], vd)
+    for m in range(0, N_NOISE, LANES):
+        r = ns + N_DOF + m
+        va = fma4(face, LANES * r, noise[N_NOISE * q + m], va)
+        vb = fma4(face, LANES * (r + 1), noise[N_NOISE * q + m + 1], vb)
+        vc = fma4(face, LANES * (r + 2), noise[N_NOISE * q + m + 2], vc)
+        vd = fma4(face, LANES * (r + 3), noise[N_NOISE * q + m + 3], vd)
+    sen[0, t], sen[1, t], sen[2, t], sen[3, t] = add4(add4(va, vb), add4(vc, vd))
+    vs = fma4(side, ns, u, zero)
+    for i in range(0, ns, LANES):
+        vs = fma4(side, i, load4(x, i), vs)
+    vs = fma4(side, ns + N_DOF, load4(noise, N_NOISE * q), vs)
+    vs = fma4(side, ns + N_DOF + LANES, load4(noise, N_NOISE * q + LANES), vs)
+    sen[4, t] = (vs[0] + vs[1]) + (vs[2] + vs[3])
 
 
 @nb.njit(nogil=True, cache=True)
@@ -249,7 +261,8 @@ def run_optic(s, o, n, exc, in1, in2, out, sen):
     a = 0
     while a < n:
         if s.noise_pos[o] == CHUNK:
-            draw_noise(s.sigma[o], s.noise_filters[o], s.rng[o], s.noise[o])
+            draw_noise(s.rng[o], s.retry[o], s.noise_filters[o], s.noise[o], s.bits[o],
+                       s.outside[o])
             s.noise_pos[o] = 0
         p = s.noise_pos[o]
         c = min(n - a, CHUNK - p)

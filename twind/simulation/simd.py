@@ -166,3 +166,46 @@ def cascade4(typingctx, f, nsec, v):  # noqa: ANN001, ANN201
             builder.store(w, vptr)
         return _tuple(context, builder, builder.load(vptr))
     return VECTOR(f, nsec, v), codegen
+
+
+@intrinsic
+def filter8(typingctx, f, x, n):  # noqa: ANN001, ANN201
+    """One second-order section on each of eight channels over `n` samples, in place.
+
+    Sample k of the channels is ``x[8 k:8 k + 8]``; ``f[0]`` holds the sections of channels
+    0-3 and ``f[1]`` those of 4-7, each in :func:`cascade4`'s layout (one section). The states
+    stay in registers and are stored back at the end.
+    """
+    if not (_is_array(f) and f.ndim == 2 and _is_array(x) and isinstance(n, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        farr, xarr, count = args
+        one = SECTION_ROWS * LANES
+
+        def row(g: int, r: int) -> ir.Value:
+            i = ir.Constant(count.type, g * one + r * LANES)
+            return _pointer(context, builder, sig.args[0], farr, i)
+        groups = []
+        for g in range(2):
+            coefficients = [builder.load(row(g, r), align=8) for r in range(5)]
+            states = [cgutils.alloca_once_value(builder, builder.load(row(g, r), align=8))
+                      for r in (5, 6)]
+            groups.append((coefficients, states))
+        with cgutils.for_range(builder, count) as loop:
+            base = builder.mul(loop.index, ir.Constant(count.type, 2 * LANES))
+            for g, ((b0, b1, b2, a1, a2), (z0, z1)) in enumerate(groups):
+                i = builder.add(base, ir.Constant(count.type, g * LANES))
+                ptr = _pointer(context, builder, sig.args[1], xarr, i)
+                v = builder.load(ptr, align=8)
+                w = _fma(builder, b0, v, builder.load(z0))
+                # the states' recursion is one multiply-add long: z1 + b1 v comes first
+                builder.store(_fma(builder, builder.fneg(a1), w,
+                                   _fma(builder, b1, v, builder.load(z1))), z0)
+                builder.store(_fma(builder, builder.fneg(a2), w, builder.fmul(b2, v)), z1)
+                builder.store(w, ptr, align=8)
+        for g, (_, (z0, z1)) in enumerate(groups):
+            builder.store(builder.load(z0), row(g, 5), align=8)
+            builder.store(builder.load(z1), row(g, 6), align=8)
+        return context.get_dummy_value()
+    return types.none(f, x, n), codegen
