@@ -154,7 +154,7 @@ class Engine:
             ramp_left=z((n_opt, N_DOF), dtype=np.int64), limit=z((n_opt, N_DOF)),
             delay=z((n_opt, ndelay.max() * LANES)), delay_pos=z(n_opt, dtype=np.int64),
             ndelay=ndelay, noise_filters=z((n_opt, 2, SECTION_ROWS * LANES)),
-            rng=z((n_opt, 4, N_NOISE), dtype=np.uint64), retry=z((n_opt, N_NOISE, 4), dtype=np.uint64),
+            sigma=z((n_opt, N_NOISE)), rng=z((n_opt, 4, N_NOISE), dtype=np.uint64),
             noise=z((n_opt, CHUNK * N_NOISE)), bits=z((n_opt, CHUNK * N_NOISE), dtype=np.uint64),
             outside=z((n_opt, CHUNK), dtype=np.uint8),
             noise_pos=np.full(n_opt, CHUNK, dtype=np.int64), ext=z((n_opt, CHUNK * LANES)),
@@ -240,11 +240,9 @@ class Engine:
         for o, spec in enumerate(specs):
             sos, sigma = spec.shaping(self.rate_hz)
             rows = self._a.noise_filters[o].reshape(2, SECTION_ROWS, LANES)
-            sections = sos[:, _COEFFICIENTS]
-            sections[:, :3] *= sigma[:, None]  # the white level in each numerator
-            rows[:, :5] = sections.reshape(2, LANES, 5).transpose(0, 2, 1)
+            rows[:, :5] = sos[:, _COEFFICIENTS].reshape(2, LANES, 5).transpose(0, 2, 1)
+            self._a.sigma[o] = sigma
             self._a.rng[o] = seed_states(seed, N_NOISE, key=self.optics[o]).T
-            self._a.retry[o] = seed_states(seed, N_NOISE, key=f"{self.optics[o]}/retry")
 
     def new_block(self, n: int) -> Block:
         """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again.

@@ -16,7 +16,7 @@ Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulat
 
 Noise is drawn in chunks of :data:`CHUNK` samples, whatever the step sizes: white, the eight
 channels' xoshiro streams as one 8-wide vector (:func:`~twind.simulation.rng.fill_normal8`),
-then shaped, one section per channel, the white level in its numerator.
+then shaped, one section per channel.
 """
 
 from __future__ import annotations
@@ -72,8 +72,8 @@ class Arrays(NamedTuple):
     delay_pos: NDArray[np.int64]
     ndelay: NDArray[np.int64]
     noise_filters: NDArray[np.float64]  # [optic, 2, cascade4 layout]: two cascades of a section
+    sigma: NDArray[np.float64]  # [optic, 8] white standard deviation of each noise channel
     rng: NDArray[np.uint64]  # [optic, 4, 8] xoshiro256** states, a column per noise channel
-    retry: NDArray[np.uint64]  # [optic, 8, 4] each channel's stream for the ziggurat's slow path
     noise: NDArray[np.float64]  # [optic, CHUNK * 8] the current chunk of shaped noise
     bits: NDArray[np.uint64]  # [optic, CHUNK * 8] scratch of fill_normal8
     outside: NDArray[np.uint8]  # [optic, CHUNK] scratch of fill_normal8
@@ -83,16 +83,18 @@ class Arrays(NamedTuple):
 
 
 @nb.njit(nogil=True, cache=True)
-def draw_noise(states, retry, filters, out, bits, outside):
+def draw_noise(states, sigma, filters, out, bits, outside):
     """One optic's next chunk of noise, ``out[8 k + c]`` channel c's k-th sample: white
-    Gaussian noise, the eight channels' streams as one vector (:func:`fill_normal8`), then
-    each channel's shaping section, its white level in its numerator (channels 0-3 and 4-7
-    as the lanes of two cascades).
+    Gaussian noise of each channel's level, the eight channels' streams as one vector
+    (:func:`fill_normal8`), then each channel's shaping section (channels 0-3 and 4-7 as the
+    lanes of two cascades).
 
     Parameters
     ----------
-    states, retry : ndarray of uint64
+    states : ndarray of uint64, shape (4, 8)
         The channels' streams, as :func:`~twind.simulation.rng.fill_normal8` takes them.
+    sigma : ndarray, shape (8,)
+        The white standard deviation of each channel.
     filters : ndarray, shape (2, 28)
         The shaping sections in :func:`~twind.simulation.simd.cascade4`'s layout.
     out : ndarray, shape (8 CHUNK,)
@@ -100,7 +102,7 @@ def draw_noise(states, retry, filters, out, bits, outside):
     bits, outside : ndarray
         Scratch for :func:`~twind.simulation.rng.fill_normal8`.
     """
-    fill_normal8(states, retry, out, bits, outside)
+    fill_normal8(states, sigma, out, bits, outside)
     filter8(filters, out, out.shape[0] // N_NOISE)
 
 
@@ -261,7 +263,7 @@ def run_optic(s, o, n, exc, in1, in2, out, sen):
     a = 0
     while a < n:
         if s.noise_pos[o] == CHUNK:
-            draw_noise(s.rng[o], s.retry[o], s.noise_filters[o], s.noise[o], s.bits[o],
+            draw_noise(s.rng[o], s.sigma[o], s.noise_filters[o], s.noise[o], s.bits[o],
                        s.outside[o])
             s.noise_pos[o] = 0
         p = s.noise_pos[o]

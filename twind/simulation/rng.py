@@ -1,7 +1,7 @@
 """Seeded Gaussian noise inside compiled loops: xoshiro256** with a 256-layer ziggurat.
 
 numpy's Generator costs ~10 ns a sample on the project's machines; :func:`fill_normal` ~3 ns,
-and :func:`fill_normal8`, eight streams as one vector, ~1.5 ns. Each optic's streams are its
+and :func:`fill_normal8`, the same numbers from eight streams as one vector, ~2 ns. Each optic's streams are its
 own, so runs repeat bit for bit whatever the block size. Algorithms: Blackman & Vigna,
 "Scrambled linear pseudorandom number generators" (2021); Marsaglia & Tsang, "The ziggurat
 method for generating random variables" (2000), with numpy's 256-layer constants.
@@ -195,68 +195,88 @@ def _lookup(builder: ir.IRBuilder, table: ir.Value, idx: ir.Value, vtype: ir.Vec
 
 
 @intrinsic
-def _fast8(typingctx, states, ki, wi, n, out, bits, outside):  # noqa: ANN001, ANN201
-    """The ziggurat's fast path on eight streams for `n` draws: ``out[8 k + c]`` stream c's
-    candidate, ``bits`` its 64 random bits, bit c of ``outside[k]`` set when the candidate
-    lies outside its layer's rectangle (as :func:`_complete` tests first)."""
+def _fast8(typingctx, states, ki, wi, sigma, start, n, out, bits, outside):  # noqa: ANN001, ANN201
+    """The ziggurat's fast path on eight streams, from draw `start` until draw `n` or the
+    first draw with a candidate outside its layer's rectangle, whose index it returns.
+
+    ``out[8 k + c]`` is stream c's candidate times ``sigma[c]``, ``bits[8 k + c]`` its 64
+    random bits, and bit c of ``outside[k]`` set when the candidate needs :func:`_complete`.
+    """
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
         def data(i: int, vtype: ir.Type | None = None) -> ir.Value:
             ptr = context.make_array(sig.args[i])(context, builder, args[i]).data
             return builder.bitcast(ptr, vtype.as_pointer()) if vtype else ptr
         st, ki_p, wi_p, out_p, bits_p, outside_p = (
-            data(0, _V64), data(1), data(2), data(4, _VD), data(5, _V64), data(6))
+            data(0, _V64), data(1), data(2), data(6, _VD), data(7, _V64), data(8))
+        scale = builder.load(data(3, _VD), align=8)
         state = [cgutils.alloca_once_value(builder, builder.load(builder.gep(st, [ir.Constant(
             _I64, j)]), align=8)) for j in range(4)]
-        with cgutils.for_range(builder, args[3]) as loop:
-            r = _xoshiro8(builder, state)
-            builder.store(r, builder.gep(bits_p, [loop.index]), align=8)
-            idx = builder.and_(r, _v(0xFF))
-            rr = builder.lshr(r, _v(8))
-            rabs = builder.and_(builder.lshr(rr, _v(1)), _v(0x000FFFFFFFFFFFFF))
-            negative = builder.icmp_unsigned("!=", builder.and_(rr, _v(1)), _v(0))
-            x = builder.fmul(builder.sitofp(rabs, _VD), _lookup(builder, wi_p, idx, _VD))
-            builder.store(builder.select(negative, builder.fneg(x), x),
-                          builder.gep(out_p, [loop.index]), align=8)
-            outward = builder.icmp_signed(">=", rabs, _lookup(builder, ki_p, idx, _V64))
-            builder.store(builder.bitcast(outward, ir.IntType(8)),
-                          builder.gep(outside_p, [loop.index]))
+        k_ptr = cgutils.alloca_once_value(builder, args[4])
+        head, body, more, done = (builder.append_basic_block(name)
+                                  for name in ("head", "body", "more", "done"))
+        builder.branch(head)
+        builder.position_at_end(head)
+        k = builder.load(k_ptr)
+        builder.cbranch(builder.icmp_signed("<", k, args[5]), body, done)
+        builder.position_at_end(body)
+        r = _xoshiro8(builder, state)
+        builder.store(r, builder.gep(bits_p, [k]), align=8)
+        idx = builder.and_(r, _v(0xFF))
+        rr = builder.lshr(r, _v(8))
+        rabs = builder.and_(builder.lshr(rr, _v(1)), _v(0x000FFFFFFFFFFFFF))
+        negative = builder.icmp_unsigned("!=", builder.and_(rr, _v(1)), _v(0))
+        x = builder.fmul(builder.sitofp(rabs, _VD), _lookup(builder, wi_p, idx, _VD))
+        x = builder.select(negative, builder.fneg(x), x)
+        builder.store(builder.fmul(scale, x), builder.gep(out_p, [k]), align=8)
+        outward = builder.bitcast(
+            builder.icmp_signed(">=", rabs, _lookup(builder, ki_p, idx, _V64)), ir.IntType(8))
+        builder.store(outward, builder.gep(outside_p, [k]))
+        builder.cbranch(builder.icmp_unsigned("!=", outward, ir.Constant(ir.IntType(8), 0)),
+                        done, more)
+        builder.position_at_end(more)
+        builder.store(builder.add(k, ir.Constant(_I64, 1)), k_ptr)
+        builder.branch(head)
+        builder.position_at_end(done)
         for j in range(4):
             builder.store(builder.load(state[j]), builder.gep(st, [ir.Constant(_I64, j)]),
                           align=8)
-        return context.get_dummy_value()
-    return types.none(states, ki, wi, n, out, bits, outside), codegen
+        return builder.load(k_ptr)
+    return types.int64(states, ki, wi, sigma, start, n, out, bits, outside), codegen
 
 
 @nb.njit(nogil=True, cache=True)
-def fill_normal8(states: NDArray[np.uint64], retry: NDArray[np.uint64],
+def fill_normal8(states: NDArray[np.uint64], sigma: NDArray[np.float64],
                  out: NDArray[np.float64], bits: NDArray[np.uint64],
                  outside: NDArray[np.uint8]) -> None:
-    """Eight streams' standard normal deviates, ``out[8 k + c]`` stream c's k-th.
+    """Eight streams' normal deviates, ``out[8 k + c]`` stream c's k-th times ``sigma[c]``:
+    the same numbers :func:`fill_normal` draws from each stream, eight at a time.
 
-    The eight xoshiro256** streams advance together as one vector and the ziggurat's fast
-    path (99 % of draws) runs on all eight at once (:func:`_fast8`); a candidate outside its
-    layer's rectangle is completed as :func:`fill_normal` would, with the extra random bits
-    from its channel's `retry` stream. Every random bit is independent of every other, so the
-    deviates are exactly normal.
+    The eight xoshiro256** streams advance together as one vector through the ziggurat's
+    fast path (:func:`_fast8`); at a draw where a stream's candidate lies outside its
+    layer's rectangle (1 % of draws), the vector stops and that stream completes the draw as
+    :func:`fill_normal` does, taking its extra random bits from its own stream.
 
     Parameters
     ----------
     states : ndarray of uint64, shape (4, 8)
         The streams' states, one column each (:func:`seed_states` transposed), advanced.
-    retry : ndarray of uint64, shape (8, 4)
-        A second stream per channel, for the slow path; advanced.
+    sigma : ndarray, shape (8,)
+        Standard deviation of each stream's deviates.
     out : ndarray, shape (8 n,)
         Filled.
     bits, outside : ndarray
         Scratch of ``8 n`` uint64 and ``n`` uint8.
     """
     n = out.shape[0] // _LANES8
-    _fast8(states, KI, WI, n, out, bits, outside)
-    for k in range(n):
-        if outside[k]:
-            for c in range(_LANES8):
-                if (outside[k] >> c) & 1:
-                    st = retry[c]
-                    x, st[0], st[1], st[2], st[3] = _complete(bits[_LANES8 * k + c], st[0], st[1],
-                                                              st[2], st[3])
-                    out[_LANES8 * k + c] = x
+    k = 0
+    while k < n:
+        k = _fast8(states, KI, WI, sigma, k, n, out, bits, outside)
+        if k == n:
+            break
+        for c in range(_LANES8):
+            if (outside[k] >> c) & 1:
+                x, states[0, c], states[1, c], states[2, c], states[3, c] = _complete(
+                    bits[_LANES8 * k + c], states[0, c], states[1, c], states[2, c],
+                    states[3, c])
+                out[_LANES8 * k + c] = sigma[c] * x
+        k += 1

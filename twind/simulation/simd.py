@@ -174,7 +174,7 @@ def filter8(typingctx, f, x, n):  # noqa: ANN001, ANN201
 
     Sample k of the channels is ``x[8 k:8 k + 8]``; ``f[0]`` holds the sections of channels
     0-3 and ``f[1]`` those of 4-7, each in :func:`cascade4`'s layout (one section). The states
-    stay in registers and are stored back at the end.
+    stay in registers and are stored back at the end; the arithmetic is :func:`cascade4`'s.
     """
     if not (_is_array(f) and f.ndim == 2 and _is_array(x) and isinstance(n, types.Integer)):
         return None
@@ -199,10 +199,9 @@ def filter8(typingctx, f, x, n):  # noqa: ANN001, ANN201
                 ptr = _pointer(context, builder, sig.args[1], xarr, i)
                 v = builder.load(ptr, align=8)
                 w = _fma(builder, b0, v, builder.load(z0))
-                # the states' recursion is one multiply-add long: z1 + b1 v comes first
-                builder.store(_fma(builder, builder.fneg(a1), w,
-                                   _fma(builder, b1, v, builder.load(z1))), z0)
-                builder.store(_fma(builder, builder.fneg(a2), w, builder.fmul(b2, v)), z1)
+                builder.store(_fma(builder, b1, v, _fma(builder, builder.fneg(a1), w,
+                                                        builder.load(z1))), z0)
+                builder.store(_fma(builder, b2, v, builder.fneg(builder.fmul(a2, w))), z1)
                 builder.store(w, ptr, align=8)
         for g, (_, (z0, z1)) in enumerate(groups):
             builder.store(builder.load(z0), row(g, 5), align=8)
