@@ -208,8 +208,12 @@ def _clip(v, lim):
 
 @nb.njit(nogil=True, cache=True, fastmath={"contract"})
 def _close(s, o, n, a, p, exc, in1, in2, out, sen):
-    """Close optic `o`'s loop for `n` cycles from block sample `a`, keeping each cycle's
-    state and drives in `history`; the noise's inputs are in ``s.ext`` and ``s.xsp``."""
+    """Close optic `o`'s loop for `n` cycles from block sample `a` and noise sample `p`
+    (the noise's inputs in ``s.ext`` and ``s.xsp``).
+
+    Within a cycle the OSEM readings and the next state, which do not wait for the filters,
+    come before them, so the processor works on them while the cascade's chain runs.
+    """
     x, delay, filters, ext, xsp = s.x[o], s.delay[o], s.filters[o], s.ext[o], s.xsp[o]
     x_to_in1, u_to_in1, plant = s.x_to_in1[o], s.u_to_in1[o], s.plant[o]
     sen_face, sen_side, noise = s.sen_face[o], s.sen_side[o], s.noise[o]
@@ -222,9 +226,11 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
         t = a + k
         y = _in1(x_to_in1, u_to_in1, ext, x, u, k)
         y2 = (y[0] + exc[0, t], y[1] + exc[1, t], y[2] + exc[2, t], y[3] + exc[3, t])
+        _osem_cycle(sen_face, sen_side, x, u, noise, p + k, sen, t)
+        _next_state(plant, xsp, x, u, k)
+        w = cascade4(filters, nsec, y2)
         in1[0, t], in1[1, t], in1[2, t], in1[3, t] = y
         in2[0, t], in2[1, t], in2[2, t], in2[3, t] = y2
-        w = cascade4(filters, nsec, y2)
         if ramp_left[0] + ramp_left[1] + ramp_left[2] + ramp_left[3] > 0:
             _ramp(gain, gain_target, gain_step, ramp_left)
         v = (w[0] * gain[0], w[1] * gain[1], w[2] * gain[2], w[3] * gain[3])
@@ -232,10 +238,8 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
             v = (_clip(v[0], limit[0]), _clip(v[1], limit[1]), _clip(v[2], limit[2]),
                  _clip(v[3], limit[3]))
         out[0, t], out[1, t], out[2, t], out[3, t] = v
-        _osem_cycle(sen_face, sen_side, x, u, noise, p + k, sen, t)
         store4(delay, LANES * pos, v)
         pos = pos + 1 if pos + 1 < ndelay else 0
-        _next_state(plant, xsp, x, u, k)
         u = v if ndelay == 1 else load4(delay, LANES * pos)
     s.delay_pos[o] = pos
 
