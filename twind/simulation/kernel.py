@@ -1,8 +1,8 @@
 """Compiled loops of the engine: every optic's damping loop, sample by sample, with its noise.
 
 One optic is one task: :func:`run_optic` draws the optic's noise a chunk at a time and closes
-its loop for a whole step, so optics share nothing and :func:`advance` hands them to the cores
-one at a time, a core that is held up by other work taking fewer. Everything that persists
+its loop for a whole step, so optics share nothing and :func:`advance_parallel` hands them to
+the cores one at a time, a core held up by other work taking fewer. Everything that persists
 between steps lives in the :class:`Arrays`, so a step boundary changes nothing in the result.
 
 Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulation.simd`):
@@ -297,16 +297,6 @@ def advance_serial(s, n, exc, in1, in2, out, sen):
 
 @nb.njit(parallel=True, nogil=True, cache=True)
 def advance_parallel(s, n, exc, in1, in2, out, sen):
-    """:func:`run_optic` on every optic, the optics shared among numba's threads.
-
-    Parameters
-    ----------
-    s : Arrays
-        The engine's arrays.
-    n : int
-        Cycles to run.
-    exc, in1, in2, out, sen : ndarray
-        Per optic as :func:`run_optic` takes them (first axis the optic).
-    """
+    """:func:`advance_serial`, the optics shared among numba's threads (same parameters)."""
     for o in nb.prange(s.x.shape[0]):
         run_optic(s, o, n, exc[o], in1[o], in2[o], out[o], sen[o])
