@@ -204,6 +204,24 @@ def test_test_point_identities(cfg) -> None:
         assert np.all(getattr(b, p) == 0), p
 
 
+@pytest.mark.parametrize("sensed", ["all", "no SIDE"])
+def test_in1_is_the_input_matrix_on_the_osem_readings(etmx, sensed: str) -> None:
+    """The engine forms the OSEM readings from IN1 when the input matrix allows it, and from
+    the state otherwise (a DOF that reads no OSEM): either way IN1 = input matrix x OSEMs."""
+    loop = etmx.loop()
+    if sensed == "no SIDE":
+        inmat = loop.plant.input_matrix.copy()
+        inmat[SIDE] = 0.0
+        loop.plant = dataclasses.replace(loop.plant, input_matrix=inmat)
+    n = 6000
+    exc = np.random.default_rng(6).standard_normal((1, 4, n))
+    b = Engine([loop], noise=etmx.noise, seed=6).step(n, exc=exc)
+    rebuilt = loop.plant.input_matrix * 1e-6 @ b.sen[0]
+    scale = np.abs(b.in1[0]).max(axis=1, keepdims=True)
+    assert np.all(np.abs(rebuilt - b.in1[0]) <= 1e-12 * scale + 1e-300)
+    assert np.all(np.abs(b.sen[0]).max(axis=1) > 0)
+
+
 def test_step_rejects_bad_shapes(etmx) -> None:
     eng = Engine([etmx.loop()], noise=QUIET)
     with pytest.raises(ValueError, match="exc must have shape"):

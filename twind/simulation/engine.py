@@ -148,6 +148,8 @@ class Engine:
             x_to_in1=z((n_opt, ns * LANES)), u_to_in1=z((n_opt, N_DOF * LANES)),
             noise_to_in1=z((n_opt, N_NOISE * LANES)),
             sen_face=z((n_opt, (ns + N_DOF + N_NOISE) * LANES)), sen_side=z((n_opt, ns + N_DOF + N_NOISE)),
+            sen_extra=z((n_opt, ns + N_DOF + N_NOISE)), sen_inverse=z((n_opt, 7 * LANES)),
+            sen_by_inverse=z(n_opt, dtype=bool),
             x=z((n_opt, ns)), filters=z((n_opt, nmax * SECTION_ROWS * LANES)),
             nsec=np.full(n_opt, nmax, dtype=np.int64),
             gain=z((n_opt, N_DOF)), gain_target=z((n_opt, N_DOF)), gain_step=z((n_opt, N_DOF)),
@@ -188,7 +190,23 @@ class Engine:
         # the OSEM readings in um: 1e6 (C x + D u + n)
         sen = 1e6 * np.hstack([c, Dd[:, :N_DOF], np.eye(N_OSEM), Dd[:, N_DOF:]])
         self._a.sen_face[o], self._a.sen_side[o] = sen[:LANES].T.ravel(), sen[LANES]
+        self._set_sen_inverse(o, inmat, sen)
         self._order[o], self._to_modal[o] = order, vr[:, order]
+
+    def _set_sen_inverse(self, o: int, inmat: NDArray, sen: NDArray) -> None:
+        """The OSEM readings from IN1 and one combination no DOF reads (see the kernel),
+        when the input matrix has full rank and that is well conditioned."""
+        _, singular, vt = np.linalg.svd(inmat)
+        square = np.vstack([inmat * 1e-6, vt[-1] / np.abs(vt[-1]).max() * 1e-6 * singular[0]])
+        usable = singular[-1] > 1e-8 * singular[0] and np.linalg.cond(square) < 1e8
+        self._a.sen_by_inverse[o] = usable
+        if not usable:
+            return
+        inverse = np.linalg.inv(square)  # um per [IN1; the fifth combination]
+        self._a.sen_extra[o] = square[LANES] @ sen
+        self._a.sen_inverse[o, :5 * LANES] = inverse[:LANES].T.ravel()
+        self._a.sen_inverse[o, 5 * LANES:6 * LANES] = inverse[LANES, :LANES]
+        self._a.sen_inverse[o, 6 * LANES] = inverse[LANES, LANES]
 
     def update_plant(self, optic: str, loop: DampingLoop) -> None:
         """Replace an optic's plant while running; its motion carries over.

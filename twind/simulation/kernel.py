@@ -11,7 +11,8 @@ Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulat
   drives ``u`` (OUT of ``ndelay`` cycles ago: the plant is bilinear, so its inputs of this
   cycle feed through) and the noise ``n``, all projected on the DOFs once at build time;
 - IN2 = IN1 + EXC; the filter cascades, one lane each; OUT = gain x cascade, limited;
-- the OSEM readings ``sen`` from the same state, inputs and noise;
+- the OSEM readings ``sen``: from IN1 and one more combination of the readings, when the
+  input matrix has full rank, or else from the same state, inputs and noise;
 - the modal plant's next state, four states a vector (each state couples only to its pair).
 
 Noise is drawn in chunks of :data:`CHUNK` samples, whatever the step sizes: white, the eight
@@ -60,6 +61,9 @@ class Arrays(NamedTuple):
     noise_to_in1: NDArray[np.float64]  # per noise channel: its part of the 4 DOFs' IN1
     sen_face: NDArray[np.float64]  # per state, drive and noise channel: UL, UR, LL, LR in um
     sen_side: NDArray[np.float64]  # [optic, ns + 4 + 8]: the same of SIDE
+    sen_extra: NDArray[np.float64]  # [optic, ns + 4 + 8]: an OSEM combination no DOF reads
+    sen_inverse: NDArray[np.float64]  # [optic, 7 * 4]: OSEMs from IN1 and that combination
+    sen_by_inverse: NDArray[np.bool_]  # [optic]: whether the input matrix allows it
     x: NDArray[np.float64]  # [optic, ns] modal state
     filters: NDArray[np.float64]  # cascade4 layout, the four DOFs' cascades as lanes
     nsec: NDArray[np.int64]
@@ -192,6 +196,34 @@ def _osem_cycle(face, side, x, u, noise, q, sen, t):
     sen[4, t] = (vs[0] + vs[1]) + (vs[2] + vs[3])
 
 
+@nb.njit(inline="always", fastmath={"contract"})
+def _osems_from_in1(extra, inverse, x, u, noise, q, y, sen, t):
+    """The five OSEM readings (um) of this cycle into ``sen[:, t]`` from the cycle's IN1 `y`.
+
+    IN1 holds four combinations of the five readings (the input matrix); `extra` gives a
+    fifth, which no DOF reads, per state, drive and noise channel (as :func:`_osem_cycle`'s
+    SIDE, one dot product). `inverse` is the inverse of the input matrix with that row below
+    it: its columns for UL-LR per IN1 DOF and per the fifth, then SIDE's row. A third of the
+    work of :func:`_osem_cycle`.
+    """
+    ns = x.shape[0]
+    zero = (0.0, 0.0, 0.0, 0.0)
+    ve = fma4(extra, ns, u, zero)
+    for i in range(0, ns, LANES):
+        ve = fma4(extra, i, load4(x, i), ve)
+    ve = fma4(extra, ns + N_DOF, load4(noise, N_NOISE * q), ve)
+    ve = fma4(extra, ns + N_DOF + LANES, load4(noise, N_NOISE * q + LANES), ve)
+    e = (ve[0] + ve[1]) + (ve[2] + ve[3])
+    fa = fma4(inverse, 0, y[0], zero)
+    fb = fma4(inverse, LANES, y[1], zero)
+    fa = fma4(inverse, 2 * LANES, y[2], fa)
+    fb = fma4(inverse, 3 * LANES, y[3], fb)
+    fa = fma4(inverse, 4 * LANES, e, fa)
+    sen[0, t], sen[1, t], sen[2, t], sen[3, t] = add4(fa, fb)
+    vs = fma4(inverse, 5 * LANES, y, zero)
+    sen[4, t] = ((vs[0] + vs[1]) + (vs[2] + vs[3])) + inverse[6 * LANES] * e
+
+
 @nb.njit(nogil=True, cache=True)
 def _ramp(gain, gain_target, gain_step, ramp_left):
     """One cycle of every ramping gain."""
@@ -217,6 +249,7 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
     x, delay, filters, ext, xsp = s.x[o], s.delay[o], s.filters[o], s.ext[o], s.xsp[o]
     x_to_in1, u_to_in1, plant = s.x_to_in1[o], s.u_to_in1[o], s.plant[o]
     sen_face, sen_side, noise = s.sen_face[o], s.sen_side[o], s.noise[o]
+    sen_extra, sen_inverse, by_inverse = s.sen_extra[o], s.sen_inverse[o], s.sen_by_inverse[o]
     gain, gain_target, gain_step = s.gain[o], s.gain_target[o], s.gain_step[o]
     limit, ramp_left = s.limit[o], s.ramp_left[o]
     nsec, ndelay, pos = s.nsec[o], s.ndelay[o], s.delay_pos[o]
@@ -226,7 +259,10 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
         t = a + k
         y = _in1(x_to_in1, u_to_in1, ext, x, u, k)
         y2 = (y[0] + exc[0, t], y[1] + exc[1, t], y[2] + exc[2, t], y[3] + exc[3, t])
-        _osem_cycle(sen_face, sen_side, x, u, noise, p + k, sen, t)
+        if by_inverse:
+            _osems_from_in1(sen_extra, sen_inverse, x, u, noise, p + k, y, sen, t)
+        else:
+            _osem_cycle(sen_face, sen_side, x, u, noise, p + k, sen, t)
         _next_state(plant, xsp, x, u, k)
         w = cascade4(filters, nsec, y2)
         in1[0, t], in1[1, t], in1[2, t], in1[3, t] = y
