@@ -11,6 +11,7 @@ from pathlib import Path
 import browser
 import numpy as np
 import pytest
+from diagnosekit import assert_sound
 
 from twind.analysis.diagnose import MIN_COHERENCE
 from twind.analysis.estimation.tf import from_session
@@ -220,6 +221,8 @@ def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
     """twind demo: the "real" twin's recording is diagnosed with its hidden driver pole (or
     the delay it cannot be told from) and a better fit; the nominal twin's is consistent."""
     out, real, nominal = demo
+    assert_sound(real)
+    assert_sound(nominal)
     named = real.to_json()
     assert {"actuator_pole", "loop_delay"} & {e["effect"] for e in named["effects"]}
     assert named["chi2_nu_final"] < named["chi2_nu_nominal"]

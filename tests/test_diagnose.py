@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from browser import tables
 from conftest import REFERENCE
+from diagnosekit import assert_accounted, assert_sound
 
 from twind.analysis.diagnose import ALPHA, diagnose
 from twind.cli import main
@@ -27,7 +28,7 @@ from twind.viz.report import report_page
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 KEYS = {"consistent", "chi2_nu_nominal", "chi2_nu_final", "located", "effects",
-        "unexplained", "nominal_params", "summary"}
+        "unexplained", "nominal_params", "summary", "p_values", "not_fitted"}
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +41,13 @@ def _measured(etmx, plant: Plant):  # noqa: ANN001, ANN202
     return measure_tfs(etmx, bw=0.05, averages=10, rms=3.0, seed=3, plant=plant)
 
 
+def _diagnosed(tfs, cfg, **kwargs):  # noqa: ANN001, ANN003, ANN202
+    """:func:`diagnose`, checked accounted for and ranked (:func:`diagnosekit.assert_sound`)."""
+    d = diagnose(tfs, cfg, **kwargs)
+    assert_sound(d)
+    return d
+
+
 def test_example_null_is_consistent(tmp_path: Path) -> None:
     out = io.StringIO()
     with redirect_stdout(out):
@@ -48,6 +56,7 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
     assert set(obj) == KEYS
     assert obj["consistent"] and obj["effects"] == [] and obj["located"] == []
     assert obj["nominal_params"]["Q_SIDE"]["sigma"] is None
+    assert_accounted(obj["p_values"], obj["not_fitted"])
     assert {p.name for p in (tmp_path / "report").iterdir()} == {
         "nominal.png", "diagnosis.json", "index.html", "diagnosis.rrd"}
     assert main(["diagnose", *NULL, "-o", str(tmp_path / "report")]) == 2  # never overwrites
@@ -66,7 +75,7 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
 def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:  # noqa: ANN001
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     extra = 4 / etmx.sus.sample_rate_hz  # the engine delays by whole samples
-    d = diagnose(_measured(etmx, replace(plant, delay_s=plant.delay_s + extra)), etmx)
+    d = _diagnosed(_measured(etmx, replace(plant, delay_s=plant.delay_s + extra)), etmx)
     assert not d.consistent
     best = d.effects[0]
     assert {best.effect, *best.equivalent} >= {"loop_delay", "actuator_pole"}
@@ -79,11 +88,12 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     # every hypothesis keeps its p-value, the unclaimed ones too (how near they came)
     assert all(d.p_values[e.effect] == e.p_value < ALPHA for e in d.effects)
     assert set(d.p_values) - {e.effect for e in d.effects}
-    assert all(0 <= p <= 1 for p in d.p_values.values())
-    # the report: every hypothesis with its p-value, the chosen first; what separates rivals
+    # the report: every hypothesis with its p-value or its reason, the chosen first; what
+    # separates rivals
     page = tables(report_page(d, []))
     rows = page["hypotheses"][1:]
-    assert {r[0] for r in rows} == set(d.p_values) | {e.effect for e in d.effects}
+    assert {r[0] for r in rows} == (set(d.p_values) | {e.effect for e in d.effects}
+                                    | {x.effect for x in d.not_fitted})
     assert rows[0][:2] == [best.effect, "chosen"]
     assert {(r[0], r[1]) for r in page["separations"][1:]} == set(d.separations)
 
@@ -93,7 +103,7 @@ def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa:
     act = plant.actuation.copy()
     gains = [0.03, -0.02, 0.01, -0.025]
     act[:, :4] *= 1 + np.array(gains)
-    d = diagnose(_measured(etmx, replace(plant, actuation=act)), etmx)
+    d = _diagnosed(_measured(etmx, replace(plant, actuation=act)), etmx)
     assert d.effects[0].effect == "coil_imbalance" and d.effects[0].delta_bic > 100
     assert d.final.chi2_nu < 1.4 and d.nominal.chi2_nu > 10
     assert d.unexplained == []
@@ -114,7 +124,7 @@ def test_a_pitched_optic_s_bounce_is_named_from_its_compliance(etmx) -> None:  #
 
     plant, truth = tilted_heads(Plant.from_params(etmx.sus, etmx.mechanics()), etmx.sus,
                                 0.0, 0.15)
-    d = diagnose(_measured(etmx, plant), etmx)
+    d = _diagnosed(_measured(etmx, plant), etmx)
     best = d.effects[0]
     assert best.effect == "bounce_roll" and best.p_value < 1e-6
     assert best.to_json()["params"]["vertical"] == pytest.approx(truth["vertical"], rel=0.35)
@@ -130,7 +140,7 @@ def test_two_effects_at_once_are_both_chosen(etmx) -> None:  # noqa: ANN001
     act[:, :4] *= 1 + np.array([0.03, -0.02, 0.01, -0.025])
     extra = 4 / etmx.sus.sample_rate_hz
     tfs = _measured(etmx, replace(plant, actuation=act, delay_s=plant.delay_s + extra))
-    d = diagnose(tfs, etmx)
+    d = _diagnosed(tfs, etmx)
     chosen = [e.effect for e in d.chosen]
     assert chosen[0] == "coil_imbalance" and len(chosen) == 2
     second = d.chosen[1]
@@ -140,7 +150,7 @@ def test_two_effects_at_once_are_both_chosen(etmx) -> None:  # noqa: ANN001
     assert delay.to_json()["params"]["extra_s"] == pytest.approx(extra, rel=0.35)
     assert d.final.chi2_nu < 1.4 and not d.unexplained
     assert d.summary().startswith("explained by coil_imbalance + ")
-    one = diagnose(tfs, etmx, max_effects=1)
+    one = _diagnosed(tfs, etmx, max_effects=1)
     assert [e.effect for e in one.chosen] == ["coil_imbalance"]
     assert one.chosen[0].to_json()["partial"] and one.unexplained
     assert one.summary().startswith("coil_imbalance explain(s) part of the misfit")
@@ -156,7 +166,7 @@ def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  
 
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     body, truth = attached_body(plant, etmx.sus, 6e-5, 7.0, 30.0, (0.0, 0.02))
-    d = diagnose(_measured(etmx, body), etmx)
+    d = _diagnosed(_measured(etmx, body), etmx)
     assert [e.effect for e in d.chosen] == ["resonance"] and d.chosen[0].p_value < 1e-6
     out = d.chosen[0].to_json()
     assert out["params"]["f_hz"] == pytest.approx(truth["f_hz"], rel=0.15)
@@ -175,7 +185,7 @@ def test_one_readback_with_its_own_stage_is_named_with_its_corners(etmx) -> None
     channels lack (Plant.channel_filters, integrated as states by the engine): the
     channel_filter family names the channel and both corners."""
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
-    d = diagnose(_measured(etmx, replace(plant, channel_filters=(("osem", 2, 25.0, 28.0),))),
+    d = _diagnosed(_measured(etmx, replace(plant, channel_filters=(("osem", 2, 25.0, 28.0),))),
                  etmx)
     best = d.chosen[0].to_json()
     assert best["effect"] == "osem_filter_LL" and best["family"] == "channel_filter"
@@ -191,7 +201,7 @@ def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noq
     from twind.client import TwinClient
     from twind.errors import TwindError
 
-    d = diagnose(from_diaggui(NULL), etmx)
+    d = _diagnosed(from_diaggui(NULL), etmx)
     nominal, effect = d.final_model()
     assert len(nominal) == 6 and effect is None  # example_null: the drift alone
     with serving("--optics", "ETMX") as endpoint:
@@ -231,6 +241,6 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
     files = write_measurement_set(tfs, tmp_path)
     assert sorted(p.name for p in files) == ["ETMX_PIT_exc.xml", "ETMX_POS_exc.xml",
                                              "ETMX_YAW_exc.xml"]
-    d = diagnose(from_diaggui(files), etmx)
+    d = _diagnosed(from_diaggui(files), etmx)
     assert d.effects and d.effects[0].effect == "coil_imbalance"
     assert d.final.chi2_nu < d.nominal.chi2_nu

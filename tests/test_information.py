@@ -39,8 +39,7 @@ def test_design_is_d_optimal_and_beats_white_noise(etmx, design) -> None:  # noq
     # Kiefer-Wolfowitz: no candidate tone would add more information than the design's mean
     f = np.arange(2, 201) / 20.0
     F = tone_fisher(etmx, design.params, list(design.tones), f, 100.0)
-    M = sum(np.einsum("k,kpq->pq", np.isin(f, design.tones[d]) * 0, F[i])
-            for i, d in enumerate(design.tones))
+    M = np.zeros((len(design.params), len(design.params)))
     for i, d in enumerate(design.tones):
         k = np.searchsorted(f, design.tones[d])
         M = M + np.einsum("k,kpq->pq", design.amps[d] ** 2 / 2, F[i, k])
@@ -97,8 +96,13 @@ def test_campaign_on_a_local_twin_converges_on_the_truth(etmx) -> None:  # noqa:
     first, last = rounds[0].relative_sigma, rounds[1].relative_sigma
     assert all(last[n] < first[n] for n in set(first) & set(last))
     fit = rounds[-1].fit
+    # a sigma is NaN only for a parameter in a combination the fit says the data cannot fix
+    # (a Q of a DOF never excited), and every other value lies within 4 sigma of the truth
+    undetermined = {n for n, s in zip(fit.names, fit.sigma, strict=True) if not np.isfinite(s)}
+    named = {n for n in fit.names if any(n in combo for combo in fit.unidentifiable)}
+    assert undetermined <= named and len(undetermined) < len(fit.names) / 2
     for n, v, s in zip(fit.names, fit.values, fit.sigma, strict=True):
-        if np.isfinite(s):
+        if n not in undetermined:
             assert abs(v - param_value(real.sus, n)) < 4 * s, n
 
 

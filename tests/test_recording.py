@@ -43,7 +43,14 @@ from twind.recording.session import (
     RecordingError,
     TruncatedRecordingWarning,
 )
-from twind.recording.writer import McapSession, SessionWriter, scan_block
+from twind.recording import writer as writer_module
+from twind.recording.writer import (
+    CHUNK_BYTES,
+    CHUNK_SECONDS,
+    McapSession,
+    SessionWriter,
+    scan_block,
+)
 from twind.timeutil import gps_to_unix_ns
 
 GPS0 = 1_400_000_000.0
@@ -424,6 +431,65 @@ def test_recorder_sigkill_leaves_a_readable_file(tmp_path: Path) -> None:
     assert main(["recover", str(out), "-o", str(fixed)]) == 2  # never overwritten
 
 
+def _blocks_on_disk(path: Path, channel: str) -> int:
+    """Blocks of `channel` a reader finds in a file being written (0 before its first)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TruncatedRecordingWarning)
+            return len(read_session(path)[channel].sequences)
+    except RecordingError:  # the channel not there yet
+        return 0
+
+
+def test_an_open_chunk_reaches_the_file_chunk_seconds_after_its_first_message(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The loss bound: a chunk that never fills is closed :data:`CHUNK_SECONDS` after its
+    first message, on the writer's own clock (made a test's here)."""
+    clock = [1000.0]
+    monkeypatch.setattr(writer_module.time, "monotonic", lambda: clock[0])
+    path, channel = tmp_path / "slow.mcap", SYNTH[0]
+    with McapSession(path, "C1") as f:
+        f.write_block(synthetic_block(channel, 0))
+        clock[0] += 0.5 * CHUNK_SECONDS
+        f.write_block(synthetic_block(channel, 1))
+        clock[0] += 0.49 * CHUNK_SECONDS
+        f.maybe_flush()
+        assert _blocks_on_disk(path, channel) == 0  # both still in the open chunk
+        clock[0] += 0.02 * CHUNK_SECONDS
+        f.maybe_flush()
+        assert _blocks_on_disk(path, channel) == 2
+
+
+def test_a_slow_recording_killed_keeps_all_but_its_last_second(tmp_path: Path) -> None:
+    """Four blocks a second of one channel never fill a chunk (8 kB each, chunks of
+    :data:`CHUNK_BYTES`): only the recorder's time-based close puts them on disk, while
+    blocks keep arriving and after they stop. Waited for on the file, then SIGKILL."""
+    port, out, channel = free_port(), tmp_path / "slow.mcap", SYNTH[0]
+    assert 12 * len(synthetic_block(channel, 0)) < CHUNK_BYTES
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        proc, _ = _start_recorder(out, port)
+        try:
+            pub = _publishers(session, [channel])[channel]
+            on_disk_while_arriving = 0
+            for k in range(12):
+                pub.put(synthetic_block(channel, k))
+                time.sleep(0.25)
+                on_disk_while_arriving = _blocks_on_disk(out, channel)
+            deadline = time.monotonic() + 30  # a bound on a stuck test, not on the recorder
+            while _blocks_on_disk(out, channel) < 12:
+                assert time.monotonic() < deadline, "the open chunk never reached the file"
+                time.sleep(0.05)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=10)
+        finally:
+            proc.kill()
+    assert on_disk_while_arriving > 0  # chunks closed by age while blocks still came
+    with pytest.warns(TruncatedRecordingWarning):
+        session_read = read_session(out)
+    assert list(session_read[channel].sequences) == list(range(12))
+    assert np.array_equal(session_read[channel].samples, _expected(channel, range(12)))
+
+
 @pytest.mark.parametrize("rotate", [{"rotate_bytes": 800_000}, {"rotate_seconds": 2.0}])
 def test_rotation_reads_back_seamlessly(tmp_path: Path, rotate: dict) -> None:
     port = free_port()
@@ -500,6 +566,19 @@ def test_getdata_from_the_bus(tmp_path: Path) -> None:
 # --- replay ------------------------------------------------------------------------------------
 
 
+class _CountedWaits(threading.Event):
+    """A replay's stop event that keeps the waits asked of it (the pacing)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.waits: list[float] = []
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if timeout is not None:
+            self.waits.append(timeout)
+        return super().wait(timeout)
+
+
 def test_replay_same_bytes_in_order_and_paced(tmp_path: Path) -> None:
     path = tmp_path / "rec.mcap"
     _synthetic_file(path, {c: list(range(40)) for c in SYNTH[:2]}, events=1)
@@ -514,13 +593,12 @@ def test_replay_same_bytes_in_order_and_paced(tmp_path: Path) -> None:
             key, lambda s: got.put((str(s.key_expr), s.payload.to_bytes())))
             for key in ("twin/**", "twin/@/C1/events")]
         conf = zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])
-        timings = {}
+        timings, waits = {}, {}
         for rate in (10.0, float("inf")):
-            stats = replay(path, conf, rate=rate)
-            time.sleep(0.2)
-            received = []
-            while not got.empty():
-                received.append(got.get())
+            stop = _CountedWaits()
+            stats = replay(path, conf, rate=rate, stop=stop)
+            waits[rate] = stop.waits
+            received = [got.get(timeout=30) for _ in range(stats.messages)]
             data = [r for r in received if not r[0].startswith("twin/@")]
             assert data == expected, rate  # the same bytes, in order
             events = [json.loads(r[1]) for r in received if r[0] == "twin/@/C1/events"]
@@ -529,8 +607,10 @@ def test_replay_same_bytes_in_order_and_paced(tmp_path: Path) -> None:
             timings[rate] = stats.elapsed_s
         for s in subs:
             s.undeclare()
-    assert span / 10 * 0.9 < timings[10.0] < span / 10 + 0.3, timings
-    assert timings[float("inf")] < timings[10.0] / 2, timings
+    # paced: the waits it asked for add up to the recording's span over the rate, and no
+    # message left before its time; unpaced at an infinite rate
+    assert 0 < sum(waits[10.0]) <= span / 10 <= timings[10.0], (waits, timings)
+    assert waits[float("inf")] == [], waits
     with pytest.raises(RecordingError, match="rate must be >= 0"):
         replay(path, conf, rate=-1)
 

@@ -40,6 +40,14 @@ class Collector:
             blocks = list(self.blocks[channel])
         return np.concatenate([b.samples for b in blocks]), blocks
 
+    def wait_for(self, samples: int, timeout: float = 120.0) -> None:
+        """Until every kept channel has `samples` (`timeout` bounds a stuck test)."""
+        deadline = time.monotonic() + timeout
+        while min(sum(b.samples.size for b in list(kept)) for kept in self.blocks.values()
+                  ) < samples:
+            assert time.monotonic() < deadline, f"fewer than {samples} samples in {timeout} s"
+            time.sleep(0.1)
+
     def close(self) -> None:
         self.sub.undeclare()
         self.session.close()
@@ -50,6 +58,16 @@ def _amplitude_at(x: np.ndarray, rate: float, f: float) -> float:
     basis = np.column_stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t)])
     coef, *_ = np.linalg.lstsq(basis, x, rcond=None)
     return float(np.hypot(*coef))
+
+
+def _blocks_reached(twin: TwinClient, blocks: int, timeout: float = 120.0) -> dict:
+    """The twin's status once it has published `blocks` blocks (`timeout` bounds a stuck
+    test, not the twin's speed)."""
+    deadline = time.monotonic() + timeout
+    while (status := twin.status())["blocks"] < blocks:
+        assert time.monotonic() < deadline, f"{status['blocks']} blocks after {timeout} s"
+        time.sleep(0.1)
+    return status
 
 
 @pytest.mark.slow
@@ -70,10 +88,10 @@ def test_serve_inject_refuse_and_test_points() -> None:
                 # limits hold per test point: a second sine that would add up past them is refused
                 with pytest.raises(InjectionRefused, match="limit"):
                     twin.inject(f"{POS}_EXC", "sine", freq=5.0, amp=99.95, duration=1.0)
-                time.sleep(5.5)  # 20 s of twin time at speed 4
+                col.wait_for(20 * 16384)  # 20 s of twin time
                 status = twin.status()
                 twin.stop(exc_id)
-            assert status["blocks"] >= 16 * 20 and status["speed"] == 4
+            assert status["speed"] == 4
         finally:
             col.close()
     exc, blocks = col.series(f"{POS}_EXC")
@@ -114,8 +132,4 @@ def test_live_parameters_and_filters() -> None:
         assert state["filters"]["PIT"]["gain"] == pytest.approx(0.2)
         # still serving (pacing figures: twind soak): blocks keep coming after the changes,
         # however soon after the start the changes were all made
-        first = twin.status()["blocks"]
-        deadline = time.monotonic() + 5.0
-        while twin.status()["blocks"] <= first and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert twin.status()["blocks"] > first
+        _blocks_reached(twin, twin.status()["blocks"] + 1)

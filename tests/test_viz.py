@@ -3,11 +3,13 @@ own .rrd reader."""
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import socket
 import threading
 import time
+import warnings
 from contextlib import redirect_stdout
 from pathlib import Path
 
@@ -21,8 +23,11 @@ from twind.bus.session import zenoh_config
 from twind.cli import build_parser
 from twind.config import load_config
 from twind.errors import TwindError
+from twind.recording.reader import read_session
+from twind.recording.session import TruncatedRecordingWarning
 from twind.recording.writer import SessionWriter
 from twind.simulation.engine import Engine
+from twind.viz import live
 from twind.viz.commands import rrd_main, view_main
 from twind.viz.decimate import NS, Decimator
 from twind.viz.entities import entity_path, matcher
@@ -280,6 +285,16 @@ def test_view_explains_what_to_do_without_a_display(monkeypatch: pytest.MonkeyPa
             parser.parse_args(["view", "--save", "a.rrd", "--web"])
 
 
+def _events_on_disk(folder: Path) -> int:
+    """Injection events a reader finds in the recording being written in `folder`."""
+    files = sorted(folder.glob("*.mcap"))
+    if not files:
+        return 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TruncatedRecordingWarning)
+        return len(read_session(files[0]).events)
+
+
 def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> None:
     """``twind serve --record`` with ``twind view --save`` watching and an operator's sine:
     the live view has the channels and the event; the recording's .rrd has the Bode of the
@@ -289,15 +304,19 @@ def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> 
     from twind.client import TwinClient
 
     folder = tmp_path / "rec"
-    live = tmp_path / "live.rrd"
+    live_rrd = tmp_path / "live.rrd"
     with serving("--optics", "ETMX", "--speed", "4", "--record", str(folder)) as endpoint:
         args = build_parser().parse_args(["view", "--connect", endpoint, "--channels",
                                           "C1:SUS-ETMX_SUSPOS_*", "--duration", "3.5",
-                                          "--save", str(live)])
+                                          "--save", str(live_rrd)])
         codes: list[int] = []
-        viewer = threading.Thread(target=lambda: codes.append(view_main(args)))
-        viewer.start()
-        time.sleep(0.5)
+        subscribed = threading.Event()
+        viewing = functools.partial(live.stream, subscribed=subscribed)
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr("twind.viz.commands.stream", viewing)
+            viewer = threading.Thread(target=lambda: codes.append(view_main(args)))
+            viewer.start()
+            assert subscribed.wait(60), "the viewer never subscribed"
         with TwinClient(connect=[endpoint]) as twin:
             exc = twin.inject("C1:SUS-ETMX_SUSPOS_EXC", "sine", freq=F_EXC, amp=1.0, duration=8.0)
         viewer.join()
@@ -305,8 +324,11 @@ def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> 
         with TwinClient(connect=[endpoint]) as twin:
             while any(e["id"] == exc for e in twin.status()["excitations"]):
                 time.sleep(0.2)
-        time.sleep(0.5)
-    chunks = read_rrd(live)
+        deadline = time.monotonic() + 60  # a bound on a stuck test, not on the recorder
+        while _events_on_disk(folder) < 2:  # the end event, on its way to the recorder
+            assert time.monotonic() < deadline, "the recorder never wrote the end event"
+            time.sleep(0.1)
+    chunks = read_rrd(live_rrd)
     assert {e for e in chunks if e.startswith("/sus/")} == {
         f"/sus/ETMX/POS/{p}" for p in ("EXC", "IN1", "IN2", "OUT")}
     texts = [t[0] for t in column(chunks["/events"], "TextLog:text")]

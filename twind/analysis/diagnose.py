@@ -231,6 +231,29 @@ def _reading_line(r: dict) -> str:
     return text
 
 
+@dataclass(frozen=True)
+class NotFitted:
+    """A hypothesis a step tried that gave no fit to weigh, and why: reported, never dropped.
+
+    Attributes
+    ----------
+    effect : str
+        The catalogue entry (a family's member by its own name).
+    step : int
+        The step of the forward selection that tried it (1 for the first).
+    reason : str
+        Why: its fit failed (the fit's own words), or it adds no direction the data determine.
+    """
+
+    effect: str
+    step: int
+    reason: str
+
+    def to_json(self) -> dict:
+        """One entry of ``not_fitted`` in ``twind diagnose --json``."""
+        return {"effect": self.effect, "step": self.step, "reason": self.reason}
+
+
 @dataclass
 class Diagnosis:
     """What ``twind diagnose`` found.
@@ -250,6 +273,8 @@ class Diagnosis:
     separations : dict
         For each (effect, rival): the excitation, response and frequency that tell them
         apart best.
+    not_fitted : list of NotFitted
+        The hypotheses tried that gave no fit to weigh, with the reason.
     """
 
     nominal: FitResult
@@ -260,6 +285,7 @@ class Diagnosis:
     separations: dict[tuple[str, str], tuple[str, str, float]] = field(default_factory=dict)
     first_step: list[EffectFit] = field(default_factory=list, repr=False)
     """Every hypothesis fitted at the first step (its search's paths among them)."""
+    not_fitted: list[NotFitted] = field(default_factory=list)
 
     @property
     def p_values(self) -> dict[str, float]:
@@ -313,6 +339,8 @@ class Diagnosis:
                 "effects": [e.to_json() for e in self.effects],
                 "unexplained": [{"element": x.element, "band_hz": list(x.band_hz)}
                                 for x in self.unexplained],
+                "p_values": self.p_values,
+                "not_fitted": [x.to_json() for x in self.not_fitted],
                 "nominal_params": nominal, "summary": self.summary()}
 
     def lines(self) -> list[str]:
@@ -353,6 +381,8 @@ class Diagnosis:
             out.append("  nearest unclaimed: " + ", ".join(f"{e} p {p:.2g}" for p, e in rest))
         for x in self.unexplained[:8]:
             out.append(f"  unexplained: {x.element} {x.band_hz[0]:.3g}-{x.band_hz[1]:.3g} Hz")
+        for x in self.not_fitted:
+            out.append(f"  not weighed at step {x.step}: {x.effect}: {x.reason}")
         if not self.consistent:
             out.append(f"  chi2/nu {self.nominal.chi2_nu:.3f} -> {self.final.chi2_nu:.3f}")
         return out
@@ -398,10 +428,11 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     nominal = fit(tfs, cfg, params, min_coherence)
     located = locate(tfs, cfg, nominal)
     unit = _unit(nominal, tfs)
-    chosen, rivals, first_step = _select(tfs, cfg, params, nominal, unit,
-                                         MAX_EFFECTS if max_effects is None else max_effects)
+    chosen, rivals, first_step, not_fitted = _select(
+        tfs, cfg, params, nominal, unit, MAX_EFFECTS if max_effects is None else max_effects)
     if not chosen:
-        return Diagnosis(nominal, located, [], nominal, located, first_step=first_step)
+        return Diagnosis(nominal, located, [], nominal, located, first_step=first_step,
+                         not_fitted=not_fitted)
     final = _prune(tfs, cfg, params, chosen, unit)
     rivals = [r for r in rivals if any(c.effect == r.rival_of for c in chosen)]
     unexplained = locate(tfs, cfg, final)
@@ -411,20 +442,24 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
                                                                    r.result)
                    for r in rivals}
     return Diagnosis(nominal, located, chosen + rivals, final, unexplained, separations,
-                     first_step)
+                     first_step, not_fitted)
 
 
 def _select(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
             nominal: FitResult, unit: float, most: int
-            ) -> tuple[list[EffectFit], list[EffectFit], list[EffectFit]]:
+            ) -> tuple[list[EffectFit], list[EffectFit], list[EffectFit], list[NotFitted]]:
     """Forward selection from the refitted `nominal` model, up to `most` effects: the
-    chosen ones (best first), the rivals of each, and every hypothesis of the first step."""
+    chosen ones (best first), the rivals of each, every hypothesis of the first step, and
+    those of every step that gave no fit to weigh."""
     chosen: list[EffectFit] = []
     rivals: list[EffectFit] = []
     first_step: list[EffectFit] = []
+    not_fitted: list[NotFitted] = []
     current, whole = nominal, ()
     for _ in range(most):
-        tried = _step(tfs, cfg, params, [c.effect for c in chosen], current, whole, unit)
+        tried, failed = _step(tfs, cfg, params, [c.effect for c in chosen], current, whole,
+                              unit)
+        not_fitted += failed
         if not chosen:
             first_step = tried
         claimed = sorted((c for c in tried if c.p_value < ALPHA), key=lambda c: -c.delta_bic)
@@ -436,25 +471,27 @@ def _select(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str
         rivals += [replace(c, rival_of=best.effect) for c in claimed[1:]
                    if c.effect in best.equivalent]
         current, whole = best.result, best.whole
-    return chosen, rivals, first_step
+    return chosen, rivals, first_step, not_fitted
 
 
 def _step(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
           chosen: list[str], current: FitResult, whole: tuple[tuple[float, float], ...],
-          unit: float) -> list[EffectFit]:
-    """Every hypothesis not yet `chosen`, each fitted with them (:func:`_candidates`).
-    Each is tried even when no band stands out: an effect spread thinly over many bands
-    can be plain in its own fit and invisible band by band."""
+          unit: float) -> tuple[list[EffectFit], list[NotFitted]]:
+    """Every hypothesis not yet `chosen`, each fitted with them (:func:`_candidates`): the
+    fits, and those that gave none to weigh. Each is tried even when no band stands out:
+    an effect spread thinly over many bands can be plain in its own fit and invisible band
+    by band."""
     left = _candidates(chosen)
-    tried = []
+    outcomes: list[EffectFit | NotFitted] = []
     for e in left:
         progress.note(f"step {len(chosen) + 1}: {e}")
         if e in FAMILIES:
-            tried += _try_family(tfs, cfg, params, chosen, e, current, whole, unit, len(left))
+            outcomes += _try_family(tfs, cfg, params, chosen, e, current, whole, unit,
+                                    len(left))
         else:
-            tried += filter(None, [_try(tfs, cfg, params, chosen, e, current, whole, unit,
-                                        len(left))])
-    return tried
+            outcomes.append(_try(tfs, cfg, params, chosen, e, current, whole, unit, len(left)))
+    return ([x for x in outcomes if isinstance(x, EffectFit)],
+            [x for x in outcomes if isinstance(x, NotFitted)])
 
 
 def _prune(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
@@ -530,21 +567,21 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
 def _try_family(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
                 chosen: Sequence[str], family: str, current: FitResult,
                 whole: tuple[tuple[float, float], ...], unit: float, tried: int
-                ) -> list[EffectFit]:
+                ) -> list[EffectFit | NotFitted]:
     """The likeliest members of `family` (a channel filter: which channel), each as
     :func:`_try` fits one: the members ranked by the drop in chi^2 their first-order
     change alone would make, the best :data:`FAMILY_FITS` fitted from the best of a grid
     of stages (rivals of one another), the choice paid for as a search over every member
-    (Bonferroni)."""
+    (Bonferroni). The others are ranked out, not failed."""
     members = [m for m in FAMILIES[family] if m not in chosen]
     first = _sets(tfs)[0]
     data = FitData.from_tfset(first, current.min_coherence, whole=whole).span()
     ranked = sorted(members, key=lambda m: -_first_order_drop(data, cfg, current, chosen, m))
-    fits = [c for c in (_try(tfs, cfg, params, chosen, m, current, whole, unit, tried,
-                             _filter_start(data, cfg, current, chosen, m))
-                        for m in ranked[:FAMILY_FITS]) if c]
+    fits = [_try(tfs, cfg, params, chosen, m, current, whole, unit, tried,
+                 _filter_start(data, cfg, current, chosen, m)) for m in ranked[:FAMILY_FITS]]
     for c in fits:
-        c.p_value = min(1.0, c.p_value * len(members))
+        if isinstance(c, EffectFit):
+            c.p_value = min(1.0, c.p_value * len(members))
     return fits
 
 
@@ -600,10 +637,10 @@ def _filter_start(data: FitData, cfg: OpticConfig, current: FitResult,
 def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
          chosen: Sequence[str], effect: str, current: FitResult,
          whole: tuple[tuple[float, float], ...], unit: float, tried: int,
-         own_start: dict[str, float] | None = None) -> EffectFit | None:
+         own_start: dict[str, float] | None = None) -> EffectFit | NotFitted:
     """Hypothesis `effect` fitted with the nominal parameters and the `chosen` effects
-    (all refitted), against `current` (the model without it); ``None`` when its fit fails
-    or adds no direction the data determine. Its p-value is Bonferroni'd over the `tried`
+    (all refitted), against `current` (the model without it); :class:`NotFitted` when its
+    fit fails or adds no direction the data determine. Its p-value is Bonferroni'd over the `tried`
     hypotheses of this step; `own_start` starts its own parameters."""
     start, free = _refitted(cfg, current, params)
     combo = "+".join([*chosen, effect])
@@ -624,13 +661,14 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
             held.update({param_name(combo, effect, n): v for n, v in found.items()})
         result = fit(tfs, start, free, current.min_coherence, effect=combo,
                      effect_start=held, whole=whole, unfitted=_unseen(tfs, combo))
-    except FitError:
-        return None
+    except FitError as err:
+        return NotFitted(effect, len(chosen) + 1, f"its fit failed: {err}")
     # directions the effect adds that the data determine (a coil imbalance's common mode
     # is the coil strength's, its butterfly mode moves nothing: two of four gains count)
     k = result.rank - reference.rank
     if k <= 0:
-        return None
+        return NotFitted(effect, len(chosen) + 1, "it adds no direction the data determine "
+                         f"(rank {result.rank}, {reference.rank} without it)")
     lr = max(reference.chi2 - result.chi2, 0.0) / unit
     n = 2 * reference.bins
     p = _p_value(lr, k, paths, _searched(result, combo, effect))

@@ -15,11 +15,11 @@ from twind.cli.options import (
     seed,
 )
 
-BENCH_SUITES = ("engine", "tf", "pull", "information", "diagnose", "freeswing")
+BENCH_SUITES = ("engine", "tf", "pull", "information", "diagnose", "rates", "freeswing")
 """``twind bench --suite``: what each measures is in ``--help``."""
 
 BENCH_PROGRESS = {"tf": "segment", "pull": "evaluation", "information": "evaluation",
-                  "diagnose": "evaluation", "freeswing": "optic"}
+                  "diagnose": "evaluation", "rates": "case", "freeswing": "optic"}
 """What a bench suite's progress bar counts; the engine suite shows none, so that nothing runs
 beside what it times."""
 
@@ -351,6 +351,8 @@ def _bench(p: argparse.ArgumentParser) -> None:
                         "pull: calibration of twind fit's sigmas; information: D-optimal "
                         "excitation against white noise on the twin; diagnose: twind "
                         "diagnose on the proof corpus (--route, --per-effect, --nulls); "
+                        "rates: twind diagnose's claims on many nulls and finds at the "
+                        "corpus' concealment (--nulls, default 20, --per-effect, --effects); "
                         "freeswing: twind freeswing on random drifted optics")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--duration", type=float, default=None,
@@ -364,14 +366,18 @@ def _bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--route", choices=["xml", "mcap", "both"], default="xml",
                    help="diagnose: the corpus as diaggui XML sets or MCAP sessions")
     p.add_argument("--optic", default="ETMX",
-                   help="diagnose: the optic of --config whose drifts make the corpus")
-    p.add_argument("--per-effect", type=int, default=3, help="diagnose: cases per effect")
-    p.add_argument("--nulls", type=int, default=3, help="diagnose: drift-only cases")
-    p.add_argument("--effects", help="diagnose: comma-separated kinds to hide: catalogue "
+                   help="diagnose, rates: the optic of --config whose drifts make the "
+                        "corpus")
+    p.add_argument("--per-effect", type=int, default=None,
+                   help="diagnose, rates: cases per effect (default 3)")
+    p.add_argument("--nulls", type=int, default=None,
+                   help="diagnose: drift-only cases (default 3); rates: nulls (default 20)")
+    p.add_argument("--effects", help="diagnose, rates: comma-separated kinds to hide: catalogue "
                                      "effects, resonance (a body on the face), "
                                      "channel_filter (one channel's stage), pairs a+b "
-                                     "(default the catalogue's six, those three kinds and "
-                                     "three pairs)")
+                                     "(diagnose's default the catalogue's six, those three "
+                                     "kinds and three pairs; rates' osem_imbalance,"
+                                     "wire_asymmetry)")
     p.add_argument("--averages", type=int,
                    help="diagnose: averages of the corpus measurement (default 10)")
     p.add_argument("--rms", type=float,

@@ -11,6 +11,7 @@ from twind.lab.calibration import information_benchmark, pull_test
 from twind.lab.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus, run_demo
 from twind.lab.engine_speed import run_benchmarks
 from twind.lab.freeswing_bench import benchmark
+from twind.lab.rates import NEAR_LIMIT, concealed, nulls, report
 from twind.lab.soak import soak
 from twind.lab.tf_speed import run_tf_benchmark
 
@@ -62,24 +63,43 @@ def _bench_information(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench_diagnose(args: argparse.Namespace) -> int:
-    """twind diagnose on the proof corpus: drifted optics with concealed effects."""
-
-    effects = args.effects.split(",") if args.effects else [*EFFECTS, *BEYOND]
-    excited = args.excite.split(",") if args.excite else list(EXCITED)
-    if set(excited) - set(DOFS):
-        msg = f"--excite takes DOFs among {', '.join(DOFS)}, not {args.excite}"
-        raise TwindError(msg)
+def _effects(args: argparse.Namespace, default: list[str]) -> list[str]:
+    """The kinds of effect ``--effects`` asks the corpus to hide, checked."""
+    effects = args.effects.split(",") if args.effects else default
     unknown = [e for e in effects if set(e.split("+")) - set(MADE)]
     if unknown:
         msg = f"the corpus cannot hide {', '.join(unknown)}; it makes {', '.join(MADE)}"
         raise TwindError(msg)
+    return effects
+
+
+def _bench_diagnose(args: argparse.Namespace) -> int:
+    """twind diagnose on the proof corpus: drifted optics with concealed effects."""
+
+    effects = _effects(args, [*EFFECTS, *BEYOND])
+    excited = args.excite.split(",") if args.excite else list(EXCITED)
+    if set(excited) - set(DOFS):
+        msg = f"--excite takes DOFs among {', '.join(DOFS)}, not {args.excite}"
+        raise TwindError(msg)
     cfg = _optic(args, args.optic)
+    per_effect = 3 if args.per_effect is None else args.per_effect
+    n_nulls = 3 if args.nulls is None else args.nulls
     for route in ("xml", "mcap") if args.route == "both" else (args.route,):
         print(f"--- route: {route}", flush=True)
-        run_corpus(cfg, route, args.per_effect, args.nulls, effects=effects,
+        run_corpus(cfg, route, per_effect, n_nulls, effects=effects,
                    say=lambda line: print(line, flush=True), excited=excited, bw=args.bw,
                    averages=args.averages or AVERAGES, rms=args.rms or RMS)
+    return 0
+
+
+def _bench_rates(args: argparse.Namespace) -> int:
+    """twind diagnose's rates: claims and p-values on many nulls, finds at the concealment."""
+
+    cfg = _optic(args, args.optic)
+    effects = _effects(args, list(NEAR_LIMIT))
+    null_set = nulls(cfg, 20 if args.nulls is None else args.nulls)
+    effect_set = concealed(cfg, 3 if args.per_effect is None else args.per_effect, effects)
+    print("\n".join(report(null_set, effect_set)))
     return 0
 
 
@@ -95,7 +115,7 @@ def _bench_freeswing(args: argparse.Namespace) -> int:
 
 SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
           "information": _bench_information, "diagnose": _bench_diagnose,
-          "freeswing": _bench_freeswing}
+          "rates": _bench_rates, "freeswing": _bench_freeswing}
 """The functions of ``twind bench --suite`` (:data:`twind.cli.commands.BENCH_SUITES`)."""
 
 

@@ -531,7 +531,7 @@ def reference_data(cfg: OpticConfig, seed: int, excited: Sequence[str] = EXCITED
     return FitData.from_tfset(tfs, MIN_COHERENCE, band).span()
 
 
-def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls: int = 3,
+def make_cases(cfg: OpticConfig, reference: FitData | None, per_effect: int = 3, nulls: int = 3,
                seed: int = 11, effects: Sequence[str] = EFFECTS) -> list[Case]:
     """The corpus: `nulls` drifted optics and `per_effect` of each kind of `effects`
     (a catalogue effect, ``resonance``, ``channel_filter`` or a pair ``"a+b"``), each
@@ -541,8 +541,9 @@ def make_cases(cfg: OpticConfig, reference: FitData, per_effect: int = 3, nulls:
     ----------
     cfg : OpticConfig
         The nominal optic.
-    reference : FitData
-        The bins and errors effects are concealed against (:func:`reference_data`).
+    reference : FitData or None
+        The bins and errors effects are concealed against (:func:`reference_data`); None
+        when there are no effects.
     per_effect : int
         Cases of each kind of `effects`.
     nulls : int

@@ -45,7 +45,8 @@ class LiveStats:
 def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: str = "C1",  # noqa: ANN001, PLR0913
            channels: Iterable[str] | str | None = None, rate_hz: float = 64.0,
            flush_s: float = 0.25, stop: threading.Event | None = None,
-           duration: float | None = None, root: str = ROOT) -> LiveStats:
+           duration: float | None = None, root: str = ROOT,
+           subscribed: threading.Event | None = None) -> LiveStats:
     """Subscribe to every twin channel and stream it to the Rerun recording `rec`.
 
     Parameters
@@ -68,6 +69,17 @@ def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: 
         Set it to end the stream (Ctrl-C ends it too).
     duration : float, optional
         Wall seconds after which to stop.
+    root : str
+        Root of the twin's keys.
+    subscribed : threading.Event, optional
+        Set once the subscriptions are in place at the twin: declared, and a query of its
+        status answered over the same link after them (up to 5 s for the answer), so that
+        what is published from then on, an injection's events too, is seen.
+
+    Returns
+    -------
+    LiveStats
+        What was streamed.
     """
 
     stop = stop or threading.Event()
@@ -85,6 +97,9 @@ def stream(rec, connect: Sequence[str], *, config_file: str | None = None, ifo: 
     subs = [session.declare_subscriber(all_data(root), on_data),
             session.declare_subscriber(control_key(ifo, "events", root),
                                        lambda s: inbox.put(("event", s.payload.to_bytes())))]
+    if subscribed is not None:
+        list(session.get(control_key(ifo, "status", root), timeout=5.0))  # a round trip
+        subscribed.set()
     started = time.monotonic()
     next_flush = started + flush_s
     try:

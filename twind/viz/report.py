@@ -96,7 +96,8 @@ def _nominal(d: Diagnosis) -> str:
 
 def _hypotheses(d: Diagnosis) -> str:
     """Every hypothesis of the first step, then the effects chosen later, with their
-    p-values, delta BIC and parameters; the claimed ones in bold."""
+    p-values, delta BIC and parameters, the claimed ones in bold; then those that gave no
+    fit to weigh at any step, with the reason."""
     chosen = {e.effect: e for e in d.effects}
     tried = {e.effect: e for e in d.first_step}
     tried.update(chosen)
@@ -113,6 +114,12 @@ def _hypotheses(d: Diagnosis) -> str:
         rows.append((e.effect, role, _number(own.p_value, 2), _number(own.delta_bic, 3),
                      params))
         classes.append("claimed" if e.effect in chosen else "")
+    shown = set(tried)
+    for x in d.not_fitted:
+        if x.effect not in shown:  # one row a hypothesis (later steps' in the JSON)
+            shown.add(x.effect)
+            rows.append((x.effect, f"not weighed at step {x.step}: {x.reason}", "", "", ""))
+            classes.append("")
     return _table("hypotheses", ("hypothesis", "verdict", "p-value", "delta BIC",
                                  "parameters ± sigma"), rows, classes)
 
