@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 import control
+import numba
 import numpy as np
 import pytest
 from scipy import signal, stats
@@ -123,6 +124,10 @@ def test_threads_do_not_change_the_result(cfg) -> None:
                  threads=2).step(3000, exc=exc)
     for p in POINTS:
         assert np.array_equal(getattr(one, p), getattr(two, p)), p
+    # more threads than numba's pool (one CPU: taskset, a container) run on the pool's
+    many = Engine([cfg.optics[k].loop() for k in ("ETMX", "ITMX", "MC2")], seed=5, threads=64)
+    assert many.threads == min(3, numba.config.NUMBA_NUM_THREADS)
+    assert np.array_equal(many.step(3000, exc=exc).out, one.out)
 
 
 @pytest.mark.parametrize("eight", [False, True], ids=["one stream", "eight streams"])

@@ -125,8 +125,9 @@ class Engine:
     rate_hz : float
         Model rate.
     threads : int, optional
-        Threads to share the optics among (default: numba's, but one for a single optic);
-        each optic runs on one thread for a whole step.
+        Threads to share the optics among (default: numba's, but one for a single optic),
+        at most as many as numba's pool has (``NUMBA_NUM_THREADS``: the CPUs this process
+        may run on); each optic runs on one thread for a whole step.
     """
 
     def __init__(self, loops: Sequence[DampingLoop], noise: NoiseSpec | Mapping[str, NoiseSpec]
@@ -136,7 +137,8 @@ class Engine:
         self.optics = tuple(lp.name for lp in self.loops)
         self.rate_hz = float(rate_hz)
         self.samples = 0
-        self.threads = min(len(self.loops), threads or nb.config.NUMBA_NUM_THREADS)
+        pool = nb.config.NUMBA_NUM_THREADS
+        self.threads = min(len(self.loops), threads or pool, pool)
         specs = [noise[n] if isinstance(noise, Mapping) else noise for n in self.optics]
         n_opt = len(self.loops)
         self._order: list[NDArray[np.int64]] = [np.zeros(0, dtype=np.int64)] * n_opt
