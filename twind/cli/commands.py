@@ -389,7 +389,7 @@ def _bench(p: argparse.ArgumentParser) -> None:
                    "corpus measurement's (default 0.01 for XML, example_null's; 0.05 for "
                    "MCAP)")
     p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
-                   help="pull: TF estimator")
+                   help="pull, and rates' nulls: TF estimator")
     p.add_argument("--workers", type=int, default=1,
                    help="pull: realisations measured and fitted side by side")
     p.add_argument("--no-marginal", action="store_true",

@@ -97,7 +97,7 @@ def _bench_rates(args: argparse.Namespace) -> int:
 
     cfg = _optic(args, args.optic)
     effects = _effects(args, list(NEAR_LIMIT))
-    null_set = nulls(cfg, 20 if args.nulls is None else args.nulls)
+    null_set = nulls(cfg, 20 if args.nulls is None else args.nulls, estimator=args.estimator)
     effect_set = concealed(cfg, 3 if args.per_effect is None else args.per_effect, effects)
     print("\n".join(report(null_set, effect_set)))
     return 0

@@ -24,6 +24,7 @@ from twind.cli.twin import client
 from twind.client import TwinClient
 from twind.config import MEASURED_MODES, load_config
 from twind.errors import TwindError
+from twind.recording.frames import FORMATS, parse_map
 from twind.recording.reader import as_array, getdata
 from twind.recording.session import session_files
 from twind.service.ringdown import served_ringdown
@@ -32,7 +33,8 @@ from twind.viz.report import write_report
 
 
 def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
-    """The TFs of ``args.inputs``: all diaggui XML or all MCAP sessions."""
+    """The TFs of ``args.inputs``: all diaggui XML, or time series (MCAP sessions, or HDF5
+    files or GWF frames)."""
 
     _check_band(args)
     paths = [Path(p) for p in args.inputs]
@@ -47,11 +49,17 @@ def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
                    "diaggui's Welch estimates only")
             raise TwindError(msg)
         return from_diaggui(paths)
-    if kinds <= {".mcap"}:
-        return from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic,
-                            estimator=args.estimator,
-                            max_hz=args.band[1] if args.band else None)
-    msg = f"inputs must be all diaggui .xml or all .mcap, got {sorted(kinds)}"
+    if kinds <= {".mcap"} or kinds <= set(FORMATS):
+        tfs = from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic,
+                           estimator=args.estimator,
+                           max_hz=args.band[1] if args.band else None,
+                           mapping=parse_map(args.map),
+                           exc_times={d: (a, b) for d, a, b in args.exc_times})
+        for line in tfs.found:
+            print(f"twind: excitation found in the data: {line}", file=sys.stderr)
+        return tfs
+    msg = (f"inputs must be all diaggui .xml, all .mcap, or all HDF5 (.h5, .hdf5) or GWF "
+           f"(.gwf), got {sorted(kinds)}")
     raise TwindError(msg)
 
 
@@ -82,7 +90,7 @@ def cmd_tf(args: argparse.Namespace) -> int:
         return _show_transfers(args, str(err))
     if args.band:
         tfs = tfs.band(*args.band)
-    elif all(Path(p).suffix.lower() == ".mcap" for p in args.inputs):
+    elif not all(Path(p).suffix.lower() == ".xml" for p in args.inputs):
         # a recording's bins reach Nyquist: 800 000 at 0.01 Hz, most of them noise
         band = tfs.coherent_band()
         if band is None:

@@ -39,15 +39,39 @@ def bus_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
 
 
+def exc_span(text: str) -> tuple[str, float, float]:
+    """An ``--exc-times`` argument: ``DOF:START:END``, GPS seconds, START before END."""
+    dof, _, span = text.partition(":")
+    start, _, end = span.partition(":")
+    try:
+        a, b = float(start), float(end)
+    except ValueError:
+        a = b = math.nan
+    if dof not in ("POS", "PIT", "YAW", "SIDE") or not (math.isfinite(a) and a < b < math.inf):
+        msg = f"not DOF:START:END (e.g. POS:1400000000:1400000300): {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return dof, a, b
+
+
 def input_arguments(p: argparse.ArgumentParser) -> None:
-    """Measured transfer functions: diaggui XML files or MCAP sessions, and how to read them."""
-    p.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF) or MCAP")
-    p.add_argument("--bw", type=float, default=0.01, help="MCAP: Welch resolution (Hz)")
-    p.add_argument("--overlap", type=float, default=0.5, help="MCAP: Welch overlap")
-    p.add_argument("--optic", help="MCAP: the optic, when several were excited")
+    """Measured transfer functions: diaggui XML files, MCAP sessions, or the data system's
+    HDF5 files or GWF frames, and how to read them."""
+    p.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF), MCAP "
+                   "sessions, or gwpy HDF5 files or GWF frames")
+    p.add_argument("--bw", type=float, default=0.01, help="time series: Welch resolution (Hz)")
+    p.add_argument("--overlap", type=float, default=0.5, help="time series: Welch overlap")
+    p.add_argument("--optic", help="time series: the optic, when several were excited")
     p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
-                   help="MCAP: Welch (diaggui's) or Pintelon-Schoukens' local polynomial "
-                        "method over each whole excitation (leakage removed; --bw unused)")
+                   help="time series: Welch (diaggui's) or Pintelon-Schoukens' local "
+                        "polynomial method over each whole excitation (leakage removed; "
+                        "--bw unused)")
+    p.add_argument("--map", action="append", default=[], metavar="RECORDED=TWIN",
+                   help="HDF5/GWF: a recorded channel-name prefix and the twin's, e.g. "
+                        "C2:=C1: (repeatable; a final _DQ is dropped anyway)")
+    p.add_argument("--exc-times", type=exc_span, action="append", default=[],
+                   metavar="DOF:START:END",
+                   help="time series: an excitation's GPS span, when the recording has no "
+                        "injection events and its EXC was not recorded (repeatable)")
     p.add_argument("--band", type=frequency, nargs=2, metavar=("LO", "HI"),
                    help="only the frequencies from LO to HI Hz")
     p.add_argument("--json", action="store_true", help="the numbers as JSON")

@@ -179,7 +179,7 @@ def record_measurement(cfg: OpticConfig, path: str | Path, dofs: Sequence[str] =
                        *, bw: float = 0.05, averages: int = 10, overlap: float = 0.5,
                        rms: float = 1.0, f_max: float = 30.0, seed: int = 0,
                        plant: Plant | None = None, ifo: str = "C1",
-                       gps_start: float = 1.4e9) -> Path:
+                       gps_start: float = 1.4e9, events: bool = True) -> Path:
     """The measurement :func:`measure_tfs` makes, recorded as a twin session: `cfg`'s optic
     excited on each DOF in turn (white noise, :data:`SETTLE_S` of settling then enough for
     `averages`), its test points written to an MCAP file with the injection events
@@ -197,6 +197,9 @@ def record_measurement(cfg: OpticConfig, path: str | Path, dofs: Sequence[str] =
         Channel-name prefix.
     gps_start : float
         GPS time of the first sample.
+    events : bool
+        Whether the injection events are written (not: as the data system records, the
+        excitations left to be found in EXC).
 
     Returns
     -------
@@ -218,10 +221,12 @@ def record_measurement(cfg: OpticConfig, path: str | Path, dofs: Sequence[str] =
             event = {"id": f"exc-{k}", "channel": dof_channel(ifo, cfg.name, dof, "EXC"),
                      "start_gps": start, "request": {"waveform": "noise", "amp": rms,
                                                      "duration": n / rate}}
-            w.write_event({"event": "start", "gps": start, **event})
+            if events:
+                w.write_event({"event": "start", "gps": start, **event})
             exc = np.zeros((1, len(DOFS), n))
             exc[0, DOFS.index(dof)] = white_excitation(n, rate, rms, f_max, rng)
             for a in range(0, n, BLOCK):
                 w.write_block(engine.step(BLOCK, exc=exc[:, :, a:a + BLOCK]))
-            w.write_event({"event": "end", "gps": start + n / rate, **event})
+            if events:
+                w.write_event({"event": "end", "gps": start + n / rate, **event})
     return Path(path)

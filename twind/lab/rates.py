@@ -91,8 +91,8 @@ def outcome(cfg: OpticConfig, measurement: dict, job: tuple[Case, int]) -> Outco
     cfg : OpticConfig
         The nominal optic.
     measurement : dict
-        ``bw``, ``averages`` and ``rms`` of :func:`~twind.lab.measurement.measure_tfs`
-        (POS, PIT and YAW excited in turn).
+        Keywords of :func:`~twind.lab.measurement.measure_tfs` (POS, PIT and YAW excited in
+        turn).
     job : (Case, int)
         The case and the seed of its measurement.
 
@@ -111,7 +111,7 @@ def outcome(cfg: OpticConfig, measurement: dict, job: tuple[Case, int]) -> Outco
 
 
 def outcomes(cfg: OpticConfig, cases: Sequence[Case], seed: int, workers: int = 2,
-             bw: float = 0.05, averages: int = 10, rms: float = 3.0) -> list[Outcome]:
+             **measurement: float | int | str) -> list[Outcome]:
     """:func:`outcome` of each of `cases`, `workers` processes side by side.
 
     Parameters
@@ -124,15 +124,16 @@ def outcomes(cfg: OpticConfig, cases: Sequence[Case], seed: int, workers: int = 
         Case ``k`` is measured with seed ``seed + k``.
     workers : int
         Processes (the outcomes do not depend on it).
-    bw, averages, rms : float, int, float
-        The measurement (:func:`~twind.lab.measurement.measure_tfs`).
+    **measurement
+        Of :func:`~twind.lab.measurement.measure_tfs` (``bw``, ``averages``, ``rms``,
+        ``estimator``): default :data:`CONCEALED`'s.
 
     Returns
     -------
     list of Outcome
         In the order of `cases`.
     """
-    one = partial(outcome, cfg, {"bw": bw, "averages": averages, "rms": rms})
+    one = partial(outcome, cfg, {**CONCEALED, **measurement})
     jobs = [(case, seed + k) for k, case in enumerate(cases)]
     # spawned, not forked: numba's OpenMP threads do not survive a fork
     spawn = multiprocessing.get_context("spawn")
@@ -187,8 +188,10 @@ def p_values_too_small(p: Sequence[float]) -> float:
     return float(stats.kstest(np.asarray(p), "uniform", alternative="greater").pvalue)
 
 
-def nulls(cfg: OpticConfig, n: int, seed: int = 500, workers: int = 2) -> list[Outcome]:
-    """`n` drifted optics with no effect (the corpus' nulls), measured with :data:`NULLS`.
+def nulls(cfg: OpticConfig, n: int, seed: int = 500, workers: int = 2,
+          **measurement: float | int | str) -> list[Outcome]:
+    """`n` drifted optics with no effect (the corpus' nulls), measured with :data:`NULLS`
+    and `measurement`'s changes to it.
 
     Parameters
     ----------
@@ -200,13 +203,16 @@ def nulls(cfg: OpticConfig, n: int, seed: int = 500, workers: int = 2) -> list[O
         Seed of the drifts (the measurements use ``seed + 100 + k``).
     workers : int
         Processes side by side.
+    **measurement
+        Keywords of :func:`~twind.lab.measurement.measure_tfs` that differ from
+        :data:`NULLS` (``estimator="lpm"``: the local polynomial method's nulls).
 
     Returns
     -------
     list of Outcome
     """
     cases = make_cases(cfg, None, per_effect=0, nulls=n, seed=seed)
-    return outcomes(cfg, cases, seed + 100, workers, **NULLS)
+    return outcomes(cfg, cases, seed + 100, workers, **{**NULLS, **measurement})
 
 
 def concealed(cfg: OpticConfig, per_effect: int, effects: Sequence[str] = NEAR_LIMIT,

@@ -90,6 +90,7 @@ import re
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Union
 
 import numpy as np
@@ -760,6 +761,13 @@ def parse_design(design: str) -> ZPK:
     if not isinstance(design, str):
         msg = f"a foton design must be a string, got {type(design).__name__}"
         raise FotonError(msg)
+    return _parsed(design)
+
+
+@lru_cache(maxsize=4096)
+def _parsed(design: str) -> ZPK:
+    """A design parsed once (a ZPK is immutable): a fit evaluates the damping loop's filter
+    responses thousands of times, and parsing was most of the fit's time."""
     return _Parser(design).parse()
 
 

@@ -1,4 +1,5 @@
-"""Read twind sessions: MCAP files (one, or a rotated set) or the live bus.
+"""Read twind sessions: MCAP files (one, or a rotated set), the data system's HDF5 files or
+GWF frames, or the live bus.
 
 :func:`read_session` returns every channel's samples joined across blocks and files, with
 the sequence numbers and any gaps (:mod:`twind.recording.fastread` is its engine);
@@ -11,7 +12,7 @@ from __future__ import annotations
 import math
 import queue
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ from numpy.typing import NDArray
 from twind.bus.keys import data_key
 from twind.bus.session import DEFAULT_ENDPOINT, ENDPOINT, zenoh_config, zenoh_message
 from twind.recording.fastread import read_channels
+from twind.recording.frames import is_frames, read_frames
 from twind.recording.session import Assembler, Channel, RecordingError, Session, some_names
 from twind.recording.writer import TOPIC_ROOT
 from twind.timeutil import now_gps
@@ -137,7 +139,8 @@ def _as_series(parts: dict[str, tuple[NDArray[np.float64], float, Channel]]) -> 
 
 
 def getdata(channels: str | Sequence[str], duration: float | None, start: float | None = None,
-            source: Any = None, timeout: float | None = None) -> Any:
+            source: Any = None, timeout: float | None = None,
+            mapping: Mapping[str, str] | None = None) -> Any:
     """A GPS span of some channels, from a recording or from the bus.
 
     Parameters
@@ -150,12 +153,16 @@ def getdata(channels: str | Sequence[str], duration: float | None, start: float 
         GPS start. Default: the first time every channel has data (a recording's start, or
         the first block received from the bus).
     source : path, list of paths, endpoint or zenoh.Config
-        A recording (see :func:`session_files`), or the bus to subscribe to for `duration`
-        seconds: a Zenoh endpoint such as ``"tcp/127.0.0.1:7447"`` (the default) or a
-        configuration.
+        A recording: MCAP (see :func:`session_files`), or gwpy HDF5 files or GWF frames
+        (:func:`~twind.recording.frames.read_frames`), the files ``twind tf`` takes; or the
+        bus to subscribe to for `duration` seconds: a Zenoh endpoint such as
+        ``"tcp/127.0.0.1:7447"`` (the default) or a configuration.
     timeout : float, optional
         Bus only: wall-clock seconds to wait for the data; default ``2 * duration + 10`` plus
         the wait until `start`.
+    mapping : mapping of str to str, optional
+        HDF5 and GWF: recorded channel names to the twin's (``--map``;
+        :func:`~twind.recording.frames.renamer`). `channels` are the twin's names.
 
     Returns
     -------
@@ -185,8 +192,15 @@ def getdata(channels: str | Sequence[str], duration: float | None, start: float 
             msg = "getdata: reading from the bus needs a duration"
             raise RecordingError(msg)
         joined = _collect_from_bus(source, names, duration, start, timeout)
+    elif _frames(source):
+        joined = read_frames([source] if isinstance(source, str | Path) else source,
+                             set(names).__contains__, mapping).channels
     else:
         joined = read_session(source, names).channels
+    missing = [n for n in names if n not in joined]
+    if missing:
+        msg = f"{missing[0]} is not in the recording; it holds {some_names(joined)}"
+        raise RecordingError(msg)
     if start is None:
         start = max(joined[n].t0 for n in names)
     if duration is None:
@@ -196,6 +210,13 @@ def getdata(channels: str | Sequence[str], duration: float | None, start: float 
         x, t0 = _slice(joined[n], start, duration)
         parts[n] = (x, t0, joined[n])
     return _as_series(parts)
+
+
+def _frames(source: Any) -> bool:  # noqa: ANN401 - a path or paths
+    """Whether `source` names HDF5 files or GWF frames."""
+    paths = [source] if isinstance(source, str | Path) else source
+    return isinstance(paths, list | tuple) and bool(paths) and all(
+        isinstance(p, str | Path) and is_frames(p) for p in paths)
 
 
 def as_array(data: Any) -> tuple[NDArray[np.float64], float]:

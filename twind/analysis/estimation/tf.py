@@ -27,10 +27,13 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
+from twind.analysis.estimation.excitations import SHORTEST_S, at_one_rate, found
 from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
 from twind.recording.fastread import read_channels, stream_channels
+from twind.recording.frames import is_frames, read_frames
+from twind.recording.session import Channel
 
 __all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
            "highpassed", "welch_tf", "welch_tfs", "xml_transfer"]
@@ -111,6 +114,7 @@ class TFSet:
     # correlation of the IN1/EXC errors of the responses, [f, response, response, excited]
     # (the LPM's; Welch's are taken as independent)
     in1_correlation: NDArray[np.complex128] | None = None
+    found: tuple[str, ...] = ()  # the excitations found in the data (no injection events)
 
     def sigma(self, point: str) -> NDArray[np.float64]:
         """Standard error of the real and of the imaginary part of each element of
@@ -436,20 +440,27 @@ def _test_point(optic: str | None) -> Callable[[str], bool]:
 def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float = 0.5,
                  optic: str | None = None, window: str = "hann", settle_s: float = 0.0,
                  highpass_hz: float | None = None, estimator: str = "welch",
-                 max_hz: float | None = None) -> TFSet:
-    """Transfer functions of the excitations recorded in MCAP sessions.
+                 max_hz: float | None = None, mapping: Mapping[str, str] | None = None,
+                 exc_times: Mapping[str, tuple[float, float]] | None = None) -> TFSet:
+    """Transfer functions of the excitations recorded in MCAP sessions, gwpy HDF5 files or
+    GWF frames.
 
-    Each excited DOF's segment runs from its injection's start to its end (the recorded
-    ``start``/``end``/``stop`` events); windows of ``1/bw`` seconds. Only the test points
-    (EXC, IN1, IN2, OUT) are read, of `optic` if given; the response DOFs are those whose
-    IN1, IN2 and OUT were recorded. The Welch sums are taken while the files are read
-    (:class:`~twind.analysis.estimation.welch.WelchStream`); a recording with gaps, late events or a
-    high-pass is read whole instead, with the same result.
+    Each excited DOF's segment runs from its injection's start to its end: the recorded
+    ``start``/``end``/``stop`` events, or where there are none (the data system's
+    recordings) the EXC channel's longest nonzero stretch
+    (:mod:`twind.analysis.estimation.excitations`), or `exc_times`. Windows of ``1/bw``
+    seconds. Only the test points (EXC, IN1, IN2, OUT) are read, of `optic` if given; the
+    response DOFs are those whose IN1, IN2 and OUT were recorded; test points at different
+    rates are brought to the slowest. The Welch sums of an MCAP session with events are
+    taken while the files are read (:class:`~twind.analysis.estimation.welch.WelchStream`);
+    a recording with gaps, late events or a high-pass is read whole instead, with the same
+    result.
 
     Parameters
     ----------
     paths : sequence of path
-        MCAP files of one session (see :func:`twind.recording.session.session_files`).
+        MCAP files of one session (see :func:`twind.recording.session.session_files`), or
+        HDF5 files or GWF frames (:func:`twind.recording.frames.read_frames`).
     bw : float
         Resolution (Hz): segments of ``round(rate / bw)`` samples.
     overlap : float
@@ -470,6 +481,12 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         estimates fall on the same frequencies.
     max_hz : float, optional
         LPM: estimates up to here are those of the whole band (default: Nyquist).
+    mapping : mapping of str to str, optional
+        HDF5 and GWF: recorded channel names to the twin's
+        (:func:`twind.recording.frames.renamer`; ``_DQ`` is dropped anyway).
+    exc_times : mapping of str to (float, float), optional
+        GPS start and end of each excited DOF's excitation, given by hand (before any
+        found in the events or the data).
 
     Returns
     -------
@@ -478,25 +495,29 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     Raises
     ------
     TFError
-        If no excitation is found, several optics were excited and `optic` is not given, or
-        an excitation is shorter than ``1/bw``.
+        If no excitation is found, several optics were excited and `optic` is not given, an
+        excitation is a single sine (not estimated yet), or it is shorter than ``1/bw``.
     """
     check_estimator(estimator)
-    if not highpass_hz and estimator == "welch":
+    frames = any(is_frames(p) for p in paths)
+    if not (highpass_hz or frames or exc_times) and estimator == "welch":
         tfs = _streamed(paths, bw, overlap, optic, window, settle_s)
         if tfs is not None:
             return tfs
 
-    session = read_channels(list(paths), _test_point(optic))
-    extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in session.channels.items()}
-    plans = {key: _Plan.of(key, start, end, extents, settle_s) for key, (start, end)
-             in _excitations(session.events, extents, optic, paths).items()}
+    session = (read_frames(paths, _test_point(optic), mapping) if frames
+               else read_channels(list(paths), _test_point(optic)))
+    channels = at_one_rate(session.channels)
+    extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in channels.items()}
+    segments, notes = _excitations(session.events, channels, optic, paths, exc_times)
+    plans = {key: _Plan.of(key, start, end, extents, settle_s)
+             for key, (start, end) in segments.items()}
     shortest = min(plan.n - plan.skip for plan in plans.values())
     columns, freq, averages, estimates = {}, None, None, {}
     for key, plan in plans.items():
-        whole = [session[c].samples[o:][:plan.n] for c, o in zip(plan.names, plan.offsets,
-                                                                  strict=True)]
-        rate = session[plan.names[0]].rate
+        whole = [channels[c].samples[o:][:plan.n] for c, o in zip(plan.names, plan.offsets,
+                                                                   strict=True)]
+        rate = channels[plan.names[0]].rate
         if highpass_hz:
             x, *ys = highpassed(whole, rate, highpass_hz, plan.skip)
         else:
@@ -511,6 +532,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(plan.keys)}
     tfs = assemble(key[1], freq, columns, averages)
     tfs.window = window
+    tfs.found = notes
     return with_lpm(tfs, estimates) if estimates else tfs
 
 
@@ -626,26 +648,52 @@ def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
     return nperseg
 
 
-def _excitations(events: list[dict], extents: Mapping[str, Extent], optic: str | None,
-                 paths: Sequence[str | Path]) -> dict[tuple[str, str, str], tuple[float, float]]:
-    """The excitation of each excited DOF of one optic (refused: none, several optics)."""
-    segments = _segments(events, _rate(extents))
+def _excitations(events: list[dict], channels: Mapping[str, Channel], optic: str | None,
+                 paths: Sequence[str | Path],
+                 exc_times: Mapping[str, tuple[float, float]] | None = None
+                 ) -> tuple[dict[tuple[str, str, str], tuple[float, float]], tuple[str, ...]]:
+    """The excitation of each excited DOF of one optic: given by hand, from the injection
+    events, or else found in the EXC channels' data (refused: none, several optics, a
+    single sine); and the excitations found in the data, described."""
+    if exc_times:
+        segments = {key: exc_times[key[2]] for key in _exc_keys(channels)
+                    if key[2] in exc_times}
+    else:
+        segments = _segments(events, max((c.rate for c in channels.values()), default=16384.0))
+    notes: tuple[str, ...] = ()
+    if not exc_times and not any(optic in (None, k[1]) for k in segments):
+        stretches = {k: s for k, s in found(channels).items() if optic in (None, k[1])}
+        sines = [s for s in stretches.values() if s.waveform == "sine"]
+        if sines:
+            msg = (f"{sines[0]}: a single sine; twind estimates transfer functions from "
+                   "noise, multisines and swept sines (a sine's demodulation is not built)")
+            raise TFError(msg)
+        segments = {k: (s.start, s.end) for k, s in stretches.items()}
+        notes = tuple(map(str, stretches.values()))
     if optic is not None:
         segments = {k: v for k, v in segments.items() if k[1] == optic}
     if not segments:
-        msg = f"{', '.join(map(str, paths))}: no excitation segment found in the injection events"
+        msg = (f"{', '.join(map(str, paths))}: no excitation found: no injection events, no "
+               f"nonzero EXC stretch of {SHORTEST_S:g} s or more in the data (give the spans "
+               "with --exc-times DOF:START:END)")
         raise TFError(msg)
     optics = {k[1] for k in segments}
     if len(optics) > 1:
         msg = f"excitations on several optics {sorted(optics)}: choose one with --optic"
         raise TFError(msg)
-    return segments
+    return segments, notes
+
+
+def _exc_keys(channels: Mapping[str, Channel]) -> list[tuple[str, str, str]]:
+    """(ifo, optic, DOF) of every EXC channel recorded."""
+    return [(m["ifo"], m["optic"], m["dof"]) for m in map(_CHANNEL.match, channels)
+            if m and m["point"] == "EXC"]
 
 
 def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str | None,
               window: str, settle_s: float) -> TFSet | None:
     """:func:`from_session` summed while reading; None where the recording must be read whole
-    (gaps, events recorded late, an excitation shorter than a segment)."""
+    (gaps, events recorded late or none, an excitation shorter than a segment)."""
 
     def planner(events: list[dict], extents: Mapping[str, Extent]) -> dict:
         return {key: _Plan.of(key, start, end, extents, settle_s).segment
@@ -660,8 +708,9 @@ def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str
         raise
     results = stream.result()
     extents = stream.extents()
-    excitations = _excitations(session.events, extents, optic, paths)
-    if results is None or set(results) != set(excitations):
+    excitations = {k: v for k, v in _segments(session.events, _rate(extents)).items()
+                   if optic in (None, k[1])}
+    if not excitations or results is None or set(results) != set(excitations):
         return None
     columns, averages = {}, 0
     for key, (start, end) in excitations.items():

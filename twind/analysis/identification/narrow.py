@@ -271,7 +271,8 @@ def _columns(data: FitData, cfg: OpticConfig, plant: Plant, sus: SOSParams, dof:
     def first_order(at: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
         loop = _loop_at(cfg, plant, at)  # B: (bins, points, patterns x responses x excited)
         B = np.stack([_first_order(loop, c, rows, cols) for c in patterns_c], axis=2)
-        return B.reshape(*at.shape, -1), loop[3]
+        # the last size written out: -1 is ambiguous when no bin is near the band
+        return B.reshape(*at.shape, int(np.prod(B.shape[at.ndim:]))), loop[3]
 
     d2, w2 = _two_point(res)
     B2, s2 = first_order(f[bins, None] + res * d2)

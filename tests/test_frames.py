@@ -1,0 +1,173 @@
+"""Recordings of the lab's data system: gwpy HDF5 files and GWF frames with ``_DQ`` names at
+their own rates and no injection events, and MCAP sessions without events. Each is made from
+one twin measurement (the engine's, recorded with its events) so that the route through the
+events is the truth the others must give."""
+
+from __future__ import annotations
+
+import io
+import json
+from contextlib import redirect_stdout
+from pathlib import Path
+
+import numpy as np
+import pytest
+from gwpy.timeseries import TimeSeries, TimeSeriesDict
+from scipy import signal
+
+from twind.analysis.estimation.excitations import found, recognise
+from twind.analysis.estimation.tf import TFError, from_session
+from twind.cli import main
+from twind.config import NOMINAL_ETMX, load_optic
+from twind.excitation.request import ExcitationRequest
+from twind.excitation.waveforms import make_waveform
+from twind.lab.measurement import record_measurement
+from twind.model.effects import CATALOGUE
+from twind.recording.frames import read_frames, renamer
+from twind.recording.reader import getdata, read_session
+from twind.recording.session import RecordingError
+
+BW = 0.25
+GPS = 1.4e9
+DAQ_RATE = 2048  # the data system's rate of EXC here; the other test points stay at 16384
+MAP = {"C2:": "C1:"}  # the files' IFO prefix is another's
+
+
+@pytest.fixture(scope="module")
+def etmx():  # noqa: ANN201
+    return load_optic(NOMINAL_ETMX)
+
+
+@pytest.fixture(scope="module")
+def recorded(etmx, tmp_path_factory):  # noqa: ANN001, ANN201
+    """One measurement, with and without its injection events, and as HDF5 and GWF."""
+    d = tmp_path_factory.mktemp("frames")
+    kw = {"bw": BW, "averages": 10, "rms": 3.0, "seed": 5, "gps_start": GPS}
+    events = record_measurement(etmx, d / "events.mcap", **kw)
+    bare = record_measurement(etmx, d / "bare.mcap", events=False, **kw)
+    data = TimeSeriesDict()
+    for name, ch in read_session(bare).channels.items():
+        q = int(ch.rate // DAQ_RATE) if name.endswith("_EXC") else 1
+        stored = f"{name.replace('C1:', 'C2:')}_DQ"
+        data[stored] = TimeSeries(signal.resample_poly(ch.samples, 1, q), t0=ch.t0,
+                                  sample_rate=ch.rate / q, name=stored, channel=stored)
+    data.write(str(d / "dq.h5"))
+    data.write(str(d / "dq.gwf"))
+    return {"events": events, "bare": bare, "h5": d / "dq.h5", "gwf": d / "dq.gwf"}
+
+
+def _tf_json(*args: str) -> dict:
+    out = io.StringIO()
+    with redirect_stdout(out):
+        assert main(["tf", *args, "--bw", str(BW), "--json", "--band", "0.3", "8"]) == 0
+    return json.loads(out.getvalue())
+
+
+@pytest.mark.parametrize("kind", ["h5", "gwf"])
+def test_hdf5_and_frames_give_the_tfs_of_the_mcap_route(recorded, kind: str,  # noqa: ANN001
+                                                        capsys) -> None:  # noqa: ANN001
+    truth = _tf_json(str(recorded["events"]))
+    got = _tf_json(str(recorded[kind]), "--map", "C2:=C1:")
+    said = capsys.readouterr().err
+    assert "resampled to 2048 Hz" in said and "C1:SUS-ETMX_SUSPOS_IN1 (16384 Hz)" in said
+    assert said.count("excitation found in the data") == 3
+    assert got["excited"] == truth["excited"] == ["POS", "PIT", "YAW"]
+    assert np.allclose(got["frequency_hz"], truth["frequency_hz"])
+    h = np.array(got["IN1_per_EXC"]["re"]) + 1j * np.array(got["IN1_per_EXC"]["im"])
+    h0 = np.array(truth["IN1_per_EXC"]["re"]) + 1j * np.array(truth["IN1_per_EXC"]["im"])
+    sigma = np.array(truth["sigma_IN1"])
+    coherent = np.array(truth["coherence_IN1"]) > 0.5
+    # the same noise, resampled: differences far inside the errors
+    assert coherent.sum() > 50
+    assert np.max(np.abs(h - h0)[coherent] / sigma[coherent]) < 0.2
+
+
+def test_a_session_without_events_finds_the_segments_the_engine_used(recorded, etmx  # noqa: ANN001
+                                                                     ) -> None:
+    rate = etmx.sus.sample_rate_hz
+    session = read_session(recorded["bare"])
+    assert session.events == []
+    stretches = found(session.channels)
+    # record_measurement's: each DOF in turn, whole engine blocks of settling and averages
+    span = next(iter(stretches.values())).end - GPS
+    for k, dof in enumerate(["POS", "PIT", "YAW"]):
+        s = stretches[("C1", "ETMX", dof)]
+        assert abs(s.start - (GPS + k * span)) < 1 / rate
+        assert abs(s.end - (GPS + (k + 1) * span)) < 1 / rate
+        assert s.waveform == "noise", s
+    events = [e for e in read_session(recorded["events"]).events if e["event"] == "start"]
+    assert [e["start_gps"] for e in events] == pytest.approx(
+        [stretches[("C1", "ETMX", d)].start for d in ["POS", "PIT", "YAW"]], abs=1 / rate)
+    bare = from_session([recorded["bare"]], bw=BW)
+    truth = from_session([recorded["events"]], bw=BW)
+    assert len(bare.found) == 3
+    assert np.allclose(bare.tf["IN1"], truth.tf["IN1"], equal_nan=True)
+    by_hand = from_session([recorded["bare"]], bw=BW, exc_times={
+        d: (s.start, s.end) for (_, _, d), s in stretches.items()})
+    assert np.allclose(by_hand.tf["IN1"], truth.tf["IN1"], equal_nan=True)
+
+
+def test_diagnose_runs_on_the_data_systems_files(recorded, capsys) -> None:  # noqa: ANN001
+    assert main(["diagnose", str(recorded["h5"]), "--map", "C2:=C1:", "--bw", str(BW),
+                 "--band", "0.3", "8", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    # the nominal optic measured: its nominal model fits, every hypothesis is weighed
+    assert 0.5 < out["chi2_nu_nominal"] < 1.5, out["summary"]
+    assert set(CATALOGUE) <= set(out["p_values"]) | {x["effect"] for x in out["not_fitted"]}
+
+
+@pytest.mark.parametrize(("waveform", "kw", "tones"), [
+    ("sine", {"freq": 3.3}, [3.3]),
+    ("multisine", {"freqs": (0.5, 1.1, 2.3, 7.7)}, [0.5, 1.1, 2.3, 7.7]),
+    ("sweep", {"freq": 0.1, "f_stop": 30.0}, []),
+    ("noise", {}, []),
+])
+def test_waveforms_are_recognised(waveform: str, kw: dict, tones: list) -> None:
+    rate = 16384.0
+    req = ExcitationRequest("C1:SUS-ETMX_SUSPOS_EXC", waveform, amp=1.0, duration=40.0, **kw)
+    x = make_waveform(req, rate).next(int(40 * rate))
+    kind, found_tones = recognise(x, rate)
+    assert kind == {"sweep": "swept sine"}.get(waveform, waveform)
+    # a multisine's tones fall on its period's grid, within 0.02 Hz of those asked for
+    assert np.allclose(found_tones, tones, atol=0.02)
+
+
+def test_getdata_reads_the_same_files(recorded) -> None:  # noqa: ANN001
+    name = "C1:SUS-ETMX_SUSPIT_IN1"
+    a = getdata(name, 10.0, GPS + 5, source=str(recorded["bare"]))[name]
+    b = getdata(name, 10.0, GPS + 5, source=[recorded["gwf"]], mapping=MAP)[name]
+    assert np.array_equal(np.asarray(a.value), np.asarray(b.value))
+    assert float(b.t0.value) == GPS + 5
+
+
+def test_bad_inputs_are_named(recorded, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"not hdf5")
+    with pytest.raises(RecordingError, match="not readable as hdf5"):
+        read_frames([junk])
+    with pytest.raises(RecordingError, match="not a mixture"):
+        read_frames([recorded["h5"], recorded["gwf"]])
+    with pytest.raises(RecordingError, match="none of its channels"):
+        read_frames([recorded["h5"]], lambda name: name.startswith("C1:"))
+    assert renamer({"C2:SUS-": "C1:SUS-", "C2:": "X1:"})("C2:SUS-A_DQ") == "C1:SUS-A"
+    assert main(["tf", str(recorded["h5"]), "--map", "C2"]) != 0
+    assert "RECORDED=TWIN" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["tf", str(recorded["h5"]), "--exc-times", "POS:5:1"])
+    assert "DOF:START:END" in capsys.readouterr().err
+
+    rate = 2048.0
+    t = np.arange(int(rate * 20)) / rate
+    quiet = TimeSeriesDict()
+    for point in ("EXC", "IN1", "IN2", "OUT"):
+        name = f"C1:SUS-ETMX_SUSPOS_{point}_DQ"
+        x = np.sin(2 * np.pi * 2.0 * t) if point == "EXC" else np.cos(t)
+        quiet[name] = TimeSeries(x, t0=GPS, sample_rate=rate, name=name, channel=name)
+    quiet.write(str(tmp_path / "sine.h5"))
+    with pytest.raises(TFError, match="a single sine"):
+        from_session([tmp_path / "sine.h5"])
+    for name in quiet:
+        quiet[name] = quiet[name] * 0
+    quiet.write(str(tmp_path / "zero.h5"), overwrite=True)
+    with pytest.raises(TFError, match="no excitation found"):
+        from_session([tmp_path / "zero.h5"])

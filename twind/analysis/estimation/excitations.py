@@ -1,0 +1,203 @@
+"""The excitations of a recording found in its data, for recordings with no injection events
+(the data system's: an awg or diaggui excitation leaves only its EXC test point).
+
+An EXC channel reads exactly zero while nothing is injected; :func:`stretches` returns its
+nonzero stretches, and :func:`recognise` what each one's waveform is (a sine, a multisine,
+a swept sine or noise) from its spectrum and envelope, so that the estimator can be one
+that fits it. :func:`at_one_rate` brings test points recorded at different rates (the
+``_DQ`` channels of one model may be stored at 256 to 16384 Hz) to the slowest of them with
+scipy's polyphase resampler, each resampling reported.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass
+from fractions import Fraction
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage, signal
+
+from twind.errors import MeasurementWarning
+from twind.recording.session import Channel, some_names
+
+WAVEFORMS = ("sine", "multisine", "swept sine", "noise")
+JOIN_S = 0.5
+"""Zero runs shorter than this (s) inside a stretch are part of it: a waveform's own zeros."""
+SHORTEST_S = 1.0
+"""Nonzero runs shorter than this (s) are not excitations."""
+LINE = 100.0
+"""How far (power) a spectral line stands above the median of the 65 bins around it."""
+TONAL = 0.9
+"""Fraction of the power within two bins of lines that makes a waveform tonal."""
+STEADY = 0.25
+"""Relative scatter of the envelope below which a broadband waveform is a sweep (noise's
+Rayleigh envelope scatters by 0.52)."""
+_EXC = re.compile(r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_EXC$")
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """One excitation found in an EXC channel.
+
+    Attributes
+    ----------
+    channel : str
+    start, end : float
+        GPS of its first sample and just after its last.
+    waveform : str
+        One of :data:`WAVEFORMS`.
+    tones_hz : tuple of float
+        The frequencies of a sine's or multisine's lines (empty otherwise).
+    """
+
+    channel: str
+    start: float
+    end: float
+    waveform: str
+    tones_hz: tuple[float, ...] = ()
+
+    def __str__(self) -> str:
+        tones = (f" at {', '.join(f'{f:.4g}' for f in self.tones_hz[:5])}"
+                 f"{' ...' if len(self.tones_hz) > 5 else ''} Hz" if self.tones_hz else "")
+        return (f"{self.channel}: GPS {self.start:.3f} to {self.end:.3f} "
+                f"({self.end - self.start:.1f} s), {self.waveform}{tones}")
+
+
+def stretches(ch: Channel, join_s: float = JOIN_S, shortest_s: float = SHORTEST_S
+              ) -> list[Stretch]:
+    """The nonzero stretches of an EXC channel, each with its waveform recognised.
+
+    Parameters
+    ----------
+    ch : Channel
+    join_s : float
+        Zero runs shorter than this (s) do not end a stretch.
+    shortest_s : float
+        Shorter stretches (s) are left out.
+
+    Returns
+    -------
+    list of Stretch
+        In time order.
+    """
+    on = np.flatnonzero(np.nan_to_num(ch.samples) != 0)
+    if on.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(on) > join_s * ch.rate)
+    firsts = np.r_[on[0], on[breaks + 1]]
+    lasts = np.r_[on[breaks], on[-1]] + 1
+    out = []
+    for a, b in zip(firsts, lasts, strict=True):
+        if b - a >= shortest_s * ch.rate:
+            kind, tones = recognise(ch.samples[a:b], ch.rate)
+            out.append(Stretch(ch.name, ch.t0 + a / ch.rate, ch.t0 + b / ch.rate, kind, tones))
+    return out
+
+
+def recognise(x: NDArray[np.float64], rate: float) -> tuple[str, tuple[float, ...]]:
+    """What waveform `x` is: tonal (a sine, a multisine) when spectral lines hold
+    :data:`TONAL` of its power, else a swept sine when its envelope is steady
+    (:data:`STEADY`), else noise.
+
+    Parameters
+    ----------
+    x : ndarray
+        The excitation's samples.
+    rate : float
+        Hz.
+
+    Returns
+    -------
+    (str, tuple of float)
+        The waveform (:data:`WAVEFORMS`) and, if tonal, its lines' frequencies (Hz).
+
+    Examples
+    --------
+    >>> t = np.arange(16384 * 20) / 16384
+    >>> recognise(np.sin(2 * np.pi * 3.3 * t), 16384.0)[0]
+    'sine'
+    """
+    nperseg = min(len(x), int(rate * 8))
+    f, p = signal.welch(x, rate, nperseg=nperseg)
+    # a line stands far above the spectrum around it (a band-limited noise's edge does not)
+    # and within 60 dB of the strongest (a rounding floor has peaks too)
+    floor = np.maximum(LINE * ndimage.median_filter(p, 65, mode="nearest"), 1e-6 * p.max())
+    lines = signal.find_peaks(p, height=floor)[0]
+    near = np.zeros(len(p), bool)
+    for k in lines:
+        near[max(k - 2, 0):k + 3] = True
+    if lines.size and p[near].sum() >= TONAL * p.sum():
+        tones = tuple(float(_refined(f, p, k)) for k in lines)
+        return ("sine" if len(tones) == 1 else "multisine"), tones
+    envelope = np.abs(signal.hilbert(x[: 1 << 22]))
+    middle = envelope[len(envelope) // 10: -len(envelope) // 10 or None]
+    steady = np.std(middle) < STEADY * np.mean(middle)
+    return ("swept sine" if steady else "noise"), ()
+
+
+def _refined(f: NDArray, p: NDArray, k: int) -> float:
+    """A line's frequency between bins: the peak of a parabola through log power."""
+    if not 0 < k < len(p) - 1:
+        return float(f[k])
+    a, b, c = np.log(np.maximum(p[k - 1:k + 2], np.finfo(float).tiny))
+    shift = 0.5 * (a - c) / (a - 2 * b + c) if a - 2 * b + c < 0 else 0.0
+    return float(f[k] + shift * (f[1] - f[0]))
+
+
+def found(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], Stretch]:
+    """The excitation of each EXC channel found in its data: of several stretches, the
+    longest.
+
+    Parameters
+    ----------
+    channels : mapping of str to Channel
+
+    Returns
+    -------
+    dict
+        ``(ifo, optic, DOF)`` to its :class:`Stretch`.
+    """
+    out = {}
+    for name, ch in channels.items():
+        m = _EXC.match(name)
+        if m:
+            runs = stretches(ch)
+            if runs:
+                out[(m["ifo"], m["optic"], m["dof"])] = max(runs, key=lambda s: s.end - s.start)
+    return out
+
+
+def at_one_rate(channels: Mapping[str, Channel]) -> dict[str, Channel]:
+    """`channels` at the slowest of their rates: the faster ones through
+    :func:`scipy.signal.resample_poly` (its anti-alias filter, no delay), named in a
+    :class:`~twind.errors.MeasurementWarning`.
+
+    Parameters
+    ----------
+    channels : mapping of str to Channel
+
+    Returns
+    -------
+    dict of str to Channel
+    """
+    if not channels:
+        return dict(channels)
+    rate = min(ch.rate for ch in channels.values())
+    out, faster = {}, []
+    for name, ch in channels.items():
+        if ch.rate == rate:
+            out[name] = ch
+            continue
+        ratio = Fraction(rate / ch.rate).limit_denominator(1 << 16)
+        samples = signal.resample_poly(ch.samples, ratio.numerator, ratio.denominator)
+        out[name] = Channel(name, ch.unit, rate, ch.t0, samples, ch.sequences, ch.gps_starts)
+        faster.append(f"{name} ({ch.rate:g} Hz)")
+    if faster:
+        warnings.warn(f"resampled to {rate:g} Hz, the slowest test point's rate, with "
+                      f"scipy.signal.resample_poly: {some_names(faster)}", MeasurementWarning,
+                      stacklevel=2)
+    return out
