@@ -166,6 +166,8 @@ def test_bad_inputs_are_named(recorded, tmp_path: Path, capsys) -> None:  # noqa
     quiet.write(str(tmp_path / "sine.h5"))
     with pytest.raises(TFError, match="a single sine"):
         from_session([tmp_path / "sine.h5"])
+    with pytest.raises(TFError, match="no EXC channel of that DOF"):
+        from_session([tmp_path / "sine.h5"], exc_times={"PIT": (GPS, GPS + 10)})
     for name in quiet:
         quiet[name] = quiet[name] * 0
     quiet.write(str(tmp_path / "zero.h5"), overwrite=True)

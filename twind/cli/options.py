@@ -70,8 +70,8 @@ def input_arguments(p: argparse.ArgumentParser) -> None:
                         "C2:=C1: (repeatable; a final _DQ is dropped anyway)")
     p.add_argument("--exc-times", type=exc_span, action="append", default=[],
                    metavar="DOF:START:END",
-                   help="time series: an excitation's GPS span, when the recording has no "
-                        "injection events and its EXC was not recorded (repeatable)")
+                   help="time series: an excitation's GPS span, given by hand (an EXC "
+                        "that never rests at zero; repeatable)")
     p.add_argument("--band", type=frequency, nargs=2, metavar=("LO", "HI"),
                    help="only the frequencies from LO to HI Hz")
     p.add_argument("--json", action="store_true", help="the numbers as JSON")

@@ -509,7 +509,10 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
                else read_channels(list(paths), _test_point(optic)))
     channels = at_one_rate(session.channels)
     extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in channels.items()}
-    segments, notes = _excitations(session.events, channels, optic, paths, exc_times)
+    # stream events count samples at the model's rate: the fastest channel's, as recorded
+    segments, notes = _excitations(session.events, channels, optic, paths, exc_times,
+                                   _rate({n: Extent(c.t0, c.rate, 0)
+                                          for n, c in session.channels.items()}))
     plans = {key: _Plan.of(key, start, end, extents, settle_s)
              for key, (start, end) in segments.items()}
     shortest = min(plan.n - plan.skip for plan in plans.values())
@@ -650,16 +653,20 @@ def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
 
 def _excitations(events: list[dict], channels: Mapping[str, Channel], optic: str | None,
                  paths: Sequence[str | Path],
-                 exc_times: Mapping[str, tuple[float, float]] | None = None
+                 exc_times: Mapping[str, tuple[float, float]] | None, rate_hz: float
                  ) -> tuple[dict[tuple[str, str, str], tuple[float, float]], tuple[str, ...]]:
     """The excitation of each excited DOF of one optic: given by hand, from the injection
-    events, or else found in the EXC channels' data (refused: none, several optics, a
-    single sine); and the excitations found in the data, described."""
+    events (stream lengths counted at `rate_hz`), or else found in the EXC channels' data
+    (refused: none, several optics, a single sine); and those found in the data, described."""
     if exc_times:
         segments = {key: exc_times[key[2]] for key in _exc_keys(channels)
                     if key[2] in exc_times}
+        if not segments:
+            msg = (f"--exc-times {', '.join(exc_times)}: no EXC channel of that DOF in "
+                   f"{', '.join(map(str, paths))}; IN1/EXC needs it recorded")
+            raise TFError(msg)
     else:
-        segments = _segments(events, max((c.rate for c in channels.values()), default=16384.0))
+        segments = _segments(events, rate_hz)
     notes: tuple[str, ...] = ()
     if not exc_times and not any(optic in (None, k[1]) for k in segments):
         stretches = {k: s for k, s in found(channels).items() if optic in (None, k[1])}
