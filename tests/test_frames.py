@@ -16,6 +16,7 @@ from gwpy.timeseries import TimeSeries, TimeSeriesDict
 from scipy import signal
 
 from twind.analysis.estimation.excitations import found, recognise
+from twind.analysis.estimation import tf
 from twind.analysis.estimation.tf import TFError, from_session
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
@@ -23,6 +24,7 @@ from twind.excitation.request import ExcitationRequest
 from twind.excitation.waveforms import make_waveform
 from twind.lab.measurement import record_measurement
 from twind.model.effects import CATALOGUE
+from twind.recording.fastread import event_count
 from twind.recording.frames import read_frames, renamer
 from twind.recording.reader import getdata, read_session
 from twind.recording.session import RecordingError
@@ -82,8 +84,8 @@ def test_hdf5_and_frames_give_the_tfs_of_the_mcap_route(recorded, kind: str,  # 
     assert np.max(np.abs(h - h0)[coherent] / sigma[coherent]) < 0.2
 
 
-def test_a_session_without_events_finds_the_segments_the_engine_used(recorded, etmx  # noqa: ANN001
-                                                                     ) -> None:
+def test_a_session_without_events_finds_the_segments_the_engine_used(
+        recorded, etmx, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
     rate = etmx.sus.sample_rate_hz
     session = read_session(recorded["bare"])
     assert session.events == []
@@ -98,7 +100,10 @@ def test_a_session_without_events_finds_the_segments_the_engine_used(recorded, e
     events = [e for e in read_session(recorded["events"]).events if e["event"] == "start"]
     assert [e["start_gps"] for e in events] == pytest.approx(
         [stretches[("C1", "ETMX", d)].start for d in ["POS", "PIT", "YAW"]], abs=1 / rate)
-    bare = from_session([recorded["bare"]], bw=BW)
+    assert (event_count(recorded["bare"]), event_count(recorded["events"])) == (0, 6)
+    with monkeypatch.context() as m:  # read once, whole: not streamed first to no end
+        m.setattr(tf, "stream_channels", lambda *a, **k: pytest.fail("streamed"))
+        bare = from_session([recorded["bare"]], bw=BW)
     truth = from_session([recorded["events"]], bw=BW)
     assert len(bare.found) == 3
     assert np.allclose(bare.tf["IN1"], truth.tf["IN1"], equal_nan=True)

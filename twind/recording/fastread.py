@@ -805,10 +805,12 @@ def _read_by_index(path: Path, reader: _FileReader, chunks: int, problems: list[
     return True
 
 
-def _message_counts(files: list[Path]) -> dict[str, int]:
-    """Messages per topic over `files`, from their summaries; partial if one has none."""
+def _message_counts(files: list[Path]) -> tuple[dict[str, int], bool]:
+    """Messages per topic over `files`, from their summaries, and whether every file had
+    one (else the counts are partial)."""
 
     counts: dict[str, int] = {}
+    whole = True
     for path in files:
         try:
             with open(path, "rb") as fh:
@@ -816,12 +818,30 @@ def _message_counts(files: list[Path]) -> dict[str, int]:
         except Exception:  # noqa: BLE001 - a file cut short: no summary, sizes unknown
             summary = None
         if summary is None or summary.statistics is None:
+            whole = False
             continue
         for cid, n in summary.statistics.channel_message_counts.items():
             ch = summary.channels.get(cid)
             if ch is not None:
                 counts[ch.topic] = counts.get(ch.topic, 0) + n
-    return counts
+    return counts, whole
+
+
+def event_count(path_or_paths: str | Path | Iterable[str | Path]) -> int | None:
+    """The injection events a recording's summaries count, without reading its data; None
+    when a file has no summary (cut short).
+
+    Parameters
+    ----------
+    path_or_paths : path or iterable of paths
+        See :func:`~twind.recording.session.session_files`.
+
+    Returns
+    -------
+    int or None
+    """
+    counts, whole = _message_counts(session_files(path_or_paths))
+    return counts.get(EVENTS_TOPIC, 0) if whole else None
 
 
 def read_channels(path_or_paths: str | Path | Iterable[str | Path],
@@ -858,7 +878,7 @@ def read_channels(path_or_paths: str | Path | Iterable[str | Path],
     if not callable(wanted):
         order = list(dict.fromkeys(wanted))
         wanted = set(order).__contains__
-    state = _State(wanted, expected=_message_counts(files))
+    state = _State(wanted, expected=_message_counts(files)[0])
     problems = _read(files, state)
     joined = state.channels()
     if order is not None:

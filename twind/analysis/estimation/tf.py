@@ -31,7 +31,7 @@ from twind.analysis.estimation.excitations import SHORTEST_S, at_one_rate, found
 from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
-from twind.recording.fastread import read_channels, stream_channels
+from twind.recording.fastread import event_count, read_channels, stream_channels
 from twind.recording.frames import is_frames, read_frames
 from twind.recording.session import Channel
 
@@ -500,7 +500,9 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     """
     check_estimator(estimator)
     frames = any(is_frames(p) for p in paths)
-    if not (highpass_hz or frames or exc_times) and estimator == "welch":
+    # a session without events is read whole once, not streamed first to no end
+    if (not (highpass_hz or frames or exc_times) and estimator == "welch"
+            and event_count(paths) != 0):
         tfs = _streamed(paths, bw, overlap, optic, window, settle_s)
         if tfs is not None:
             return tfs
