@@ -445,16 +445,14 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     """Transfer functions of the excitations recorded in MCAP sessions, gwpy HDF5 files or
     GWF frames.
 
-    Each excited DOF's segment runs from its injection's start to its end: the recorded
-    ``start``/``end``/``stop`` events, or where there are none (the data system's
-    recordings) the EXC channel's longest nonzero stretch
-    (:mod:`twind.analysis.estimation.excitations`), or `exc_times`. Windows of ``1/bw``
-    seconds. Only the test points (EXC, IN1, IN2, OUT) are read, of `optic` if given; the
-    response DOFs are those whose IN1, IN2 and OUT were recorded; test points at different
-    rates are brought to the slowest. The Welch sums of an MCAP session with events are
-    taken while the files are read (:class:`~twind.analysis.estimation.welch.WelchStream`);
-    a recording with gaps, late events or a high-pass is read whole instead, with the same
-    result.
+    Each excited DOF's segment runs from its injection's start to its end: `exc_times`,
+    the recorded ``start``/``end``/``stop`` events, or where there are none the EXC
+    channel's longest nonzero stretch (:mod:`~twind.analysis.estimation.excitations`).
+    Only the test points (EXC, IN1, IN2, OUT) are read, of `optic` if given, brought to the
+    slowest one's rate; the response DOFs are those whose IN1, IN2 and OUT were recorded.
+    The Welch sums of an MCAP session with events are taken while it is read
+    (:class:`~twind.analysis.estimation.welch.WelchStream`); with gaps, late events or a
+    high-pass it is read whole instead, with the same result.
 
     Parameters
     ----------
