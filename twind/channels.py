@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 
 import numpy as np
@@ -11,6 +12,9 @@ from twind import DOFS, OSEMS
 
 TEST_POINTS = ("EXC", "IN1", "IN2", "OUT")
 UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
+DOF_CHANNEL = re.compile(
+    r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
+"""A damping test point's name, parsed into ``ifo``, ``optic``, ``dof`` and ``point``."""
 
 
 def dof_channel(ifo: str, optic: str, dof: str, point: str) -> str:

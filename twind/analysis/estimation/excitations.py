@@ -6,12 +6,11 @@ nonzero stretches, and :func:`recognise` what each one's waveform is (a sine, a 
 a swept sine or noise) from its spectrum and envelope, so that the estimator can be one
 that fits it. :func:`at_one_rate` brings test points recorded at different rates (the
 ``_DQ`` channels of one model may be stored at 256 to 16384 Hz) to the slowest of them with
-scipy's polyphase resampler, each resampling reported.
+scipy's polyphase resampler, the channels resampled named in a warning.
 """
 
 from __future__ import annotations
 
-import re
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage, signal
 
+from twind.channels import DOF_CHANNEL
 from twind.errors import MeasurementWarning
 from twind.recording.session import Channel, some_names
 
@@ -36,7 +36,6 @@ TONAL = 0.9
 STEADY = 0.25
 """Relative scatter of the envelope below which a broadband waveform is a sweep (noise's
 Rayleigh envelope scatters by 0.52)."""
-_EXC = re.compile(r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_EXC$")
 
 
 @dataclass(frozen=True)
@@ -163,8 +162,8 @@ def found(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], Stretch
     """
     out = {}
     for name, ch in channels.items():
-        m = _EXC.match(name)
-        if m:
+        m = DOF_CHANNEL.match(name)
+        if m and m["point"] == "EXC":
             runs = stretches(ch)
             if runs:
                 out[(m["ifo"], m["optic"], m["dof"])] = max(runs, key=lambda s: s.end - s.start)

@@ -13,7 +13,6 @@ with scipy.signal). The standard error of a Welch estimate is Bendat & Piersol's
 from __future__ import annotations
 
 import math
-import re
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -27,6 +26,7 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
+from twind.channels import DOF_CHANNEL
 from twind.analysis.estimation.excitations import SHORTEST_S, at_one_rate, found
 from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
@@ -41,7 +41,6 @@ __all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "fr
 POINTS = ("IN1", "IN2", "OUT")
 ESTIMATORS = ("welch", "lpm")
 """Welch's (diaggui's), or the local polynomial method's (:mod:`twind.analysis.estimation.lpm`)."""
-_CHANNEL = re.compile(r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
 
 
 class TFError(TwindError):
@@ -308,7 +307,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
             msg = f"{path}: not a readable diaggui XML file ({type(err).__name__}: {err})"
             raise TFError(msg) from None
         names = sorted(acc.channels()[0])
-        exc = [n for n in names if n.endswith("_EXC") and _CHANNEL.match(n)]
+        exc = [n for n in names if n.endswith("_EXC") and DOF_CHANNEL.match(n)]
         if len(exc) != 1:
             others = [n for n in names if n.endswith("_EXC")] or names
             msg = (f"{path}: a suspension measurement has one excitation named "
@@ -316,7 +315,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                    f"channels B; this file has {', '.join(exc or others[:4])} "
                    "(`twind tf` shows any measurement's transfer functions)")
             raise TFError(msg)
-        m = _CHANNEL.match(exc[0])
+        m = DOF_CHANNEL.match(exc[0])
         optic = optic or m["optic"]
         if m["optic"] != optic:
             msg = f"{path}: excites {m['optic']}, the other files {optic}"
@@ -431,7 +430,7 @@ def _test_point(optic: str | None) -> Callable[[str], bool]:
     """The channels ``from_session`` may use: EXC, IN1, IN2, OUT of a DOF (of `optic`)."""
 
     def wanted(name: str) -> bool:
-        m = _CHANNEL.match(name)
+        m = DOF_CHANNEL.match(name)
         return bool(m) and m["point"] in ("EXC", *POINTS) and optic in (None, m["optic"])
 
     return wanted
@@ -644,7 +643,7 @@ def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
     """Samples per segment; refused if the excitation holds fewer."""
     nperseg = int(round(rate / bw))
     if plan.n - plan.skip < nperseg:
-        dof = _CHANNEL.match(plan.names[0])["dof"]
+        dof = DOF_CHANNEL.match(plan.names[0])["dof"]
         msg = (f"the {dof} excitation holds {max(plan.n - plan.skip, 0) / rate:.1f} s of "
                f"recorded data after {settle_s:g} s of settling, less than 1/bw = {1 / bw:g} s")
         raise TFError(msg)
@@ -693,7 +692,7 @@ def _excitations(events: list[dict], channels: Mapping[str, Channel], optic: str
 
 def _exc_keys(channels: Mapping[str, Channel]) -> list[tuple[str, str, str]]:
     """(ifo, optic, DOF) of every EXC channel recorded."""
-    return [(m["ifo"], m["optic"], m["dof"]) for m in map(_CHANNEL.match, channels)
+    return [(m["ifo"], m["optic"], m["dof"]) for m in map(DOF_CHANNEL.match, channels)
             if m and m["point"] == "EXC"]
 
 
@@ -791,7 +790,7 @@ def _segments(events: list[dict], rate_hz: float = 16384.0
             ends[ev["id"]] = min(ends.get(ev["id"], np.inf), ev["gps"])
     runs: dict[tuple[str, str, str], list[list[float]]] = {}
     for exc_id, (channel, start) in sorted(starts.items(), key=lambda kv: kv[1][1]):
-        m = _CHANNEL.match(channel)
+        m = DOF_CHANNEL.match(channel)
         if not (m and exc_id in ends):
             continue
         chain = runs.setdefault((m["ifo"], m["optic"], m["dof"]), [])
