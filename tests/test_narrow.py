@@ -52,6 +52,28 @@ def test_a_bin_sees_a_narrow_mode_averaged_over_the_hann_kernel(etmx) -> None:  
     assert np.abs(two_point[:, yaw, yaw] - brute[:, yaw, yaw]).max() > 0.05 * scale
 
 
+@pytest.mark.parametrize("res", [0.05, 0.1, 0.25])
+def test_bins_near_the_damped_modes_see_them_through_the_hann_kernel(etmx, res: float  # noqa: ANN001
+                                                                      ) -> None:
+    """The closed loop's damped modes (Q about 5) are narrower than the two-point rule
+    allows as the resolution coarsens: every element of ClosedLoopModel's bins up to 8 Hz
+    equals the closed loop averaged over the Hann window's own power spectrum (1/32 bin
+    apart) to 1 % of that element's largest value, where the two-point rule alone is off by
+    5 % at 0.05 Hz, 40 % at 0.1 Hz and more than the element itself at 0.25 Hz."""
+    plant = Plant.from_params(etmx.sus, etmx.mechanics())
+    f = np.arange(1, round(8 / res)) * res
+    model = ClosedLoopModel(etmx, f, res).response(plant)
+    d = np.linspace(-3, 3, 6 * 32 + 1)
+    w = _hann_power(d)
+    exact = ClosedLoopModel(etmx, (f[:, None] + res * d).ravel()).response(plant)
+    brute = np.einsum("k,fkij->fij", w / w.sum(), exact.reshape(f.size, d.size, 4, 4))
+    scale = np.abs(brute).max(axis=0)
+    two_point = 0.5 * sum(ClosedLoopModel(etmx, f + s * res / math.sqrt(3)).response(plant)
+                          for s in (-1, 1))
+    assert (np.abs(model - brute) / scale).max() < 0.01
+    assert (np.abs(two_point - brute) / scale).max() > {0.05: 0.05, 0.1: 0.4, 0.25: 1}[res]
+
+
 def test_the_search_finds_a_mode_seen_at_its_peak(etmx) -> None:  # noqa: ANN001
     """A roll mode plain at its peak (a measurement accurate to 1 % everywhere) is found
     within a quarter of a bin, with its coupling and pattern; the bounce, absent, starts
@@ -79,7 +101,9 @@ def test_the_search_s_columns_are_the_model_s_own_change(etmx, dof, param) -> No
     """Each trial's column, rebuilt from the search's short coordinates (the far bins in a
     few shapes), is what ClosedLoopModel's bins change by per unit coupling of a mode at
     that frequency, to 1e-4 of itself (2e-5 in an ad-hoc look, the central difference's
-    rounding where a notch leaves IN1/EXC tiny), at the mode and far from it."""
+    rounding where a notch leaves IN1/EXC tiny), at the mode and far from it. The bins near
+    the closed loop's damped modes, which the model averages over the Hann kernel, the
+    search screens by the two-point rule: there to 3 % (1.5 % in an ad-hoc look)."""
     f = np.arange(1, 601) * RES
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     loop = ClosedLoopModel(etmx, f, RES)
@@ -94,13 +118,15 @@ def test_the_search_s_columns_are_the_model_s_own_change(etmx, dof, param) -> No
                                (lo * nominal[dof], hi * nominal[dof]), np.zeros((2 * data.bins, 0)))
     model = ClosedLoopModel.of(etmx, data, "bounce_roll").for_data(data)
     coupling = "vertical" if dof == "VERT" else "roll"
+    damped = np.tile(np.isin(np.nonzero(mask)[0], loop.damped.bins), 2)
     for g in (0, grid.size // 2 + 1, grid.size - 1):
         at = {"vertical": 0.0, "roll": 0.0, "roll_angle": 0.3, "f_vertical_hz": nominal["VERT"],
               "f_roll_hz": nominal["ROLL"], param: grid[g]}
         change = (data.whiten(model({**at, coupling: -1e-5}))
                   - data.whiten(model({**at, coupling: 1e-5}))) / 2e-5
-        rebuilt = red.back(cols[g, 0])
-        assert np.linalg.norm(rebuilt - change) < 1e-4 * np.linalg.norm(change)
+        error = red.back(cols[g, 0]) - change
+        for part, tol in ((~damped, 1e-4), (damped, 0.03)):
+            assert np.linalg.norm(error[part]) < tol * np.linalg.norm(change[part])
     assert red.near.size + red.basis.shape[0] < 0.5 * red.size  # short
 
 

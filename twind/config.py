@@ -7,6 +7,7 @@ missing keys, wrong units, unreadable foton designs and unstable loops are repor
 
 from __future__ import annotations
 
+import functools
 import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
@@ -26,7 +27,7 @@ from twind.model.analytical import analytical_mechanics
 from twind.model.geometric import WireGeometry, geometric_mechanics
 from twind.model.params import ALL_DOFS, SOSParams
 from twind.model.plant import Plant
-from twind.simulation.discretize import closed_loop_matrices, delay_samples
+from twind.simulation.discretize import closed_loop_matrices, closed_loop_modes, delay_samples
 from twind.simulation.noise import NoiseSpec
 from twind.units import parse_quantity
 
@@ -93,6 +94,13 @@ class OpticConfig:
         """The optic's damping loop, with fresh filter modules."""
         plant = Plant.from_params(self.sus, self.mechanics())
         return DampingLoop(self.name, plant, {d: self.damping[d].build() for d in DOFS})
+
+    @functools.cached_property
+    def closed_loop_modes(self) -> list[tuple[float, float]]:
+        """The damped suspension modes of its closed loop at the model rate, (Hz, Q) lowest
+        first (:func:`~twind.simulation.discretize.closed_loop_modes`), found once: every
+        fit's model asks."""
+        return closed_loop_modes(self.loop(), self.sus.sample_rate_hz)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,6 @@ from twind.config import load_config
 from twind.errors import TwindError
 from twind.model.compare import compare_models
 from twind.recording.writer import SessionWriter
-from twind.simulation.discretize import closed_loop_modes
 from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
 from twind.viz.plotting import bode_matrix, plot_comparison
@@ -69,7 +68,7 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     bode_matrix(f, plant, DOFS, DOFS, {"IN1/OUT": r["plant_IN1_per_OUT"]}, per="ct",
                 title=f"{name}: plant")
     print(f"wrote {path} and {plant}")
-    for f_hz, q in closed_loop_modes(cfg.loop(), cfg.sus.sample_rate_hz):
+    for f_hz, q in cfg.closed_loop_modes:
         print(f"closed-loop mode {f_hz:.3f} Hz, Q {q:.1f}")
     return 0
 

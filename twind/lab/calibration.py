@@ -7,11 +7,8 @@ standard deviation 1 (the issue asks 1.0 +- 0.1 over at least 100 realisations).
 
 from __future__ import annotations
 
-import multiprocessing
 import time
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
-from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from functools import partial
 
@@ -26,6 +23,7 @@ from twind.config import OpticConfig
 from twind.excitation.information import design_information, det_root
 from twind.lab.campaign import LocalTwin, tones_only
 from twind.lab.measurement import DRIFT, SETTLE_S, measure_tfs
+from twind.lab.workers import side_by_side
 
 
 @dataclass
@@ -112,11 +110,8 @@ def pull_test(cfg: OpticConfig, n: int = 100, drift: Mapping[str, float] = DRIFT
     truth = np.array([param_value(real.sus, k) for k in names])
     one = partial(_realisation, real, cfg, names,
                   {"bw": bw, "averages": averages, "rms": rms, "estimator": estimator})
-    # spawned, not forked: numba's OpenMP threads do not survive a fork
-    spawn = multiprocessing.get_context("spawn")
-    with (ProcessPoolExecutor(workers, mp_context=spawn) if workers > 1
-          else nullcontext()) as pool:
-        results = (pool.map if pool else map)(one, range(seed, seed + n))
+    with side_by_side(workers) as pmap:
+        results = pmap(one, range(seed, seed + n))
         for i, (values, sigma) in enumerate(results):
             pulls[i] = (values - truth) / sigma
             rel[i] = sigma / values

@@ -13,10 +13,7 @@ p-values are smaller than uniform.
 
 from __future__ import annotations
 
-import multiprocessing
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
-from contextlib import nullcontext
 from dataclasses import dataclass
 from functools import partial
 
@@ -28,6 +25,7 @@ from twind.analysis.diagnose import ALPHA, diagnose
 from twind.config import OpticConfig
 from twind.lab.corpus import EXCITED, Case, make_cases, reference_data, score
 from twind.lab.measurement import measure_tfs
+from twind.lab.workers import side_by_side
 
 
 PROMISED = 0.01
@@ -135,12 +133,9 @@ def outcomes(cfg: OpticConfig, cases: Sequence[Case], seed: int, workers: int = 
     """
     one = partial(outcome, cfg, {**CONCEALED, **measurement})
     jobs = [(case, seed + k) for k, case in enumerate(cases)]
-    # spawned, not forked: numba's OpenMP threads do not survive a fork
-    spawn = multiprocessing.get_context("spawn")
     out: list[Outcome] = []
-    with (ProcessPoolExecutor(workers, mp_context=spawn) if workers > 1
-          else nullcontext()) as pool:
-        for o in (pool.map if pool else map)(one, jobs):
+    with side_by_side(workers) as pmap:
+        for o in pmap(one, jobs):
             out.append(o)
             progress.note(f"case {len(out)}/{len(jobs)}, named so far "
                           f"{sum(x.named for x in out)}")

@@ -126,8 +126,9 @@ class Engine:
         Model rate.
     threads : int, optional
         Threads to share the optics among (default: numba's, but one for a single optic),
-        at most as many as numba's pool has (``NUMBA_NUM_THREADS``: the CPUs this process
-        may run on); each optic runs on one thread for a whole step.
+        at most numba's thread count where the engine is made (``numba.set_num_threads``;
+        by default ``NUMBA_NUM_THREADS``, the CPUs this process may run on); each optic runs
+        on one thread for a whole step.
     """
 
     def __init__(self, loops: Sequence[DampingLoop], noise: NoiseSpec | Mapping[str, NoiseSpec]
@@ -137,7 +138,7 @@ class Engine:
         self.optics = tuple(lp.name for lp in self.loops)
         self.rate_hz = float(rate_hz)
         self.samples = 0
-        pool = nb.config.NUMBA_NUM_THREADS
+        pool = nb.get_num_threads()
         self.threads = min(len(self.loops), threads or pool, pool)
         specs = [noise[n] if isinstance(noise, Mapping) else noise for n in self.optics]
         n_opt = len(self.loops)
