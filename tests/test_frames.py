@@ -31,7 +31,7 @@ from twind.recording.session import RecordingError
 
 BW = 0.25
 GPS = 1.4e9
-DAQ_RATE = 2048  # the data system's rate of EXC here; the other test points stay at 16384
+EXC_RATE, DQ_RATE = 2048, 4096  # the data system's rates of EXC and of the other points
 MAP = {"C2:": "C1:"}  # the files' IFO prefix is another's
 
 
@@ -49,13 +49,14 @@ def recorded(etmx, tmp_path_factory):  # noqa: ANN001, ANN201
     bare = record_measurement(etmx, d / "bare.mcap", events=False, **kw)
     data = TimeSeriesDict()
     for name, ch in read_session(bare).channels.items():
-        q = int(ch.rate // DAQ_RATE) if name.endswith("_EXC") else 1
+        q = int(ch.rate // (EXC_RATE if name.endswith("_EXC") else DQ_RATE))
         stored = f"{name.replace('C1:', 'C2:')}_DQ"
         data[stored] = TimeSeries(signal.resample_poly(ch.samples, 1, q), t0=ch.t0,
                                   sample_rate=ch.rate / q, name=stored, channel=stored)
     data.write(str(d / "dq.h5"))
     data.write(str(d / "dq.gwf"))
-    return {"events": events, "bare": bare, "h5": d / "dq.h5", "gwf": d / "dq.gwf"}
+    return {"events": events, "bare": bare, "h5": d / "dq.h5", "gwf": d / "dq.gwf",
+            "written": data}
 
 
 def _tf_json(*args: str) -> dict:
@@ -71,7 +72,7 @@ def test_hdf5_and_frames_give_the_tfs_of_the_mcap_route(recorded, kind: str,  # 
     truth = _tf_json(str(recorded["events"]))
     got = _tf_json(str(recorded[kind]), "--map", "C2:=C1:")
     said = capsys.readouterr().err
-    assert "resampled to 2048 Hz" in said and "C1:SUS-ETMX_SUSPOS_IN1 (16384 Hz)" in said
+    assert "resampled to 2048 Hz" in said and "C1:SUS-ETMX_SUSPOS_IN1 (4096 Hz)" in said
     assert said.count("excitation found in the data") == 3
     assert got["excited"] == truth["excited"] == ["POS", "PIT", "YAW"]
     assert np.allclose(got["frequency_hz"], truth["frequency_hz"])
@@ -142,10 +143,13 @@ def test_waveforms_are_recognised(waveform: str, kw: dict, tones: list) -> None:
 
 def test_getdata_reads_the_same_files(recorded) -> None:  # noqa: ANN001
     name = "C1:SUS-ETMX_SUSPIT_IN1"
+    written = recorded["written"][f"{name.replace('C1:', 'C2:')}_DQ"].crop(GPS + 5, GPS + 15)
+    for path in (recorded["h5"], recorded["gwf"]):
+        b = getdata(name, 10.0, GPS + 5, source=[path], mapping=MAP)[name]
+        assert np.array_equal(np.asarray(b.value), np.asarray(written.value))
+        assert float(b.t0.value) == GPS + 5
     a = getdata(name, 10.0, GPS + 5, source=str(recorded["bare"]))[name]
-    b = getdata(name, 10.0, GPS + 5, source=[recorded["gwf"]], mapping=MAP)[name]
-    assert np.array_equal(np.asarray(a.value), np.asarray(b.value))
-    assert float(b.t0.value) == GPS + 5
+    assert (len(a.value), float(a.t0.value)) == (10 * 16384, GPS + 5)  # the MCAP route too
 
 
 def test_bad_inputs_are_named(recorded, tmp_path: Path, capsys) -> None:  # noqa: ANN001
