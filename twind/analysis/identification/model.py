@@ -241,9 +241,8 @@ def hann_kernel(resolution_hz: float, width_hz: float
 @dataclass(frozen=True)
 class KernelGrid:
     """Bins of a Hann-windowed estimate averaged over its power kernel: their indices, the
-    frequencies
-    their kernels reach (each once), where each bin's kernel lies among them, the kernel's
-    weights and the controller at those frequencies."""
+    frequencies their kernels reach (each once), where each bin's kernel lies among them,
+    the kernel's weights and the controller at those frequencies."""
 
     bins: NDArray[np.intp]
     points: NDArray[np.float64]
