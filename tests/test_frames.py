@@ -173,10 +173,10 @@ def test_bad_inputs_are_named(recorded, tmp_path: Path, capsys) -> None:  # noqa
     quiet = TimeSeriesDict()
     for point in ("EXC", "IN1", "IN2", "OUT"):
         name = f"C1:SUS-ETMX_SUSPOS_{point}_DQ"
-        x = np.sin(2 * np.pi * 2.0 * t) if point == "EXC" else np.cos(t)
+        x = np.sin(2 * np.pi * 1.0 * t) if point == "EXC" else np.cos(t)
         quiet[name] = TimeSeries(x, t0=GPS, sample_rate=rate, name=name, channel=name)
     quiet.write(str(tmp_path / "sine.h5"))
-    with pytest.raises(TFError, match="a single sine"):
+    with pytest.raises(TFError, match="Hz sine after settling: 10 blocks of 2 cycles need"):
         from_session([tmp_path / "sine.h5"])
     with pytest.raises(TFError, match="no EXC channel of that DOF"):
         from_session([tmp_path / "sine.h5"], exc_times={"PIT": (GPS, GPS + 10)})

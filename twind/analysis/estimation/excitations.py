@@ -170,6 +170,29 @@ def found(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], Stretch
     return out
 
 
+def found_sines(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], list[Stretch]]:
+    """Every single-sine stretch of each EXC channel (awg's sines one after another, a
+    stepped sine made by hand), in time order.
+
+    Parameters
+    ----------
+    channels : mapping of str to Channel
+
+    Returns
+    -------
+    dict
+        ``(ifo, optic, DOF)`` to its sines; DOFs with none are left out.
+    """
+    out = {}
+    for name, ch in channels.items():
+        m = DOF_CHANNEL.match(name)
+        if m and m["point"] == "EXC":
+            sines = [s for s in stretches(ch) if s.waveform == "sine"]
+            if sines:
+                out[(m["ifo"], m["optic"], m["dof"])] = sines
+    return out
+
+
 def at_one_rate(channels: Mapping[str, Channel]) -> dict[str, Channel]:
     """`channels` at the slowest of their rates: the faster ones through
     :func:`scipy.signal.resample_poly` (its anti-alias filter, no delay), named in a

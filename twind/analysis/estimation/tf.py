@@ -27,7 +27,9 @@ from scipy import signal
 
 from twind import DOFS
 from twind.channels import DOF_CHANNEL
-from twind.analysis.estimation.excitations import SHORTEST_S, at_one_rate, found
+from twind.analysis.estimation.demodulation import AVERAGES, DemodulationError, demodulate
+from twind.analysis.estimation.excitations import (SHORTEST_S, Stretch, at_one_rate, found,
+                                                   found_sines)
 from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
@@ -446,9 +448,10 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
 
     Each excited DOF's segment runs from its injection's start to its end: `exc_times`,
     the recorded ``start``/``end``/``stop`` events, or where there are none the EXC
-    channel's longest nonzero stretch (:mod:`~twind.analysis.estimation.excitations`).
-    Only the test points (EXC, IN1, IN2, OUT) are read, of `optic` if given, brought to the
-    slowest one's rate; the response DOFs are those whose IN1, IN2 and OUT were recorded.
+    channel's longest nonzero stretch (:mod:`~twind.analysis.estimation.excitations`;
+    single sines found so are each :mod:`demodulated <.demodulation>`). Only the test
+    points are read, of `optic` if given, brought to the slowest one's rate; the response
+    DOFs are those whose IN1, IN2 and OUT were recorded.
     The Welch sums of an MCAP session with events are taken while it is read
     (:class:`~twind.analysis.estimation.welch.WelchStream`); with gaps, late events or a
     high-pass it is read whole instead, with the same result.
@@ -493,7 +496,8 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     ------
     TFError
         If no excitation is found, several optics were excited and `optic` is not given, an
-        excitation is a single sine (not estimated yet), or it is shorter than ``1/bw``.
+        excitation is shorter than ``1/bw`` (a sine: than demodulation needs), or sines and
+        other waveforms were found on different DOFs.
     """
     check_estimator(estimator)
     frames = any(is_frames(p) for p in paths)
@@ -509,21 +513,18 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     channels = at_one_rate(session.channels)
     extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in channels.items()}
     # stream events count samples at the model's rate: the fastest channel's, as recorded
-    segments, notes = _excitations(session.events, channels, optic, paths, exc_times,
-                                   _rate({n: Extent(c.t0, c.rate, 0)
-                                          for n, c in session.channels.items()}))
+    segments, notes, sines = _excitations(session.events, channels, optic, paths, exc_times,
+                                          _rate({n: Extent(c.t0, c.rate, 0)
+                                                 for n, c in session.channels.items()}))
+    if sines:
+        return _demodulated(channels, extents, sines, settle_s, notes)
     plans = {key: _Plan.of(key, start, end, extents, settle_s)
              for key, (start, end) in segments.items()}
     shortest = min(plan.n - plan.skip for plan in plans.values())
     columns, freq, averages, estimates = {}, None, None, {}
     for key, plan in plans.items():
-        whole = [channels[c].samples[o:][:plan.n] for c, o in zip(plan.names, plan.offsets,
-                                                                   strict=True)]
+        x, *ys = _samples(channels, plan, highpass_hz)
         rate = channels[plan.names[0]].rate
-        if highpass_hz:
-            x, *ys = highpassed(whole, rate, highpass_hz, plan.skip)
-        else:
-            x, *ys = (w[plan.skip:] for w in whole)
         if estimator == "lpm":
             est, columns[key[2]] = lpm_column(x[:shortest], [y[:shortest] for y in ys], rate,
                                               plan.keys, max_hz)
@@ -533,9 +534,19 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         freq, h, g2, averages = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
         columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(plan.keys)}
     tfs = assemble(key[1], freq, columns, averages)
-    tfs.window = window
-    tfs.found = notes
+    tfs.window, tfs.found = window, notes
     return with_lpm(tfs, estimates) if estimates else tfs
+
+
+def _samples(channels: Mapping[str, Channel], plan: _Plan, highpass_hz: float | None = None
+             ) -> list[NDArray[np.float64]]:
+    """EXC and then the responses of `plan`, after its settling (high-passed from the
+    excitation's start if asked, :func:`highpassed`)."""
+    whole = [channels[c].samples[o:][:plan.n] for c, o in zip(plan.names, plan.offsets,
+                                                               strict=True)]
+    if highpass_hz:
+        return highpassed(whole, channels[plan.names[0]].rate, highpass_hz, plan.skip)
+    return [w[plan.skip:] for w in whole]
 
 
 def check_estimator(estimator: str) -> None:
@@ -653,10 +664,12 @@ def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
 def _excitations(events: list[dict], channels: Mapping[str, Channel], optic: str | None,
                  paths: Sequence[str | Path],
                  exc_times: Mapping[str, tuple[float, float]] | None, rate_hz: float
-                 ) -> tuple[dict[tuple[str, str, str], tuple[float, float]], tuple[str, ...]]:
+                 ) -> tuple[dict[tuple[str, str, str], tuple[float, float]], tuple[str, ...],
+                            dict[tuple[str, str, str], list[Stretch]]]:
     """The excitation of each excited DOF of one optic: given by hand, from the injection
     events (stream lengths counted at `rate_hz`), or else found in the EXC channels' data
-    (refused: none, several optics, a single sine); and those found in the data, described."""
+    (refused: none, several optics, sines on some DOFs and other waveforms on others); those
+    found in the data, described; and the single sines found, to demodulate."""
     if exc_times:
         segments = {key: exc_times[key[2]] for key in _exc_keys(channels)
                     if key[2] in exc_times}
@@ -667,15 +680,17 @@ def _excitations(events: list[dict], channels: Mapping[str, Channel], optic: str
     else:
         segments = _segments(events, rate_hz)
     notes: tuple[str, ...] = ()
+    sines: dict[tuple[str, str, str], list[Stretch]] = {}
     if not exc_times and not any(optic in (None, k[1]) for k in segments):
         stretches = {k: s for k, s in found(channels).items() if optic in (None, k[1])}
-        sines = [s for s in stretches.values() if s.waveform == "sine"]
-        if sines:
-            msg = (f"{sines[0]}: a single sine; twind estimates transfer functions from "
-                   "noise, multisines and swept sines (a sine's demodulation is not built)")
+        sines = {k: s for k, s in found_sines(channels).items() if optic in (None, k[1])}
+        if sines and set(sines) != set(stretches):
+            msg = (f"sines on {', '.join(k[2] for k in sines)} and other waveforms on "
+                   f"{', '.join(k[2] for k in set(stretches) - set(sines))}: twind estimates "
+                   "one kind per measurement (give the spans with --exc-times DOF:START:END)")
             raise TFError(msg)
         segments = {k: (s.start, s.end) for k, s in stretches.items()}
-        notes = tuple(map(str, stretches.values()))
+        notes = tuple(str(x) for k in stretches for x in sines.get(k, [stretches[k]]))
     if optic is not None:
         segments = {k: v for k, v in segments.items() if k[1] == optic}
     if not segments:
@@ -687,7 +702,37 @@ def _excitations(events: list[dict], channels: Mapping[str, Channel], optic: str
     if len(optics) > 1:
         msg = f"excitations on several optics {sorted(optics)}: choose one with --optic"
         raise TFError(msg)
-    return segments, notes
+    return segments, notes, sines
+
+
+def _demodulated(channels: Mapping[str, Channel], extents: Mapping[str, Extent],
+                 sines: Mapping[tuple[str, str, str], list[Stretch]], settle_s: float,
+                 notes: tuple[str, ...]) -> TFSet:
+    """Each excited DOF's sines demodulated (:func:`demodulate`), on the frequencies of all
+    of them: NaN where a DOF's sines did not reach."""
+    found_at: dict[str, dict[float, tuple[NDArray, NDArray]]] = {}
+    keys = {}
+    for key, stretches in sines.items():
+        for s in stretches:
+            plan = _Plan.of(key, s.start, s.end, extents, settle_s)
+            keys[key[2]] = plan.keys
+            x, *ys = _samples(channels, plan)
+            try:
+                f, h, g2 = demodulate(x, ys, channels[plan.names[0]].rate, s.tones_hz[0])
+            except DemodulationError as e:
+                raise TFError(f"{s}: {e}") from None
+            found_at.setdefault(key[2], {})[round(f, 6)] = (h, g2)
+    freq = np.array(sorted({f for by_f in found_at.values() for f in by_f}))
+    columns = {}
+    for dof, by_f in found_at.items():
+        h = np.full((len(keys[dof]), freq.size), np.nan, dtype=complex)
+        g2 = np.zeros((len(keys[dof]), freq.size))
+        for f, (hf, gf) in by_f.items():
+            h[:, np.searchsorted(freq, f)], g2[:, np.searchsorted(freq, f)] = hf, gf
+        columns[dof] = {k: (h[i], g2[i]) for i, k in enumerate(keys[dof])}
+    tfs = assemble(next(iter(sines))[1], freq, columns, AVERAGES)
+    tfs.window, tfs.found = "sine", notes
+    return tfs
 
 
 def _exc_keys(channels: Mapping[str, Channel]) -> list[tuple[str, str, str]]:
