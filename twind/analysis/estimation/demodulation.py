@@ -19,6 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
+from twind.errors import TwindError
+
 AVERAGES = 10
 """Blocks a sine's stretch is cut into: the estimate's averages."""
 CYCLES = 2.0
@@ -28,7 +30,7 @@ SETTLE = 0.2
 dies away (diaggui's swept sine settles each step likewise)."""
 
 
-class DemodulationError(ValueError):
+class DemodulationError(TwindError):
     """A stretch too short to demodulate at its frequency."""
 
 
