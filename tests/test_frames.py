@@ -55,8 +55,10 @@ def recorded(etmx, tmp_path_factory):  # noqa: ANN001, ANN201
                                   sample_rate=ch.rate / q, name=stored, channel=stored)
     data.write(str(d / "dq.h5"))
     data.write(str(d / "dq.gwf"))
+    TimeSeriesDict({k: v for k, v in data.items() if "_EXC_" not in k}).write(
+        str(d / "no_exc.h5"))
     return {"events": events, "bare": bare, "h5": d / "dq.h5", "gwf": d / "dq.gwf",
-            "written": data}
+            "no_exc": d / "no_exc.h5", "written": data}
 
 
 def _tf_json(*args: str) -> dict:
@@ -83,6 +85,22 @@ def test_hdf5_and_frames_give_the_tfs_of_the_mcap_route(recorded, kind: str,  # 
     # the same noise, resampled: differences far inside the errors
     assert coherent.sum() > 50
     assert np.max(np.abs(h - h0)[coherent] / sigma[coherent]) < 0.2
+
+
+def test_an_exc_not_recorded_is_in2_less_in1(recorded, capsys) -> None:  # noqa: ANN001
+    """A filter module's IN2 is its IN1 plus its EXC: without the EXC channels the file
+    gives the TFs of the MCAP route as well, the excitations found in IN2 - IN1."""
+    truth = _tf_json(str(recorded["events"]))
+    got = _tf_json(str(recorded["no_exc"]), "--map", "C2:=C1:")
+    said = capsys.readouterr().err
+    assert "not recorded, taken as IN2 - IN1: C1:SUS-ETMX_SUSPIT_EXC" in said, said
+    assert said.count("excitation found in the data") == 3
+    assert got["excited"] == truth["excited"]
+    h = np.array(got["IN1_per_EXC"]["re"]) + 1j * np.array(got["IN1_per_EXC"]["im"])
+    h0 = np.array(truth["IN1_per_EXC"]["re"]) + 1j * np.array(truth["IN1_per_EXC"]["im"])
+    coherent = np.array(truth["coherence_IN1"]) > 0.5
+    z = np.abs(h - h0)[coherent] / np.array(truth["sigma_IN1"])[coherent]
+    assert coherent.sum() > 50 and np.max(z) < 0.2
 
 
 def test_a_session_without_events_finds_the_segments_the_engine_used(
@@ -113,8 +131,10 @@ def test_a_session_without_events_finds_the_segments_the_engine_used(
     assert np.allclose(by_hand.tf["IN1"], truth.tf["IN1"], equal_nan=True)
 
 
-def test_diagnose_runs_on_the_data_systems_files(recorded, capsys) -> None:  # noqa: ANN001
-    assert main(["diagnose", str(recorded["h5"]), "--map", "C2:=C1:", "--bw", str(BW),
+@pytest.mark.parametrize("kind", ["h5", "gwf"])
+def test_diagnose_runs_on_the_data_systems_files(recorded, kind: str,  # noqa: ANN001
+                                                 capsys) -> None:  # noqa: ANN001
+    assert main(["diagnose", str(recorded[kind]), "--map", "C2:=C1:", "--bw", str(BW),
                  "--band", "0.3", "8", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     # the nominal optic measured: its nominal model fits, nothing is claimed (at this 0.25 Hz

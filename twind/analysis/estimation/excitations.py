@@ -193,6 +193,42 @@ def found_sines(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], l
     return out
 
 
+def with_exc(channels: Mapping[str, Channel]) -> dict[str, Channel]:
+    """`channels` with each DOF's EXC, where it was not recorded, taken as ``IN2 - IN1``: a
+    filter module's IN2 is its IN1 plus its EXC. What the two channels' rounding leaves
+    where nothing was injected (4 float32 epsilons of their size) is zero, as a recorded
+    EXC's is; the DOFs so found are named in a :class:`~twind.errors.MeasurementWarning`.
+
+    Parameters
+    ----------
+    channels : mapping of str to Channel
+        At one rate (:func:`at_one_rate`).
+
+    Returns
+    -------
+    dict of str to Channel
+    """
+    out, derived = dict(channels), []
+    for name in channels:
+        m = DOF_CHANNEL.match(name)
+        exc = name[: m.start("point")] + "EXC" if m else ""
+        if not m or m["point"] != "IN1" or exc in channels:
+            continue
+        in2 = channels.get(name[: m.start("point")] + "IN2")
+        in1 = channels[name]
+        if in2 is None or (in2.t0, len(in2.samples)) != (in1.t0, len(in1.samples)):
+            continue
+        x = np.asarray(in2.samples, float) - np.asarray(in1.samples, float)
+        rounding = 4 * np.finfo(np.float32).eps * (np.abs(in1.samples) + np.abs(in2.samples))
+        x[np.abs(x) <= rounding] = 0.0
+        out[exc] = Channel(exc, in1.unit, in1.rate, in1.t0, x, in1.sequences, in1.gps_starts)
+        derived.append(exc)
+    if derived:
+        warnings.warn(f"not recorded, taken as IN2 - IN1: {some_names(derived)}",
+                      MeasurementWarning, stacklevel=2)
+    return out
+
+
 def at_one_rate(channels: Mapping[str, Channel]) -> dict[str, Channel]:
     """`channels` at the slowest of their rates: the faster ones through
     :func:`scipy.signal.resample_poly` (its anti-alias filter, no delay), named in a

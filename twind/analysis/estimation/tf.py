@@ -29,7 +29,7 @@ from twind import DOFS
 from twind.channels import DOF_CHANNEL
 from twind.analysis.estimation.demodulation import AVERAGES, DemodulationError, demodulate
 from twind.analysis.estimation.excitations import (SHORTEST_S, Stretch, at_one_rate, found,
-                                                   found_sines)
+                                                   found_sines, with_exc)
 from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
@@ -449,9 +449,9 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     Each excited DOF's segment runs from its injection's start to its end: `exc_times`,
     the recorded ``start``/``end``/``stop`` events, or where there are none the EXC
     channel's longest nonzero stretch (:mod:`~twind.analysis.estimation.excitations`;
-    single sines found so are each :mod:`demodulated <.demodulation>`). Only the test
-    points are read, of `optic` if given, brought to the slowest one's rate; the response
-    DOFs are those whose IN1, IN2 and OUT were recorded.
+    single sines found so are each :mod:`demodulated <.demodulation>`; an EXC not recorded
+    is IN2 - IN1). Only the test points are read, of `optic` if given, brought to the
+    slowest one's rate; the response DOFs are those whose IN1, IN2 and OUT were recorded.
     The Welch sums of an MCAP session with events are taken while it is read
     (:class:`~twind.analysis.estimation.welch.WelchStream`); with gaps, late events or a
     high-pass it is read whole instead, with the same result.
@@ -510,7 +510,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
 
     session = (read_frames(paths, _test_point(optic), mapping) if frames
                else read_channels(list(paths), _test_point(optic)))
-    channels = at_one_rate(session.channels)
+    channels = with_exc(at_one_rate(session.channels))
     extents = {n: Extent(c.t0, c.rate, len(c.samples)) for n, c in channels.items()}
     # stream events count samples at the model's rate: the fastest channel's, as recorded
     segments, notes, sines = _excitations(session.events, channels, optic, paths, exc_times,
