@@ -147,50 +147,38 @@ def _refined(f: NDArray, p: NDArray, k: int) -> float:
     return float(f[k] + shift * (f[1] - f[0]))
 
 
+def every(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], list[Stretch]]:
+    """Every stretch of each EXC channel: awg's injections one after another, a sine
+    stepped by hand.
+
+    Parameters
+    ----------
+    channels : mapping of str to Channel
+
+    Returns
+    -------
+    dict
+        ``(ifo, optic, DOF)`` to its stretches in time order; DOFs with none left out.
+    """
+    out = {}
+    for name, ch in channels.items():
+        m = DOF_CHANNEL.match(name)
+        if m and m["point"] == "EXC" and (runs := stretches(ch)):
+            out[(m["ifo"], m["optic"], m["dof"])] = runs
+    return out
+
+
+def longest(runs: Mapping[tuple[str, str, str], list[Stretch]]
+            ) -> dict[tuple[str, str, str], Stretch]:
+    """Of each DOF's stretches (:func:`every`), the longest: its excitation when it is not
+    a series of single sines."""
+    return {k: max(v, key=lambda s: s.end - s.start) for k, v in runs.items()}
+
+
 def found(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], Stretch]:
-    """The excitation of each EXC channel found in its data: of several stretches, the
-    longest.
-
-    Parameters
-    ----------
-    channels : mapping of str to Channel
-
-    Returns
-    -------
-    dict
-        ``(ifo, optic, DOF)`` to its :class:`Stretch`.
-    """
-    out = {}
-    for name, ch in channels.items():
-        m = DOF_CHANNEL.match(name)
-        if m and m["point"] == "EXC":
-            runs = stretches(ch)
-            if runs:
-                out[(m["ifo"], m["optic"], m["dof"])] = max(runs, key=lambda s: s.end - s.start)
-    return out
-
-
-def found_sines(channels: Mapping[str, Channel]) -> dict[tuple[str, str, str], list[Stretch]]:
-    """Every single-sine stretch of each EXC channel (awg's sines one after another, a
-    stepped sine made by hand), in time order.
-
-    Parameters
-    ----------
-    channels : mapping of str to Channel
-
-    Returns
-    -------
-    dict
-        ``(ifo, optic, DOF)`` to its sines; DOFs with none are left out.
-    """
-    out = {}
-    for name, ch in channels.items():
-        m = DOF_CHANNEL.match(name)
-        if m and m["point"] == "EXC":
-            sines = [s for s in stretches(ch) if s.waveform == "sine"]
-            if sines:
-                out[(m["ifo"], m["optic"], m["dof"])] = sines
-    return out
+    """The excitation of each EXC channel found in its data, ``(ifo, optic, DOF)`` to its
+    :class:`Stretch`: of several, the longest (:func:`longest` of :func:`every`)."""
+    return longest(every(channels))
 
 
 def with_exc(channels: Mapping[str, Channel]) -> dict[str, Channel]:

@@ -28,8 +28,8 @@ from scipy import signal
 from twind import DOFS
 from twind.channels import DOF_CHANNEL
 from twind.analysis.estimation.demodulation import AVERAGES, DemodulationError, demodulate
-from twind.analysis.estimation.excitations import (SHORTEST_S, Stretch, at_one_rate, found,
-                                                   found_sines, with_exc)
+from twind.analysis.estimation.excitations import (SHORTEST_S, Stretch, at_one_rate, every,
+                                                   longest, with_exc)
 from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
@@ -682,8 +682,10 @@ def _excitations(events: list[dict], channels: Mapping[str, Channel], optic: str
     notes: tuple[str, ...] = ()
     sines: dict[tuple[str, str, str], list[Stretch]] = {}
     if not exc_times and not any(optic in (None, k[1]) for k in segments):
-        stretches = {k: s for k, s in found(channels).items() if optic in (None, k[1])}
-        sines = {k: s for k, s in found_sines(channels).items() if optic in (None, k[1])}
+        runs = {k: v for k, v in every(channels).items() if optic in (None, k[1])}
+        stretches = longest(runs)
+        sines = {k: [s for s in v if s.waveform == "sine"] for k, v in runs.items()}
+        sines = {k: v for k, v in sines.items() if v}
         if sines and set(sines) != set(stretches):
             msg = (f"sines on {', '.join(k[2] for k in sines)} and other waveforms on "
                    f"{', '.join(k[2] for k in set(stretches) - set(sines))}: twind estimates "
