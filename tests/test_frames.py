@@ -147,6 +147,7 @@ def test_diagnose_runs_on_the_data_systems_files(recorded, kind: str,  # noqa: A
 
 @pytest.mark.parametrize(("waveform", "kw", "tones"), [
     ("sine", {"freq": 3.3}, [3.3]),
+    ("sine", {"freq": 0.2}, [0.2]),
     ("multisine", {"freqs": (0.5, 1.1, 2.3, 7.7)}, [0.5, 1.1, 2.3, 7.7]),
     ("sweep", {"freq": 0.1, "f_stop": 30.0}, []),
     ("noise", {}, []),

@@ -120,7 +120,7 @@ def recognise(x: NDArray[np.float64], rate: float) -> tuple[str, tuple[float, ..
     >>> recognise(np.sin(2 * np.pi * 3.3 * t), 16384.0)[0]
     'sine'
     """
-    nperseg = min(len(x), int(rate * 8))
+    nperseg = min(len(x), int(rate * 32))  # a line at 0.2 Hz stands 6 bins above DC
     f, p = signal.welch(x, rate, nperseg=nperseg)
     # a line stands far above the spectrum around it (a band-limited noise's edge does not)
     # and within 60 dB of the strongest (a rounding floor has peaks too)
