@@ -2,8 +2,8 @@
 
 Each worker runs on one thread: two workers that each spread their BLAS calls and the
 engine's steps over both cores of a two-core machine wait on each other, and measured no
-faster than one worker (4 nulls of :func:`~twind.lab.rates.nulls`: 23 s against 21.6 s;
-14 s with one thread each).
+faster than one worker (4 nulls of :func:`~twind.lab.rates.nulls`, timed by hand: 23 s
+against 21.6 s; 14 s with one thread each).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage, signal
 
-from twind.channels import DOF_CHANNEL
+from twind.channels import DOF_CHANNEL, dof_channel
 from twind.errors import MeasurementWarning
 from twind.recording.session import Channel, some_names
 
@@ -199,11 +199,12 @@ def with_exc(channels: Mapping[str, Channel]) -> dict[str, Channel]:
     out, derived = dict(channels), []
     for name in channels:
         m = DOF_CHANNEL.match(name)
-        exc = name[: m.start("point")] + "EXC" if m else ""
-        if not m or m["point"] != "IN1" or exc in channels:
+        if not m or m["point"] != "IN1":
             continue
-        in2 = channels.get(name[: m.start("point")] + "IN2")
-        in1 = channels[name]
+        exc, in2 = (dof_channel(m["ifo"], m["optic"], m["dof"], p) for p in ("EXC", "IN2"))
+        in1, in2 = channels[name], channels.get(in2)
+        if exc in channels:
+            continue
         if in2 is None or (in2.t0, len(in2.samples)) != (in1.t0, len(in1.samples)):
             continue
         x = np.asarray(in2.samples, float) - np.asarray(in1.samples, float)
