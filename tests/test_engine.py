@@ -116,6 +116,15 @@ def test_seeds(etmx) -> None:
             assert abs(np.corrcoef(np.diff(a.sen[0, j]), np.diff(a.sen[0, k]))[0, 1]) < 0.1
 
 
+def test_without_osems_the_loop_is_the_same(etmx) -> None:
+    exc = np.random.default_rng(2).standard_normal((1, 4, 5000))
+    full = Engine([etmx.loop()], noise=etmx.noise, seed=3).step(5000, exc=exc)
+    lean = Engine([etmx.loop()], noise=etmx.noise, seed=3, osems=False).step(5000, exc=exc)
+    for p in ("in1", "in2", "out"):
+        assert np.array_equal(getattr(full, p), getattr(lean, p)), p
+    assert np.all(full.sen != 0) and not np.any(lean.sen)
+
+
 def test_threads_do_not_change_the_result(cfg) -> None:
     loops = [cfg.optics[k].loop() for k in ("ETMX", "ITMX", "MC2")]
     exc = np.random.default_rng(4).standard_normal((3, 4, 3000)) * 0.05
@@ -136,7 +145,7 @@ def test_white_noise_is_standard_normal(eight: bool) -> None:
     out = np.empty(n)
     if eight:  # as the engine draws: eight streams a vector, each as fill_normal draws it
         states = seed_states(11, 8)
-        fill_normal8(np.ascontiguousarray(states.T), np.ones(8), out,
+        fill_normal8(np.ascontiguousarray(states.transpose(1, 2, 0)), np.ones(8), out,
                      np.empty(n, dtype=np.uint64), np.empty(n // 8, dtype=np.uint8))
         one = np.empty(n // 8)
         fill_normal(states[5], 1.0, one)

@@ -133,11 +133,18 @@ def test_session_lpm_errors_are_the_residuals_of_the_model(tmp_path: Path,
     data = FitData.from_tfset(tfs, band=(0.3, 8.0))
     z = (data.H - ClosedLoopModel.of(cfg, data).for_data(data)({})) / data.sigma
     q = tfs.averages - 1
+    powers = []
     for j in range(len(data.excited)):
         i = data.responses.index(data.excited[j])
         k = data.mask[:, i, j]
-        power = np.mean(np.abs(z[k, i, j]) ** 2) / 2
-        assert k.sum() > 20 and 0.7 < power / (q / (q - 1)) < 1.4, (data.excited[j], power)
+        assert k.sum() > 20, data.excited[j]
+        powers.append(np.abs(z[k, i, j]) ** 2 / 2)
+    # neighbouring bins share samples, so their mean scatters more than F's: over seeds 0-5
+    # of this and the previous noise streams, the three DOFs' pooled mean over F's mean lay
+    # in 0.79-1.15 (each DOF's alone in 0.59-1.78); errors off by a factor of 2 in variance
+    # give 0.46 or 1.85
+    ratio = np.mean(np.concatenate(powers)) / (q / (q - 1))
+    assert 0.55 < ratio < 1.6, ratio
 
     out = io.StringIO()
     with redirect_stdout(out):
@@ -213,7 +220,7 @@ def test_bad_inputs_are_named(tmp_path: Path) -> None:
                          [(40000, 1000, 0.5), (30001, 777, 0.3), (50000, 4096, 0.75),
                           (20000, 2000, 0.0), (9999, 1001, 0.5)])
 def test_welch_tfs_equal_scipy_csd_welch_coherence(n: int, nperseg: int, overlap: float) -> None:
-    """One FFT per segment and signal gives scipy.signal's three estimates (to 1e-10),
+    """One FFT per segment and signal gives scipy.signal's four estimates (to 1e-10),
     for even and odd segments, with and without overlap, a DC offset, and two threads."""
     from scipy import signal
 
@@ -225,11 +232,13 @@ def test_welch_tfs_equal_scipy_csd_welch_coherence(n: int, nperseg: int, overlap
           5.0 * rng.standard_normal(n) - 2.0]
     kw = {"fs": 512.0, "window": "hann", "nperseg": nperseg, "noverlap": int(nperseg * overlap)}
     for workers in (1, 2):
-        f, h, g2, avg = welch_tfs(x, ys, 512.0, nperseg, overlap, workers=workers)
+        psd = np.empty(nperseg // 2 + 1)
+        f, h, g2, avg = welch_tfs(x, ys, 512.0, nperseg, overlap, workers=workers, psd=psd)
         for i, y in enumerate(ys):
             f0, pxy = signal.csd(x, y, **kw)
             _, pxx = signal.welch(x, **kw)
             _, coh = signal.coherence(x, y, **kw)
+            np.testing.assert_allclose(psd, pxx, rtol=1e-10)
             np.testing.assert_array_equal(f, f0)
             np.testing.assert_allclose(h[i], pxy / pxx, rtol=1e-10)
             np.testing.assert_allclose(g2[i], coh, rtol=1e-10)

@@ -5,6 +5,10 @@ best of repeated runs, quiet and again with another process keeping one core bus
 and largest output difference against python-control's ``forced_response`` on the same
 discrete closed loop; and the marginal speed of ``twind simulate`` (200 s minus 20 s of
 simulated time over the wall-time difference, so start-up and compilation cancel).
+
+A shared machine's pace varies from day to day (the same build has run one optic at 660x
+and 1030x): the first line prints the pace of a chain of dependent multiply-adds, measured
+in the same run, and the engine's time per sample in those units.
 """
 
 from __future__ import annotations
@@ -17,12 +21,41 @@ from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
 
 import control
+import numba as nb
 import numpy as np
 
 from twind.config import load_config
 from twind.simulation.discretize import discrete_closed_loop
 from twind.simulation.engine import Engine
 from twind.simulation.noise import NoiseSpec
+
+
+@nb.njit(cache=True, fastmath={"contract"})
+def _chain(n: int, a: float, b: float) -> float:  # pragma: no cover - numba
+    x = 1.0
+    for _ in range(n):
+        x = x * a + b  # one fused multiply-add, waiting on the last
+    return x
+
+
+def multiply_add_ns(n: int = 20_000_000, repeats: int = 3) -> float:
+    """Wall time of one multiply-add that waits on the one before (the best of `repeats`
+    chains of `n`): the latency the engine's filter cascades are made of, as this machine
+    runs it now. At 4 cycles a multiply-add (AMD since Zen, Intel since Skylake) the clock
+    is ``4 / multiply_add_ns()`` GHz.
+
+    Returns
+    -------
+    float
+        Nanoseconds.
+    """
+    _chain(10, 0.5, 0.5)
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        _chain(n, 0.999, 0.001)
+        best = min(best, time.perf_counter() - t0)
+    return best / n * 1e9
 
 
 def engine_speed(optics: list, seconds: float, seed: int = 0, repeats: int = 5
@@ -176,12 +209,16 @@ def run_benchmarks(config: str | None = None, seconds: float = 20.0, marginal: b
     etmx = twin.optics.get("ETMX", next(iter(twin.optics.values())))
     every = list(twin.optics.values())
     rate = etmx.sus.sample_rate_hz
+    fma = multiply_add_ns()
+    print(f"this machine now: a dependent multiply-add takes {fma:.3f} ns ({4 / fma:.2f} GHz "
+          "at 4 cycles each)")
     for label, load in (("quiet", nullcontext()), ("one core loaded", one_core_loaded())):
         with load:
             one = engine_speed([etmx], seconds / 5)
             many = engine_speed(every, max(1.0, seconds / 20))
         print(f"engine, 1 optic ({etmx.name}), noise on, {label}: median {one[0]:7.1f}, best "
-              f"{one[1]:7.1f} x real time ({one[0] * rate:.3g} samples/s)")
+              f"{one[1]:7.1f} x real time ({one[0] * rate:.3g} samples/s, "
+              f"{1e9 / (one[0] * rate) / fma:.0f} multiply-add latencies a sample)")
         print(f"engine, {len(every)} optics ({twin.source}), {label}: median {many[0]:7.1f}, "
               f"best {many[1]:7.1f} x real time ({many[0] * rate * len(every):.3g} "
               f"optic-samples/s)")

@@ -115,7 +115,6 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     check_estimator(estimator)
     rate = cfg.sus.sample_rate_hz
     nperseg, n = _averaged(rate, bw, averages, overlap)
-    step = nperseg - int(nperseg * overlap)
     settle = int(SETTLE_S * rate)
     rng = np.random.default_rng(seed)
     exc = np.zeros((len(dofs), len(DOFS), settle + n))
@@ -133,13 +132,15 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     loops = [c.loop() for c in copies]
     for lp in loops:
         lp.plant = plant or lp.plant
-    engine = Engine(loops, {c.name: c.noise for c in copies}, seed=seed, rate_hz=rate)
+    engine = Engine(loops, {c.name: c.noise for c in copies}, seed=seed, rate_hz=rate,
+                    osems=False)
     keep = settle if highpass_hz else 0  # samples kept before the averages, for the filter
     record = {p: np.zeros((len(dofs), len(DOFS), n + keep)) for p in POINTS}
     chunk, done = int(rate), 0
+    buf = engine.new_block(chunk)  # one block filled again and again: no fresh pages each step
     while done < settle + n:
         k = min(chunk, settle + n - done)
-        block = engine.step(k, exc=exc[:, :, done:done + k])
+        block = engine.step(k, exc=exc[:, :, done:done + k], out=buf if k == chunk else None)
         a, b = max(done - settle + keep, 0), done + k - settle + keep
         if b > 0:
             for p in POINTS:
@@ -158,10 +159,10 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
             est, columns[d] = lpm_column(x, ys, rate, keys, 4 * f_max)
             freq, navg, estimates[d] = est.frequency_hz, est.averages, est
             continue
-        freq, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
+        exc_psd[d] = np.empty(nperseg // 2 + 1)
+        freq, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window,
+                                      psd=exc_psd[d])
         columns[d] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
-        exc_psd[d] = signal.welch(x, fs=rate, window=window, nperseg=nperseg,
-                                  noverlap=nperseg - step)[1]
     tfs = assemble(cfg.name, freq, columns, navg)
     if estimates:
         return with_lpm(tfs, estimates)

@@ -129,11 +129,14 @@ class Engine:
         at most numba's thread count where the engine is made (``numba.set_num_threads``;
         by default ``NUMBA_NUM_THREADS``, the CPUs this process may run on); each optic runs
         on one thread for a whole step.
+    osems : bool
+        Whether the blocks carry the OSEM readings (``Block.sen``); without them, a tenth
+        of the engine's work, they stay zero.
     """
 
     def __init__(self, loops: Sequence[DampingLoop], noise: NoiseSpec | Mapping[str, NoiseSpec]
                  = NoiseSpec(), seed: int = 0, rate_hz: float = 16384.0,
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, osems: bool = True) -> None:
         self.loops = list(loops)
         self.optics = tuple(lp.name for lp in self.loops)
         self.rate_hz = float(rate_hz)
@@ -147,13 +150,13 @@ class Engine:
         plants = [self._discrete_plant(lp) for lp in self.loops]
         self._stage_sos = [[stage_sections(lp, d, self.rate_hz) for d in DOFS] for lp in self.loops]
         ns = LANES * -(-max(len(p[0][0]) for p in plants) // LANES)
-        self._a = self._allocate(n_opt, ns, specs)
+        self._a = self._allocate(n_opt, ns, specs, osems)
         for o, plant in enumerate(plants):
             self._set_plant(o, *plant)
         self._build_filters()
         self._build_noise(specs, seed)
 
-    def _allocate(self, n_opt: int, ns: int, specs: Sequence[NoiseSpec]) -> Arrays:
+    def _allocate(self, n_opt: int, ns: int, specs: Sequence[NoiseSpec], osems: bool) -> Arrays:
         ndelay = np.array([delay_samples(lp.plant.delay_s, self.rate_hz) for lp in self.loops])
         nmax = max(1, max(len(sos) for stages in self._stage_sos for sos, _ in stages))
         z = np.zeros
@@ -163,14 +166,15 @@ class Engine:
             noise_to_in1=z((n_opt, N_NOISE * LANES)),
             sen_face=z((n_opt, (ns + N_DOF + N_NOISE) * LANES)), sen_side=z((n_opt, ns + N_DOF + N_NOISE)),
             sen_extra=z((n_opt, ns + N_DOF + N_NOISE)), sen_inverse=z((n_opt, 7 * LANES)),
-            sen_by_inverse=z(n_opt, dtype=bool),
+            sen_by_inverse=z(n_opt, dtype=bool), read_osems=np.full(n_opt, osems),
             x=z((n_opt, ns)), filters=z((n_opt, nmax * SECTION_ROWS * LANES)),
             nsec=np.full(n_opt, nmax, dtype=np.int64),
             gain=z((n_opt, N_DOF)), gain_target=z((n_opt, N_DOF)), gain_step=z((n_opt, N_DOF)),
             ramp_left=z((n_opt, N_DOF), dtype=np.int64), limit=z((n_opt, N_DOF)),
             delay=z((n_opt, ndelay.max() * LANES)), delay_pos=z(n_opt, dtype=np.int64),
             ndelay=ndelay, noise_filters=z((n_opt, 2, SECTION_ROWS * LANES)),
-            sigma=z((n_opt, N_NOISE)), rng=z((n_opt, 4, N_NOISE), dtype=np.uint64),
+            sigma=z((n_opt, N_NOISE)), quiet=z(n_opt, dtype=bool),
+            rng=z((n_opt, 2, 4, N_NOISE), dtype=np.uint64),
             noise=z((n_opt, CHUNK * N_NOISE)), bits=z((n_opt, CHUNK * N_NOISE), dtype=np.uint64),
             outside=z((n_opt, CHUNK), dtype=np.uint8),
             noise_pos=np.full(n_opt, CHUNK, dtype=np.int64), ext=z((n_opt, CHUNK * LANES)),
@@ -274,7 +278,8 @@ class Engine:
             rows = self._a.noise_filters[o].reshape(2, SECTION_ROWS, LANES)
             rows[:, :5] = sos[:, _COEFFICIENTS].reshape(2, LANES, 5).transpose(0, 2, 1)
             self._a.sigma[o] = sigma
-            self._a.rng[o] = seed_states(seed, N_NOISE, key=self.optics[o]).T
+            self._a.quiet[o] = not np.any(sigma)
+            self._a.rng[o] = seed_states(seed, N_NOISE, key=self.optics[o]).transpose(1, 2, 0)
 
     def new_block(self, n: int) -> Block:
         """An empty block of `n` samples to pass to :meth:`step` as ``out`` again and again.

@@ -11,13 +11,14 @@ Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulat
   drives ``u`` (OUT of ``ndelay`` cycles ago: the plant is bilinear, so its inputs of this
   cycle feed through) and the noise ``n``, all projected on the DOFs once at build time;
 - IN2 = IN1 + EXC; the filter cascades, one lane each; OUT = gain x cascade, limited;
-- the OSEM readings ``sen``: from IN1 and one more combination of the readings, when the
-  input matrix has full rank, or else from the same state, inputs and noise;
+- the OSEM readings ``sen``, when wanted: from IN1 and one more combination of the
+  readings, when the input matrix has full rank, or else from the same state, inputs and
+  noise;
 - the modal plant's next state, four states a vector (each state couples only to its pair).
 
 Noise is drawn in chunks of :data:`CHUNK` samples, whatever the step sizes: white, the eight
 channels' xoshiro streams as one 8-wide vector (:func:`~twind.simulation.rng.fill_normal8`),
-then shaped, one section per channel.
+then shaped, one section per channel; none for an optic whose noise is off.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ class Arrays(NamedTuple):
     sen_extra: NDArray[np.float64]  # [optic, ns + 4 + 8]: an OSEM combination no DOF reads
     sen_inverse: NDArray[np.float64]  # [optic, 7 * 4]: OSEMs from IN1 and that combination
     sen_by_inverse: NDArray[np.bool_]  # [optic]: whether the input matrix allows it
+    read_osems: NDArray[np.bool_]  # [optic]: whether the OSEM readings are wanted at all
     x: NDArray[np.float64]  # [optic, ns] modal state
     filters: NDArray[np.float64]  # cascade4 layout, the four DOFs' cascades as lanes
     nsec: NDArray[np.int64]
@@ -77,7 +79,8 @@ class Arrays(NamedTuple):
     ndelay: NDArray[np.int64]
     noise_filters: NDArray[np.float64]  # [optic, 2, cascade4 layout]: two cascades of a section
     sigma: NDArray[np.float64]  # [optic, 8] white standard deviation of each noise channel
-    rng: NDArray[np.uint64]  # [optic, 4, 8] xoshiro256** states, a column per noise channel
+    quiet: NDArray[np.bool_]  # [optic]: no noise at all (every sigma 0), so none is drawn
+    rng: NDArray[np.uint64]  # [optic, 2, 4, 8] xoshiro256** candidate and rejection streams
     noise: NDArray[np.float64]  # [optic, CHUNK * 8] the current chunk of shaped noise
     bits: NDArray[np.uint64]  # [optic, CHUNK * 8] scratch of fill_normal8
     outside: NDArray[np.uint8]  # [optic, CHUNK] scratch of fill_normal8
@@ -95,7 +98,7 @@ def draw_noise(states, sigma, filters, out, bits, outside):
 
     Parameters
     ----------
-    states : ndarray of uint64, shape (4, 8)
+    states : ndarray of uint64, shape (2, 4, 8)
         The channels' streams, as :func:`~twind.simulation.rng.fill_normal8` takes them.
     sigma : ndarray, shape (8,)
         The white standard deviation of each channel.
@@ -250,6 +253,7 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
     x_to_in1, u_to_in1, plant = s.x_to_in1[o], s.u_to_in1[o], s.plant[o]
     sen_face, sen_side, noise = s.sen_face[o], s.sen_side[o], s.noise[o]
     sen_extra, sen_inverse, by_inverse = s.sen_extra[o], s.sen_inverse[o], s.sen_by_inverse[o]
+    read_osems = s.read_osems[o]
     gain, gain_target, gain_step = s.gain[o], s.gain_target[o], s.gain_step[o]
     limit, ramp_left = s.limit[o], s.ramp_left[o]
     nsec, ndelay, pos = s.nsec[o], s.ndelay[o], s.delay_pos[o]
@@ -259,7 +263,9 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
         t = a + k
         y = _in1(x_to_in1, u_to_in1, ext, x, u, k)
         y2 = (y[0] + exc[0, t], y[1] + exc[1, t], y[2] + exc[2, t], y[3] + exc[3, t])
-        if by_inverse:
+        if not read_osems:
+            pass
+        elif by_inverse:
             _osems_from_in1(sen_extra, sen_inverse, x, u, noise, p + k, y, sen, t)
         else:
             _osem_cycle(sen_face, sen_side, x, u, noise, p + k, sen, t)
@@ -303,12 +309,15 @@ def run_optic(s, o, n, exc, in1, in2, out, sen):
     a = 0
     while a < n:
         if s.noise_pos[o] == CHUNK:
-            draw_noise(s.rng[o], s.sigma[o], s.noise_filters[o], s.noise[o], s.bits[o],
-                       s.outside[o])
+            if not s.quiet[o]:
+                draw_noise(s.rng[o], s.sigma[o], s.noise_filters[o], s.noise[o], s.bits[o],
+                           s.outside[o])
             s.noise_pos[o] = 0
         p = s.noise_pos[o]
         c = min(n - a, CHUNK - p)
-        _noise_inputs(s.noise_to_in1[o], s.sp_to_x[o], s.noise[o], p, c, s.ext[o], s.xsp[o])
+        if not s.quiet[o]:
+            _noise_inputs(s.noise_to_in1[o], s.sp_to_x[o], s.noise[o], p, c, s.ext[o],
+                          s.xsp[o])
         _close(s, o, c, a, p, exc, in1, in2, out, sen)
         s.noise_pos[o] += c
         a += c

@@ -1,10 +1,16 @@
 """Seeded Gaussian noise inside compiled loops: xoshiro256** with a 256-layer ziggurat.
 
 numpy's Generator costs ~10 ns a sample on the project's machines; :func:`fill_normal` ~3 ns,
-and :func:`fill_normal8`, the same numbers from eight streams as one vector, ~2 ns. Each optic's streams are its
-own, so runs repeat bit for bit whatever the block size. Algorithms: Blackman & Vigna,
-"Scrambled linear pseudorandom number generators" (2021); Marsaglia & Tsang, "The ziggurat
-method for generating random variables" (2000), with numpy's 256-layer constants.
+and :func:`fill_normal8`, the same numbers from eight channels as one vector, ~2 ns.
+
+A channel is two streams: each deviate's candidate comes from the first, one draw a deviate,
+and the ziggurat's rejections (a candidate outside its layer's rectangle, 1.5 % of them) take
+what else they need from the second. The deviates are exactly normal and independent, as the
+ziggurat's are; the first stream's pace is fixed, so eight channels advance as one vector
+that never stops, and the rejected candidates are completed afterwards. Each optic's streams
+are its own, so runs repeat bit for bit whatever the block size. Algorithms: Blackman &
+Vigna, "Scrambled linear pseudorandom number generators" (2021); Marsaglia & Tsang, "The
+ziggurat method for generating random variables" (2000), with numpy's 256-layer constants.
 """
 
 from __future__ import annotations
@@ -47,7 +53,8 @@ KI, WI, FI = tables()
 
 
 def seed_states(seed: int, n: int, key: str = "") -> NDArray[np.uint64]:
-    """Independent xoshiro256** states for `n` streams from one integer seed, shape (n, 4).
+    """Independent xoshiro256** states of `n` channels from one integer seed, two streams each
+    (candidates, rejections: see the module's docstring).
 
     `key` (an optic's name) selects its own family of streams, so an optic's noise does not
     depend on which other optics run beside it.
@@ -57,19 +64,19 @@ def seed_states(seed: int, n: int, key: str = "") -> NDArray[np.uint64]:
     seed : int
         The run's seed.
     n : int
-        Streams wanted.
+        Channels wanted.
     key : str
         The family of streams (an optic's name; empty for the seed's own).
 
     Returns
     -------
-    ndarray of uint64, shape (n, 4)
+    ndarray of uint64, shape (n, 2, 4)
     """
     spawn_key = (zlib.crc32(key.encode()),) if key else ()
-    children = np.random.SeedSequence(seed, spawn_key=spawn_key).spawn(n)
+    children = np.random.SeedSequence(seed, spawn_key=spawn_key).spawn(2 * n)
     states = np.array([c.generate_state(4, dtype=np.uint64) for c in children], dtype=np.uint64)
     states[np.all(states == 0, axis=1), 0] = 1  # the all-zero state is a fixed point
-    return states
+    return np.ascontiguousarray(states.reshape(2, n, 4).transpose(1, 0, 2))
 
 
 @nb.njit(inline="always")
@@ -137,19 +144,22 @@ def fill_normal(state: NDArray[np.uint64], scale: float, out: NDArray[np.float64
 
     Parameters
     ----------
-    state : ndarray of uint64, shape (4,)
-        A xoshiro256** stream from :func:`seed_states`, advanced past the draws.
+    state : ndarray of uint64, shape (2, 4)
+        The channel's two xoshiro256** streams from :func:`seed_states` (candidates, then
+        rejections), advanced past the draws.
     scale : float
         Standard deviation.
     out : ndarray, 1-D
         Filled in place.
     """
-    s0, s1, s2, s3 = state[0], state[1], state[2], state[3]
+    s0, s1, s2, s3 = state[0, 0], state[0, 1], state[0, 2], state[0, 3]
+    t0, t1, t2, t3 = state[1, 0], state[1, 1], state[1, 2], state[1, 3]
     for k in range(out.shape[0]):
         r, s0, s1, s2, s3 = _next(s0, s1, s2, s3)
-        x, s0, s1, s2, s3 = _complete(r, s0, s1, s2, s3)
+        x, t0, t1, t2, t3 = _complete(r, t0, t1, t2, t3)
         out[k] = scale * x
-    state[0], state[1], state[2], state[3] = s0, s1, s2, s3
+    state[0, 0], state[0, 1], state[0, 2], state[0, 3] = s0, s1, s2, s3
+    state[1, 0], state[1, 1], state[1, 2], state[1, 3] = t0, t1, t2, t3
 
 
 _LANES8 = 8
@@ -194,89 +204,81 @@ def _lookup(builder: ir.IRBuilder, table: ir.Value, idx: ir.Value, vtype: ir.Vec
     return out
 
 
-@intrinsic
-def _fast8(typingctx, states, ki, wi, sigma, start, n, out, bits, outside):  # noqa: ANN001, ANN201
-    """The ziggurat's fast path on eight streams, from draw `start` until draw `n` or the
-    first draw with a candidate outside its layer's rectangle, whose index it returns.
+def _to_double(builder: ir.IRBuilder, m: ir.Value) -> ir.Value:
+    """``float(m)`` of eight integers below 2**52, exactly: `m` as the mantissa of 2**52, less
+    2**52 (AVX2 has no vector conversion from 64-bit integers; LLVM's is eight scalar ones)."""
+    biased = builder.bitcast(builder.or_(m, _v(0x4330000000000000)), _VD)
+    return builder.fsub(biased, ir.Constant(_VD, [_M52] * _LANES8))
 
-    ``out[8 k + c]`` is stream c's candidate times ``sigma[c]``, ``bits[8 k + c]`` its 64
-    random bits, and bit c of ``outside[k]`` set when the candidate needs :func:`_complete`.
+
+@intrinsic
+def _fast8(typingctx, states, ki, wi, sigma, n, out, bits, outside):  # noqa: ANN001, ANN201
+    """The ziggurat's first candidates of `n` draws on eight streams, as one vector.
+
+    ``out[8 k + c]`` is stream c's k-th candidate times ``sigma[c]``, ``bits[8 k + c]`` its
+    64 random bits, and bit c of ``outside[k]`` set when it lies outside its layer's
+    rectangle and needs :func:`_complete`.
     """
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
         def data(i: int, vtype: ir.Type | None = None) -> ir.Value:
             ptr = context.make_array(sig.args[i])(context, builder, args[i]).data
             return builder.bitcast(ptr, vtype.as_pointer()) if vtype else ptr
         st, ki_p, wi_p, out_p, bits_p, outside_p = (
-            data(0, _V64), data(1), data(2), data(6, _VD), data(7, _V64), data(8))
+            data(0, _V64), data(1), data(2), data(5, _VD), data(6, _V64), data(7))
         scale = builder.load(data(3, _VD), align=8)
         state = [cgutils.alloca_once_value(builder, builder.load(builder.gep(st, [ir.Constant(
             _I64, j)]), align=8)) for j in range(4)]
-        k_ptr = cgutils.alloca_once_value(builder, args[4])
-        head, body, more, done = (builder.append_basic_block(name)
-                                  for name in ("head", "body", "more", "done"))
-        builder.branch(head)
-        builder.position_at_end(head)
-        k = builder.load(k_ptr)
-        builder.cbranch(builder.icmp_signed("<", k, args[5]), body, done)
-        builder.position_at_end(body)
-        r = _xoshiro8(builder, state)
-        builder.store(r, builder.gep(bits_p, [k]), align=8)
-        idx = builder.and_(r, _v(0xFF))
-        rr = builder.lshr(r, _v(8))
-        rabs = builder.and_(builder.lshr(rr, _v(1)), _v(0x000FFFFFFFFFFFFF))
-        negative = builder.icmp_unsigned("!=", builder.and_(rr, _v(1)), _v(0))
-        x = builder.fmul(builder.sitofp(rabs, _VD), _lookup(builder, wi_p, idx, _VD))
-        x = builder.select(negative, builder.fneg(x), x)
-        builder.store(builder.fmul(scale, x), builder.gep(out_p, [k]), align=8)
-        outward = builder.bitcast(
-            builder.icmp_signed(">=", rabs, _lookup(builder, ki_p, idx, _V64)), ir.IntType(8))
-        builder.store(outward, builder.gep(outside_p, [k]))
-        builder.cbranch(builder.icmp_unsigned("!=", outward, ir.Constant(ir.IntType(8), 0)),
-                        done, more)
-        builder.position_at_end(more)
-        builder.store(builder.add(k, ir.Constant(_I64, 1)), k_ptr)
-        builder.branch(head)
-        builder.position_at_end(done)
+        with cgutils.for_range(builder, args[4]) as loop:
+            k = loop.index
+            r = _xoshiro8(builder, state)
+            builder.store(r, builder.gep(bits_p, [k]), align=8)
+            idx = builder.and_(r, _v(0xFF))
+            rr = builder.lshr(r, _v(8))
+            rabs = builder.and_(builder.lshr(rr, _v(1)), _v(0x000FFFFFFFFFFFFF))
+            negative = builder.icmp_unsigned("!=", builder.and_(rr, _v(1)), _v(0))
+            x = builder.fmul(_to_double(builder, rabs), _lookup(builder, wi_p, idx, _VD))
+            x = builder.select(negative, builder.fneg(x), x)
+            builder.store(builder.fmul(scale, x), builder.gep(out_p, [k]), align=8)
+            outward = builder.icmp_signed(">=", rabs, _lookup(builder, ki_p, idx, _V64))
+            builder.store(builder.bitcast(outward, ir.IntType(8)), builder.gep(outside_p, [k]))
         for j in range(4):
             builder.store(builder.load(state[j]), builder.gep(st, [ir.Constant(_I64, j)]),
                           align=8)
-        return builder.load(k_ptr)
-    return types.int64(states, ki, wi, sigma, start, n, out, bits, outside), codegen
+        return context.get_dummy_value()
+    return types.none(states, ki, wi, sigma, n, out, bits, outside), codegen
 
 
 @nb.njit(nogil=True, cache=True)
 def fill_normal8(states: NDArray[np.uint64], sigma: NDArray[np.float64],
                  out: NDArray[np.float64], bits: NDArray[np.uint64],
                  outside: NDArray[np.uint8]) -> None:
-    """Eight streams' normal deviates, ``out[8 k + c]`` stream c's k-th times ``sigma[c]``:
-    the same numbers :func:`fill_normal` draws from each stream, eight at a time.
+    """Eight channels' normal deviates, ``out[8 k + c]`` channel c's k-th times ``sigma[c]``:
+    the same numbers :func:`fill_normal` draws from each channel's streams, eight at a time.
 
-    The eight xoshiro256** streams advance together as one vector through the ziggurat's
-    fast path (:func:`_fast8`); at a draw where a stream's candidate lies outside its
-    layer's rectangle (1 % of draws), the vector stops and that stream completes the draw as
-    :func:`fill_normal` does, taking its extra random bits from its own stream.
+    The eight candidate streams advance together as one vector (:func:`_fast8`); then each
+    candidate outside its layer's rectangle is completed as :func:`fill_normal` completes it,
+    from its channel's second stream.
 
     Parameters
     ----------
-    states : ndarray of uint64, shape (4, 8)
-        The streams' states, one column each (:func:`seed_states` transposed), advanced.
+    states : ndarray of uint64, shape (2, 4, 8)
+        The channels' streams, one column each (:func:`seed_states` transposed): candidates,
+        then rejections; advanced.
     sigma : ndarray, shape (8,)
-        Standard deviation of each stream's deviates.
+        Standard deviation of each channel's deviates.
     out : ndarray, shape (8 n,)
         Filled.
     bits, outside : ndarray
         Scratch of ``8 n`` uint64 and ``n`` uint8.
     """
     n = out.shape[0] // _LANES8
-    k = 0
-    while k < n:
-        k = _fast8(states, KI, WI, sigma, k, n, out, bits, outside)
-        if k == n:
-            break
+    _fast8(states[0], KI, WI, sigma, n, out, bits, outside)
+    aux = states[1]
+    for k in range(n):
+        if outside[k] == 0:
+            continue
         for c in range(_LANES8):
             if (outside[k] >> c) & 1:
-                x, states[0, c], states[1, c], states[2, c], states[3, c] = _complete(
-                    bits[_LANES8 * k + c], states[0, c], states[1, c], states[2, c],
-                    states[3, c])
+                x, aux[0, c], aux[1, c], aux[2, c], aux[3, c] = _complete(
+                    bits[_LANES8 * k + c], aux[0, c], aux[1, c], aux[2, c], aux[3, c])
                 out[_LANES8 * k + c] = sigma[c] * x
-        k += 1

@@ -174,7 +174,10 @@ def filter8(typingctx, f, x, n):  # noqa: ANN001, ANN201
 
     Sample k of the channels is ``x[8 k:8 k + 8]``; ``f[0]`` holds the sections of channels
     0-3 and ``f[1]`` those of 4-7, each in :func:`cascade4`'s layout (one section). The states
-    stay in registers and are stored back at the end; the arithmetic is :func:`cascade4`'s.
+    stay in registers and are stored back at the end. The states are :func:`cascade4`'s,
+    advanced as ``z0' = (b1 - a1 b0) x + z1 - a1 z0`` and ``z1' = (b2 - a2 b0) x - a2 z0``:
+    the output waits for no state update, so successive samples overlap (one multiply-add
+    from a state to the next, against three through the output).
     """
     if not (_is_array(f) and f.ndim == 2 and _is_array(x) and isinstance(n, types.Integer)):
         return None
@@ -188,21 +191,22 @@ def filter8(typingctx, f, x, n):  # noqa: ANN001, ANN201
             return _pointer(context, builder, sig.args[0], farr, i)
         groups = []
         for g in range(2):
-            coefficients = [builder.load(row(g, r), align=8) for r in range(5)]
+            b0, b1, b2, a1, a2 = (builder.load(row(g, r), align=8) for r in range(5))
+            c1 = _fma(builder, builder.fneg(a1), b0, b1)
+            c2 = _fma(builder, builder.fneg(a2), b0, b2)
             states = [cgutils.alloca_once_value(builder, builder.load(row(g, r), align=8))
                       for r in (5, 6)]
-            groups.append((coefficients, states))
+            groups.append(((b0, c1, c2, builder.fneg(a1), builder.fneg(a2)), states))
         with cgutils.for_range(builder, count) as loop:
             base = builder.mul(loop.index, ir.Constant(count.type, 2 * LANES))
-            for g, ((b0, b1, b2, a1, a2), (z0, z1)) in enumerate(groups):
+            for g, ((b0, c1, c2, na1, na2), (z0, z1)) in enumerate(groups):
                 i = builder.add(base, ir.Constant(count.type, g * LANES))
                 ptr = _pointer(context, builder, sig.args[1], xarr, i)
                 v = builder.load(ptr, align=8)
-                w = _fma(builder, b0, v, builder.load(z0))
-                builder.store(_fma(builder, b1, v, _fma(builder, builder.fneg(a1), w,
-                                                        builder.load(z1))), z0)
-                builder.store(_fma(builder, b2, v, builder.fneg(builder.fmul(a2, w))), z1)
-                builder.store(w, ptr, align=8)
+                s0, s1 = builder.load(z0), builder.load(z1)
+                builder.store(_fma(builder, b0, v, s0), ptr, align=8)
+                builder.store(_fma(builder, na1, s0, _fma(builder, c1, v, s1)), z0)
+                builder.store(_fma(builder, na2, s0, builder.fmul(c2, v)), z1)
         for g, (_, (z0, z1)) in enumerate(groups):
             builder.store(builder.load(z0), row(g, 5), align=8)
             builder.store(builder.load(z1), row(g, 6), align=8)

@@ -119,11 +119,11 @@ class _Sums:
         self.sxy = np.zeros((self.responses, nf), dtype=np.complex128)
         self.syy = np.zeros((self.responses, nf))
 
-    def spectra(self, rate: float, win: NDArray
+    def spectra(self, rate: float, win: NDArray, psd: NDArray | None = None
                 ) -> tuple[NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64]]:
         """Frequencies, ``CSD/PSD`` and coherence, scaled as scipy scales them; computed in
         place of the sums (an hour at 0.01 Hz: new memory is slow to fault in), which are
-        spent."""
+        spent. `psd`, when given, is filled with the excitation's PSD."""
         if self.count == 0:
             msg = "no segments summed, or their spectra already taken"
             raise WelchError(msg)
@@ -131,6 +131,8 @@ class _Sums:
         # except through rounding, so they are applied as scipy applies them
         scale = np.full(self.sxx.size, 1.0 / (rate * (win * win).sum()) / self.count)
         scale[1:-1 if self.nperseg % 2 == 0 else None] *= 2
+        if psd is not None:
+            np.multiply(self.sxx, scale, out=psd)
         _ratios(self.sxx, self.sxy, self.syy, scale)
         self.count = 0
         return fft.rfftfreq(self.nperseg, 1.0 / rate), self.sxy, self.syy
@@ -205,7 +207,8 @@ def welch_tf(x: NDArray, y: NDArray, rate: float, nperseg: int, overlap: float =
 
 
 def welch_tfs(x: NDArray, ys: Sequence[NDArray], rate: float, nperseg: int,
-              overlap: float = 0.5, workers: int | None = None, window: str = "hann"
+              overlap: float = 0.5, workers: int | None = None, window: str = "hann",
+              psd: NDArray[np.float64] | None = None
               ) -> tuple[NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64], int]:
     """Transfer functions ``CSD(x, y) / PSD(x)`` and coherences of several responses to one
     excitation, as ``scipy.signal`` estimates them.
@@ -233,6 +236,9 @@ def welch_tfs(x: NDArray, ys: Sequence[NDArray], rate: float, nperseg: int,
     window : str
         scipy window name: ``"hann"`` (diaggui's default) or ``"boxcar"`` for a periodic
         excitation whose period is the segment (no leakage, no smoothing of H).
+    psd : ndarray, shape (nperseg // 2 + 1,), optional
+        Filled with the excitation's power spectral density, as ``scipy.signal.welch``
+        gives it, from the same transforms.
 
     Returns
     -------
@@ -278,7 +284,7 @@ def welch_tfs(x: NDArray, ys: Sequence[NDArray], rate: float, nperseg: int,
     else:
         with ThreadPoolExecutor(workers, thread_name_prefix="twind-welch") as pool:
             list(pool.map(part, ranges))
-    freq, h, g2 = sums.spectra(rate, win)
+    freq, h, g2 = sums.spectra(rate, win, psd)
     return freq, h, g2, n
 
 
