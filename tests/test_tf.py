@@ -245,6 +245,33 @@ def test_welch_tfs_equal_scipy_csd_welch_coherence(n: int, nperseg: int, overlap
         assert avg == 1 + (n - nperseg) // (nperseg - int(nperseg * overlap))
 
 
+def test_the_virtual_measurements_in2_is_its_in1_plus_exc() -> None:
+    """measure_tfs derives IN2's column from IN1's (IN2 = IN1 + EXC); the direct Welch
+    estimate of IN2 agrees to rounding, on the excited DOF and on the others."""
+    from scipy import signal
+
+    from twind.analysis.estimation.tf import welch_tfs
+    from twind.lab.measurement import _welch_column
+
+    rng = np.random.default_rng(7)
+    n, nperseg = 40000, 2000
+    x = rng.standard_normal(n)
+    in1 = [signal.lfilter([0.3, -0.2], [1, -0.6], x) * (j + 1) + rng.standard_normal(n)
+           for j in range(len(DOFS))]
+    in1[3] = rng.standard_normal(n)  # SIDE: no coherence with the drive at all
+    outs = [signal.lfilter([1.0], [1, 0.3], y) for y in in1]
+    ys = [y for pair in zip(in1, outs, strict=True) for y in pair]
+    _, h, g2, _ = welch_tfs(x, ys, 512.0, nperseg)
+    for excited in ("POS", "YAW"):
+        column = _welch_column(h, g2, excited)
+        in2 = [y + x if d == excited else y for d, y in zip(DOFS, in1, strict=True)]
+        _, h2, c2, _ = welch_tfs(x, in2, 512.0, nperseg)
+        for j, d in enumerate(DOFS):
+            np.testing.assert_allclose(column[(d, "IN2")][0], h2[j], rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(column[(d, "IN2")][1], c2[j], rtol=1e-9, atol=1e-12)
+            np.testing.assert_array_equal(column[(d, "OUT")][0], h[2 * j + 1])
+
+
 def test_fast_reader_equals_read_session(tmp_path: Path) -> None:
     """read_channels gives read_session's channels, events and configuration."""
     from twind.lab.tf_speed import session_channels, write_session

@@ -117,8 +117,8 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     nperseg, n = _averaged(rate, bw, averages, overlap)
     settle = int(SETTLE_S * rate)
     rng = np.random.default_rng(seed)
-    exc = np.zeros((len(dofs), len(DOFS), settle + n))
-    for i, d in enumerate(dofs):
+    drives = []  # each copy's EXC of its DOF, on from the start, so the loop has
+    for d in dofs:  # forgotten the excitation's switch-on as well
         x = (excitation or {}).get(d)
         if x is None:
             x = white_excitation(settle + n, rate, rms, f_max, rng)
@@ -126,8 +126,7 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
             msg = (f"the {d} excitation holds {len(x)} samples; the measurement needs "
                    f"{settle + n} ({SETTLE_S:g} s of settling, then {averages} averages)")
             raise ValueError(msg)
-        # on from the start, so the loop has forgotten the excitation's switch-on as well
-        exc[i, DOFS.index(d)] = np.asarray(x)[: settle + n]
+        drives.append(np.asarray(x, dtype=np.float64)[: settle + n])
     copies = [replace(cfg, name=f"{cfg.name}_{d}") for d in dofs]
     loops = [c.loop() for c in copies]
     for lp in loops:
@@ -135,39 +134,66 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
     engine = Engine(loops, {c.name: c.noise for c in copies}, seed=seed, rate_hz=rate,
                     osems=False)
     keep = settle if highpass_hz else 0  # samples kept before the averages, for the filter
-    record = {p: np.zeros((len(dofs), len(DOFS), n + keep)) for p in POINTS}
+    points = POINTS if estimator == "lpm" else ("IN1", "OUT")  # Welch's IN2: _welch_column
+    record = {p: np.zeros((len(dofs), len(DOFS), n + keep)) for p in points}
     chunk, done = int(rate), 0
     buf = engine.new_block(chunk)  # one block filled again and again: no fresh pages each step
+    exc = np.zeros((len(dofs), len(DOFS), chunk))
     while done < settle + n:
         k = min(chunk, settle + n - done)
-        block = engine.step(k, exc=exc[:, :, done:done + k], out=buf if k == chunk else None)
+        for i, d in enumerate(dofs):
+            exc[i, DOFS.index(d), :k] = drives[i][done:done + k]
+        block = engine.step(k, exc=exc[:, :, :k], out=buf if k == chunk else None)
         a, b = max(done - settle + keep, 0), done + k - settle + keep
         if b > 0:
-            for p in POINTS:
+            for p in points:
                 record[p][:, :, a:b] = getattr(block, p.lower())[:, :, k - (b - a):]
         done += k
         if progress:
             progress(done / (settle + n))
     columns, freq, navg, exc_psd, estimates = {}, None, averages, {}, {}
     for i, d in enumerate(dofs):
-        x = exc[i, DOFS.index(d), settle - keep:]
-        ys = [record[p][i, j] for j in range(len(DOFS)) for p in POINTS]
+        x = drives[i][settle - keep:]
+        ys = [record[p][i, j] for j in range(len(DOFS)) for p in points]
         if highpass_hz:
             x, *ys = highpassed([x, *ys], rate, highpass_hz, keep)
-        keys = [(r, p) for r in DOFS for p in POINTS]
         if estimator == "lpm":
+            keys = [(r, p) for r in DOFS for p in POINTS]
             est, columns[d] = lpm_column(x, ys, rate, keys, 4 * f_max)
             freq, navg, estimates[d] = est.frequency_hz, est.averages, est
             continue
         exc_psd[d] = np.empty(nperseg // 2 + 1)
         freq, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window,
                                       psd=exc_psd[d])
-        columns[d] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
+        columns[d] = _welch_column(h, g2, d)
     tfs = assemble(cfg.name, freq, columns, navg)
     if estimates:
         return with_lpm(tfs, estimates)
     tfs.window, tfs.exc_psd = window, exc_psd
     return tfs
+
+
+def _welch_column(h: NDArray[np.complex128], g2: NDArray[np.float64], excited: str
+                  ) -> dict[tuple[str, str], tuple[NDArray, NDArray]]:
+    """One excited DOF's column of TFs and coherences from Welch's IN1 and OUT estimates
+    (rows IN1, OUT of each DOF in turn), IN2's derived from IN1's.
+
+    The engine's IN2 is IN1 + EXC, sample by sample, and windows, means and transforms are
+    linear: IN2/EXC is IN1/EXC, plus 1 on the excited DOF, and its coherence follows from
+    IN1's, ``|H + 1|^2 / (|H|^2 / g2 + 2 Re H + 1)`` (IN2's auto-spectrum over EXC's). Four
+    transforms a segment of thirteen are saved, the estimates equal to rounding.
+    """
+    column = {}
+    for j, dof in enumerate(DOFS):
+        h1, c1 = h[2 * j], g2[2 * j]
+        column[(dof, "IN1")] = (h1, c1)
+        column[(dof, "OUT")] = (h[2 * j + 1], g2[2 * j + 1])
+        if dof != excited:
+            column[(dof, "IN2")] = (h1, c1)
+            continue
+        power = np.divide(np.abs(h1) ** 2, c1, out=np.full(c1.shape, np.inf), where=c1 > 0)
+        column[(dof, "IN2")] = (h1 + 1.0, np.abs(h1 + 1.0) ** 2 / (power + 2 * h1.real + 1.0))
+    return column
 
 
 def _averaged(rate: float, bw: float, averages: int, overlap: float) -> tuple[int, int]:
