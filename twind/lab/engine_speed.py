@@ -6,9 +6,9 @@ and largest output difference against python-control's ``forced_response`` on th
 discrete closed loop; and the marginal speed of ``twind simulate`` (200 s minus 20 s of
 simulated time over the wall-time difference, so start-up and compilation cancel).
 
-A shared machine's pace varies from day to day (the same build has run one optic at 660x
-and 1030x): the first line prints the pace of a chain of dependent multiply-adds, measured
-in the same run, and the engine's time per sample in those units.
+A shared machine's pace varies from day to day (one engine has run one optic at 660x one day
+and 1030x another): the first line prints the pace of a chain of dependent multiply-adds,
+measured in the same run, and the one-optic lines the engine's time a sample in its units.
 """
 
 from __future__ import annotations

@@ -130,8 +130,8 @@ class Engine:
         by default ``NUMBA_NUM_THREADS``, the CPUs this process may run on); each optic runs
         on one thread for a whole step.
     osems : bool
-        Whether the blocks carry the OSEM readings (``Block.sen``); without them, a tenth
-        of the engine's work, they stay zero.
+        Whether the blocks carry the OSEM readings (``Block.sen``); without them (about a
+        tenth of the engine's work) they stay zero.
     """
 
     def __init__(self, loops: Sequence[DampingLoop], noise: NoiseSpec | Mapping[str, NoiseSpec]
