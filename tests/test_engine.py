@@ -125,6 +125,21 @@ def test_without_osems_the_loop_is_the_same(etmx) -> None:
     assert np.all(full.sen != 0) and not np.any(lean.sen)
 
 
+def test_a_quiet_optic_beside_a_noisy_one(cfg) -> None:
+    """An optic whose noise is off draws none; beside a noisy one each runs as it does alone."""
+    a, b = cfg.optics["ETMX"], cfg.optics["ITMX"]
+    exc = np.random.default_rng(6).standard_normal((2, 4, 5000)) * 0.1
+    both = Engine([a.loop(), b.loop()], {"ETMX": a.noise, "ITMX": QUIET}, seed=2,
+                  threads=1).step(5000, exc=exc)
+    alone = Engine([a.loop()], a.noise, seed=2).step(5000, exc=exc[:1])
+    quiet = Engine([b.loop()], QUIET).step(5000, exc=exc[1:])
+    for p in POINTS:
+        assert np.array_equal(getattr(both, p)[:1], getattr(alone, p)), p
+        assert np.array_equal(getattr(both, p)[1:], getattr(quiet, p)), p
+    no_drive = Engine([b.loop()], QUIET).step(5000)
+    assert not np.any(no_drive.in1) and not np.any(no_drive.sen)
+
+
 def test_threads_do_not_change_the_result(cfg) -> None:
     loops = [cfg.optics[k].loop() for k in ("ETMX", "ITMX", "MC2")]
     exc = np.random.default_rng(4).standard_normal((3, 4, 3000)) * 0.05
