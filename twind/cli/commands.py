@@ -387,7 +387,7 @@ def _bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bw", type=float, help="pull: Welch resolution (Hz, default 0.02; "
                    "the LPM's record is as long as 10 averages of it); diagnose: the "
                    "corpus measurement's (default 0.01 for XML, example_null's; 0.05 for "
-                   "MCAP)")
+                   "MCAP); rates: the nulls' (default 0.1)")
     p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
                    help="pull, and rates' nulls: TF estimator")
     p.add_argument("--workers", type=int, default=1,

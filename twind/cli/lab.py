@@ -97,7 +97,9 @@ def _bench_rates(args: argparse.Namespace) -> int:
 
     cfg = _optic(args, args.optic)
     effects = _effects(args, list(NEAR_LIMIT))
-    null_set = nulls(cfg, 20 if args.nulls is None else args.nulls, estimator=args.estimator)
+    measurement = {"bw": args.bw} if args.bw else {}
+    null_set = nulls(cfg, 20 if args.nulls is None else args.nulls, estimator=args.estimator,
+                     **measurement)
     per_effect = 3 if args.per_effect is None else args.per_effect
     effect_set = concealed(cfg, per_effect, effects) if per_effect else []
     print("\n".join(report(null_set, effect_set)))
