@@ -37,8 +37,11 @@ from twind.simulation.simd import (
     filter8,
     fma4,
     load4,
+    mul4,
+    splat4,
     store4,
     swap_pairs,
+    vec4,
 )
 
 N_DOF = 4  # POS, PIT, YAW, SIDE
@@ -83,10 +86,8 @@ class Arrays(NamedTuple):
     rng: NDArray[np.uint64]  # [optic, 2, 4, 8] xoshiro256** candidate and rejection streams
     noise: NDArray[np.float64]  # [optic, CHUNK * 8] the current chunk of shaped noise
     bits: NDArray[np.uint64]  # [optic, CHUNK * 8] scratch of fill_normal8
-    outside: NDArray[np.uint8]  # [optic, CHUNK] scratch of fill_normal8
+    outside: NDArray[np.int64]  # [optic, 2 CHUNK] scratch of fill_normal8
     noise_pos: NDArray[np.int64]  # samples of the current chunk used
-    ext: NDArray[np.float64]  # [optic, CHUNK * 4] scratch: the noise's part of IN1
-    xsp: NDArray[np.float64]  # [optic, CHUNK * ns] scratch: the noise's part of the next x
 
 
 @nb.njit(nogil=True, cache=True)
@@ -113,30 +114,14 @@ def draw_noise(states, sigma, filters, out, bits, outside):
     filter8(filters, out, out.shape[0] // N_NOISE)
 
 
-@nb.njit(nogil=True, cache=True, fastmath={"contract"})
-def _noise_inputs(noise_to_in1, sp_to_x, noise, p, n, ext, xsp):
-    """The noise's part of each cycle's IN1 (``ext[4 k:4 k + 4]``) and of the plant's next
-    state (``xsp[ns k:ns k + ns]``), for `n` cycles from noise sample `p`."""
-    ns = xsp.shape[0] // CHUNK
-    zero = (0.0, 0.0, 0.0, 0.0)
-    for k in range(n):
-        y = zero
-        for j in range(N_NOISE):
-            y = fma4(noise_to_in1, LANES * j, noise[N_NOISE * (p + k) + j], y)
-        store4(ext, LANES * k, y)
-        for g in range(ns // LANES):
-            xg = zero
-            for m in range(N_SP):
-                xg = fma4(sp_to_x, m * ns + LANES * g, noise[N_NOISE * (p + k) + N_OSEM + m], xg)
-            store4(xsp, ns * k + LANES * g, xg)
-
-
 @nb.njit(inline="always", fastmath={"contract"})
-def _in1(x_to_in1, u_to_in1, ext, x, u, k):
-    """The four DOFs' IN1 of cycle `k`: noise, then state (two sums), then the drives last,
-    as they are the loop's critical path."""
-    ya = load4(ext, LANES * k)
-    yb = (0.0, 0.0, 0.0, 0.0)
+def _in1(x_to_in1, u_to_in1, noise_to_in1, x, u, noise, q):
+    """The four DOFs' IN1 of this cycle, from noise sample `q`: noise, then state (two
+    sums), then the drives last, as they are the loop's critical path."""
+    ya = splat4(0.0)
+    for j in range(N_NOISE):
+        ya = fma4(noise_to_in1, LANES * j, noise[N_NOISE * q + j], ya)
+    yb = splat4(0.0)
     for g in range(x.shape[0] // LANES):
         i = LANES * LANES * g
         ya = fma4(x_to_in1, i, x[LANES * g], ya)
@@ -151,13 +136,17 @@ def _in1(x_to_in1, u_to_in1, ext, x, u, k):
 
 
 @nb.njit(inline="always", fastmath={"contract"})
-def _next_state(plant, xsp, x, u, k):
-    """Advance the modal state `x` by one cycle, four states a vector."""
+def _next_state(plant, sp_to_x, x, u, noise, q):
+    """Advance the modal state `x` by one cycle, four states a vector; the suspension point's
+    noise from noise sample `q`."""
     ns = x.shape[0]
     for g in range(ns // LANES):
+        xn = splat4(0.0)
+        for m in range(N_SP):
+            xn = fma4(sp_to_x, m * ns + LANES * g, noise[N_NOISE * q + N_OSEM + m], xn)
         xg = load4(x, LANES * g)
         base = PLANT_ROWS * LANES * g
-        xn = fma4(plant, base, xg, load4(xsp, ns * k + LANES * g))
+        xn = fma4(plant, base, xg, xn)
         xn = fma4(plant, base + LANES, swap_pairs(xg), xn)
         for d in range(N_DOF):
             xn = fma4(plant, base + LANES * (2 + d), u[d], xn)
@@ -165,15 +154,28 @@ def _next_state(plant, xsp, x, u, k):
 
 
 @nb.njit(inline="always", fastmath={"contract"})
-def _osem_cycle(face, side, x, u, noise, q, sen, t):
-    """The five OSEM readings (um) of this cycle into ``sen[:, t]``.
+def _dot_inputs(row, x, u, noise, q):
+    """The dot product of `row` with this cycle's inputs: the states, the drives and noise
+    sample `q`'s channels (``ns + 4 + 8`` values), four a vector."""
+    ns = x.shape[0]
+    v = fma4(row, ns, u, splat4(0.0))
+    for i in range(0, ns, LANES):
+        v = fma4(row, i, load4(x, i), v)
+    v = fma4(row, ns + N_DOF, load4(noise, N_NOISE * q), v)
+    v = fma4(row, ns + N_DOF + LANES, load4(noise, N_NOISE * q + LANES), v)
+    return (v[0] + v[1]) + (v[2] + v[3])
+
+
+@nb.njit(inline="always", fastmath={"contract"})
+def _osem_cycle(face, side, x, u, noise, q):
+    """The five OSEM readings (um) of this cycle: UL, UR, LL, LR as a vector, and SIDE.
 
     UL, UR, LL, LR are the lanes of a vector summed over the inputs (states, drives, noise
     channels: the rows of `face`), in four partial sums; SIDE is the dot product of `side`
-    with the inputs, four inputs a vector.
+    with the inputs.
     """
     ns = x.shape[0]
-    zero = (0.0, 0.0, 0.0, 0.0)
+    zero = splat4(0.0)
     va, vb, vc, vd = zero, zero, zero, zero
     for i in range(0, ns, LANES):
         va = fma4(face, LANES * i, x[i], va)
@@ -190,41 +192,28 @@ def _osem_cycle(face, side, x, u, noise, q, sen, t):
         vb = fma4(face, LANES * (r + 1), noise[N_NOISE * q + m + 1], vb)
         vc = fma4(face, LANES * (r + 2), noise[N_NOISE * q + m + 2], vc)
         vd = fma4(face, LANES * (r + 3), noise[N_NOISE * q + m + 3], vd)
-    sen[0, t], sen[1, t], sen[2, t], sen[3, t] = add4(add4(va, vb), add4(vc, vd))
-    vs = fma4(side, ns, u, zero)
-    for i in range(0, ns, LANES):
-        vs = fma4(side, i, load4(x, i), vs)
-    vs = fma4(side, ns + N_DOF, load4(noise, N_NOISE * q), vs)
-    vs = fma4(side, ns + N_DOF + LANES, load4(noise, N_NOISE * q + LANES), vs)
-    sen[4, t] = (vs[0] + vs[1]) + (vs[2] + vs[3])
+    return add4(add4(va, vb), add4(vc, vd)), _dot_inputs(side, x, u, noise, q)
 
 
 @nb.njit(inline="always", fastmath={"contract"})
-def _osems_from_in1(extra, inverse, x, u, noise, q, y, sen, t):
-    """The five OSEM readings (um) of this cycle into ``sen[:, t]`` from the cycle's IN1 `y`.
+def _osems_from_in1(extra, inverse, x, u, noise, q, y):
+    """The five OSEM readings (um) of this cycle from the cycle's IN1 `y`, as
+    :func:`_osem_cycle` returns them.
 
     IN1 holds four combinations of the five readings (the input matrix); `extra` gives a
-    fifth, which no DOF reads, per state, drive and noise channel (as :func:`_osem_cycle`'s
-    SIDE, one dot product). `inverse` is the inverse of the input matrix with that row below
-    it: its columns for UL-LR per IN1 DOF and per the fifth, then SIDE's row. A third of the
-    work of :func:`_osem_cycle`.
+    fifth, which no DOF reads, per state, drive and noise channel. `inverse` is the inverse
+    of the input matrix with that row below it: its columns for UL-LR per IN1 DOF and per
+    the fifth, then SIDE's row. A third of the work of :func:`_osem_cycle`.
     """
-    ns = x.shape[0]
-    zero = (0.0, 0.0, 0.0, 0.0)
-    ve = fma4(extra, ns, u, zero)
-    for i in range(0, ns, LANES):
-        ve = fma4(extra, i, load4(x, i), ve)
-    ve = fma4(extra, ns + N_DOF, load4(noise, N_NOISE * q), ve)
-    ve = fma4(extra, ns + N_DOF + LANES, load4(noise, N_NOISE * q + LANES), ve)
-    e = (ve[0] + ve[1]) + (ve[2] + ve[3])
+    e = _dot_inputs(extra, x, u, noise, q)
+    zero = splat4(0.0)
     fa = fma4(inverse, 0, y[0], zero)
     fb = fma4(inverse, LANES, y[1], zero)
     fa = fma4(inverse, 2 * LANES, y[2], fa)
     fb = fma4(inverse, 3 * LANES, y[3], fb)
     fa = fma4(inverse, 4 * LANES, e, fa)
-    sen[0, t], sen[1, t], sen[2, t], sen[3, t] = add4(fa, fb)
     vs = fma4(inverse, 5 * LANES, y, zero)
-    sen[4, t] = ((vs[0] + vs[1]) + (vs[2] + vs[3])) + inverse[6 * LANES] * e
+    return add4(fa, fb), ((vs[0] + vs[1]) + (vs[2] + vs[3])) + inverse[6 * LANES] * e
 
 
 @nb.njit(nogil=True, cache=True)
@@ -237,52 +226,68 @@ def _ramp(gain, gain_target, gain_step, ramp_left):
 
 
 @nb.njit(inline="always")
+def _put(a, t, v):
+    """``a[:4, t] = v``: a vector's lanes into column `t` of the first four rows of `a`."""
+    a[0, t], a[1, t], a[2, t], a[3, t] = v[0], v[1], v[2], v[3]
+
+
+@nb.njit(inline="always")
 def _clip(v, lim):
     return min(max(v, -lim), lim) if lim > 0.0 else v
 
 
 @nb.njit(nogil=True, cache=True, fastmath={"contract"})
 def _close(s, o, n, a, p, exc, in1, in2, out, sen):
-    """Close optic `o`'s loop for `n` cycles from block sample `a` and noise sample `p`
-    (the noise's inputs in ``s.ext`` and ``s.xsp``).
+    """Close optic `o`'s loop for `n` cycles from block sample `a` and noise sample `p`.
 
-    Within a cycle the OSEM readings and the next state, which do not wait for the filters,
-    come before them, so the processor works on them while the cascade's chain runs.
+    The loop is bound by its loads and multiply-adds (the cascades' coefficients and states
+    most of them), not by the chain of the cascades: see docs/benchmarks.md. The vectors
+    carried from one cycle to the next (the drives ``u``) stay in registers.
     """
-    x, delay, filters, ext, xsp = s.x[o], s.delay[o], s.filters[o], s.ext[o], s.xsp[o]
+    x, delay, filters = s.x[o], s.delay[o], s.filters[o]
     x_to_in1, u_to_in1, plant = s.x_to_in1[o], s.u_to_in1[o], s.plant[o]
+    noise_to_in1, sp_to_x = s.noise_to_in1[o], s.sp_to_x[o]
     sen_face, sen_side, noise = s.sen_face[o], s.sen_side[o], s.noise[o]
     sen_extra, sen_inverse, by_inverse = s.sen_extra[o], s.sen_inverse[o], s.sen_by_inverse[o]
     read_osems = s.read_osems[o]
     gain, gain_target, gain_step = s.gain[o], s.gain_target[o], s.gain_step[o]
     limit, ramp_left = s.limit[o], s.ramp_left[o]
     nsec, ndelay, pos = s.nsec[o], s.ndelay[o], s.delay_pos[o]
+    if a < 0 or p < 0 or pos < 0:  # never: tells the compiler that no index wraps around
+        return
     limited = np.any(limit > 0.0)
+    ramping = np.any(ramp_left > 0)
     u = load4(delay, LANES * pos)
     for k in range(n):
         t = a + k
-        y = _in1(x_to_in1, u_to_in1, ext, x, u, k)
-        y2 = (y[0] + exc[0, t], y[1] + exc[1, t], y[2] + exc[2, t], y[3] + exc[3, t])
-        if not read_osems:
-            pass
-        elif by_inverse:
-            _osems_from_in1(sen_extra, sen_inverse, x, u, noise, p + k, y, sen, t)
-        else:
-            _osem_cycle(sen_face, sen_side, x, u, noise, p + k, sen, t)
-        _next_state(plant, xsp, x, u, k)
+        y = _in1(x_to_in1, u_to_in1, noise_to_in1, x, u, noise, p + k)
+        y2 = add4(y, vec4(exc[0, t], exc[1, t], exc[2, t], exc[3, t]))
+        if read_osems:
+            if by_inverse:
+                face, side = _osems_from_in1(sen_extra, sen_inverse, x, u, noise, p + k, y)
+            else:
+                face, side = _osem_cycle(sen_face, sen_side, x, u, noise, p + k)
+            sen[0, t], sen[1, t], sen[2, t], sen[3, t], sen[4, t] = (face[0], face[1], face[2],
+                                                                     face[3], side)
+        _next_state(plant, sp_to_x, x, u, noise, p + k)
         w = cascade4(filters, nsec, y2)
-        in1[0, t], in1[1, t], in1[2, t], in1[3, t] = y
-        in2[0, t], in2[1, t], in2[2, t], in2[3, t] = y2
-        if ramp_left[0] + ramp_left[1] + ramp_left[2] + ramp_left[3] > 0:
+        _put(in1, t, y)
+        _put(in2, t, y2)
+        if ramping:
             _ramp(gain, gain_target, gain_step, ramp_left)
-        v = (w[0] * gain[0], w[1] * gain[1], w[2] * gain[2], w[3] * gain[3])
+        v = mul4(w, load4(gain, 0))
         if limited:
-            v = (_clip(v[0], limit[0]), _clip(v[1], limit[1]), _clip(v[2], limit[2]),
-                 _clip(v[3], limit[3]))
-        out[0, t], out[1, t], out[2, t], out[3, t] = v
-        store4(delay, LANES * pos, v)
-        pos = pos + 1 if pos + 1 < ndelay else 0
-        u = v if ndelay == 1 else load4(delay, LANES * pos)
+            v = vec4(_clip(v[0], limit[0]), _clip(v[1], limit[1]), _clip(v[2], limit[2]),
+                     _clip(v[3], limit[3]))
+        _put(out, t, v)
+        if ndelay == 1:
+            u = v
+        else:
+            store4(delay, LANES * pos, v)
+            pos = pos + 1 if pos + 1 < ndelay else 0
+            u = load4(delay, LANES * pos)
+    if ndelay == 1:
+        store4(delay, 0, u)
     s.delay_pos[o] = pos
 
 
@@ -315,9 +320,6 @@ def run_optic(s, o, n, exc, in1, in2, out, sen):
             s.noise_pos[o] = 0
         p = s.noise_pos[o]
         c = min(n - a, CHUNK - p)
-        if not s.quiet[o]:
-            _noise_inputs(s.noise_to_in1[o], s.sp_to_x[o], s.noise[o], p, c, s.ext[o],
-                          s.xsp[o])
         _close(s, o, c, a, p, exc, in1, in2, out, sen)
         s.noise_pos[o] += c
         a += c

@@ -3,8 +3,10 @@
 The damping loop does the same arithmetic on POS, PIT, YAW and SIDE at once, but numba's
 optimiser does not pack such side-by-side scalar code into vector instructions (it cannot
 prove that a filter's states and coefficients do not overlap). These intrinsics emit LLVM's
-``<4 x double>`` operations directly; in compiled code a *vector* is a ``UniTuple(float64, 4)``,
-which LLVM keeps in one register between calls.
+``<4 x double>`` operations directly, on values of the numba type :data:`VECTOR`, which is
+that LLVM vector itself: a vector carried from one loop iteration to the next stays in one
+register (a tuple of four floats would be taken apart into four scalars and put together
+again on every iteration). ``v[d]`` reads lane `d`.
 
 Arrays passed in are C-contiguous float64 arrays of any shape, indexed by their flat element
 offset; no bounds are checked, so callers keep ``i + 4 <= a.size``.
@@ -12,13 +14,15 @@ offset; no bounds are checked, so callers keep ``i + 4 <= a.size``.
 
 from __future__ import annotations
 
+import operator
+
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
-from numba.extending import intrinsic
+from numba.core.datamodel import models
+from numba.extending import intrinsic, overload, register_model
 
 LANES = 4
-VECTOR = types.UniTuple(types.float64, LANES)
 _V = ir.VectorType(ir.DoubleType(), LANES)
 _I32 = ir.IntType(32)
 
@@ -26,16 +30,20 @@ SECTION_ROWS = 7
 """Rows of :func:`cascade4`'s layout per section: b0, b1, b2, a1, a2 and the two states."""
 
 
-def _vector(builder: ir.IRBuilder, tup: ir.Value) -> ir.Value:
-    vec = ir.Constant(_V, ir.Undefined)
-    for d in range(LANES):
-        vec = builder.insert_element(vec, builder.extract_value(tup, d), ir.Constant(_I32, d))
-    return vec
+class Vector(types.Type):
+    """Four float64 lanes in one LLVM ``<4 x double>`` (compiled code only)."""
+
+    def __init__(self) -> None:
+        super().__init__(name="Vector4")
 
 
-def _tuple(context, builder: ir.IRBuilder, vec: ir.Value) -> ir.Value:  # noqa: ANN001
-    return context.make_tuple(builder, VECTOR, [builder.extract_element(vec, ir.Constant(_I32, d))
-                                                for d in range(LANES)])
+VECTOR = Vector()
+
+
+@register_model(Vector)
+class _VectorModel(models.PrimitiveModel):
+    def __init__(self, dmm, fe_type) -> None:  # noqa: ANN001
+        super().__init__(dmm, fe_type, _V)
 
 
 def _pointer(context, builder: ir.IRBuilder, arrty, arr: ir.Value, i: ir.Value) -> ir.Value:  # noqa: ANN001
@@ -59,6 +67,49 @@ def _is_array(a: types.Type) -> bool:
 
 
 @intrinsic
+def vec4(typingctx, a, b, c, d):  # noqa: ANN001, ANN201
+    """The vector ``(a, b, c, d)`` of four floats."""
+    if not all(isinstance(x, types.Float) for x in (a, b, c, d)):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        vec = ir.Constant(_V, ir.Undefined)
+        for lane, (ty, x) in enumerate(zip(sig.args, args)):
+            x = context.cast(builder, x, ty, types.float64)
+            vec = builder.insert_element(vec, x, ir.Constant(_I32, lane))
+        return vec
+    return VECTOR(a, b, c, d), codegen
+
+
+@intrinsic
+def splat4(typingctx, s):  # noqa: ANN001, ANN201
+    """The vector of four copies of the float `s`."""
+    if not isinstance(s, types.Float):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        return _splat(builder, context.cast(builder, args[0], sig.args[0], types.float64))
+    return VECTOR(s), codegen
+
+
+@intrinsic
+def _lane(typingctx, v, d):  # noqa: ANN001, ANN201
+    if not (v == VECTOR and isinstance(d, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        return builder.extract_element(args[0], args[1])
+    return types.float64(v, d), codegen
+
+
+@overload(operator.getitem)
+def _getitem(v, d):  # noqa: ANN001, ANN202
+    if v == VECTOR and isinstance(d, types.Integer):
+        return lambda v, d: _lane(v, d)
+    return None
+
+
+@intrinsic
 def load4(typingctx, a, i):  # noqa: ANN001, ANN201
     """``(a[i], a[i+1], a[i+2], a[i+3])`` of the flat array `a`."""
     if not (_is_array(a) and isinstance(i, types.Integer)):
@@ -66,7 +117,7 @@ def load4(typingctx, a, i):  # noqa: ANN001, ANN201
 
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
         ptr = _pointer(context, builder, sig.args[0], args[0], args[1])
-        return _tuple(context, builder, builder.load(ptr, align=8))
+        return builder.load(ptr, align=8)
     return VECTOR(a, i), codegen
 
 
@@ -78,7 +129,7 @@ def store4(typingctx, a, i, v):  # noqa: ANN001, ANN201
 
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
         ptr = _pointer(context, builder, sig.args[0], args[0], args[1])
-        builder.store(_vector(builder, args[2]), ptr, align=8)
+        builder.store(args[2], ptr, align=8)
         return context.get_dummy_value()
     return types.none(a, i, v), codegen
 
@@ -93,9 +144,8 @@ def fma4(typingctx, a, i, s, acc):  # noqa: ANN001, ANN201
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
         arr, idx, scale, total = args
         ptr = _pointer(context, builder, sig.args[0], arr, idx)
-        factor = _vector(builder, scale) if sig.args[2] == VECTOR else _splat(builder, scale)
-        out = _fma(builder, builder.load(ptr, align=8), factor, _vector(builder, total))
-        return _tuple(context, builder, out)
+        factor = scale if sig.args[2] == VECTOR else _splat(builder, scale)
+        return _fma(builder, builder.load(ptr, align=8), factor, total)
     return VECTOR(a, i, s, acc), codegen
 
 
@@ -106,8 +156,18 @@ def add4(typingctx, v, w):  # noqa: ANN001, ANN201
         return None
 
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
-        out = builder.fadd(_vector(builder, args[0]), _vector(builder, args[1]))
-        return _tuple(context, builder, out)
+        return builder.fadd(args[0], args[1])
+    return VECTOR(v, w), codegen
+
+
+@intrinsic
+def mul4(typingctx, v, w):  # noqa: ANN001, ANN201
+    """``v * w`` lane by lane."""
+    if not (v == VECTOR and w == VECTOR):
+        return None
+
+    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+        return builder.fmul(args[0], args[1])
     return VECTOR(v, w), codegen
 
 
@@ -118,9 +178,8 @@ def swap_pairs(typingctx, v):  # noqa: ANN001, ANN202
         return None
 
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
-        vec = _vector(builder, args[0])
         mask = ir.Constant(ir.VectorType(_I32, LANES), [1, 0, 3, 2])
-        return _tuple(context, builder, builder.shuffle_vector(vec, vec, mask))
+        return builder.shuffle_vector(args[0], args[0], mask)
     return VECTOR(v), codegen
 
 
@@ -148,7 +207,7 @@ def cascade4(typingctx, f, nsec, v):  # noqa: ANN001, ANN201
 
     def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
         arr, n, first = args
-        vptr = cgutils.alloca_once_value(builder, _vector(builder, first))
+        vptr = cgutils.alloca_once_value(builder, first)
         step = ir.Constant(n.type, SECTION_ROWS * LANES)
         with cgutils.for_range(builder, n) as loop:
             base = builder.mul(loop.index, step)
@@ -164,7 +223,7 @@ def cascade4(typingctx, f, nsec, v):  # noqa: ANN001, ANN201
             builder.store(_fma(builder, b2, x, builder.fneg(builder.fmul(a2, w))), row(6),
                           align=8)
             builder.store(w, vptr)
-        return _tuple(context, builder, builder.load(vptr))
+        return builder.load(vptr)
     return VECTOR(f, nsec, v), codegen
 
 
