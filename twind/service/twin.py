@@ -122,8 +122,12 @@ class TwinService:
         self.block_s, self.speed = self.n / self.rate, speed
         self.engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
                              seed=seed, rate_hz=self.rate)
-        # load the compiled kernel and the schema now, so the first block is not late
-        Engine([optics[0].loop()], optics[0].noise, rate_hz=self.rate).step(self.n)
+        # load the compiled kernels and the schema now, so the first block is not late (with
+        # several optics the engine runs the kernel that shares them among numba's threads:
+        # compiling it takes ~10 s where no cache is)
+        first = optics[:2]
+        Engine([o.loop() for o in first], {o.name: o.noise for o in first},
+               rate_hz=self.rate).step(self.n)
         SampleBlock("warm-up", 0.0, self.rate, 0, np.zeros(self.n)).encode()
         for optic in optics:  # and what a params or filter change checks, cached
             _check_stable(optic.loop(), self.rate)
