@@ -8,6 +8,7 @@ engine, diagnosed two at a time."""
 from __future__ import annotations
 
 import pytest
+from scipy import stats
 
 from twind.config import NOMINAL_ETMX, load_optic
 from twind.lab import rates
@@ -16,7 +17,11 @@ from twind.model.effects import CATALOGUE
 PROMISED = 0.01
 """The rate docs/diagnose.md promises (the code's own constants would move with a bug)."""
 N_NULLS = 16
-PER_EFFECT = 4
+PER_EFFECT = 8
+FOUND = 0.75
+"""The rate at which OSEM imbalances at the corpus' concealment are found: 24 of 32, the
+cases of ``rates.concealed(etmx, 16, ("osem_imbalance",))`` with this engine's noise and with
+the previous one's (by hand)."""
 
 
 @pytest.fixture(scope="module")
@@ -59,8 +64,10 @@ def test_every_hypothesis_is_weighed_or_its_failure_reported(nulls, concealed  #
 
 
 def test_effects_at_the_corpus_concealment_are_found(concealed) -> None:  # noqa: ANN001
-    assert sum(o.named for o in concealed) >= len(concealed) // 2, [
-        (o.name, o.chosen) for o in concealed]
+    # fewer than this is found 1 % of the time at the rate FOUND (3 of 8: 0.4 %); a diagnosis
+    # that found one in four would fail two times in three, one that found none always
+    least = int(stats.binom.ppf(0.01, len(concealed), FOUND))
+    assert sum(o.named for o in concealed) >= least, [(o.name, o.chosen) for o in concealed]
 
 
 def test_the_effect_chosen_is_the_claimed_one_of_highest_delta_bic(nulls, concealed  # noqa: ANN001
