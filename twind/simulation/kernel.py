@@ -17,8 +17,9 @@ Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulat
 - the modal plant's next state, four states a vector (each state couples only to its pair).
 
 Noise is drawn in chunks of :data:`CHUNK` samples, whatever the step sizes: white, the eight
-channels' xoshiro streams as one 8-wide vector (:func:`~twind.simulation.rng.fill_normal8`),
-then shaped, one section per channel; none for an optic whose noise is off.
+channels' xoshiro streams as two vectors of four (:func:`~twind.simulation.rng.fill_normal8`),
+then shaped, one section per channel; none for an optic whose noise is off. The loop takes
+each cycle's noise from the chunk as it needs it.
 """
 
 from __future__ import annotations
@@ -93,8 +94,8 @@ class Arrays(NamedTuple):
 @nb.njit(nogil=True, cache=True)
 def draw_noise(states, sigma, filters, out, bits, outside):
     """One optic's next chunk of noise, ``out[8 k + c]`` channel c's k-th sample: white
-    Gaussian noise of each channel's level, the eight channels' streams as one vector
-    (:func:`fill_normal8`), then each channel's shaping section (channels 0-3 and 4-7 as the
+    Gaussian noise of each channel's level, the eight channels' streams as two vectors of
+    four (:func:`fill_normal8`), then each channel's shaping section (channels 0-3 and 4-7 as the
     lanes of two cascades).
 
     Parameters

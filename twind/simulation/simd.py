@@ -149,26 +149,21 @@ def fma4(typingctx, a, i, s, acc):  # noqa: ANN001, ANN201
     return VECTOR(a, i, s, acc), codegen
 
 
-@intrinsic
-def add4(typingctx, v, w):  # noqa: ANN001, ANN201
-    """``v + w`` lane by lane."""
-    if not (v == VECTOR and w == VECTOR):
-        return None
+def _lanewise(instruction: str, doc: str):  # noqa: ANN202
+    """An intrinsic applying the LLVM `instruction` to two vectors, lane by lane."""
+    def op(typingctx, v, w):  # noqa: ANN001, ANN202
+        if not (v == VECTOR and w == VECTOR):
+            return None
 
-    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
-        return builder.fadd(args[0], args[1])
-    return VECTOR(v, w), codegen
+        def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
+            return getattr(builder, instruction)(args[0], args[1])
+        return VECTOR(v, w), codegen
+    op.__doc__ = doc
+    return intrinsic(op)
 
 
-@intrinsic
-def mul4(typingctx, v, w):  # noqa: ANN001, ANN201
-    """``v * w`` lane by lane."""
-    if not (v == VECTOR and w == VECTOR):
-        return None
-
-    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202
-        return builder.fmul(args[0], args[1])
-    return VECTOR(v, w), codegen
+add4 = _lanewise("fadd", "``v + w`` lane by lane.")
+mul4 = _lanewise("fmul", "``v * w`` lane by lane.")
 
 
 @intrinsic
