@@ -20,8 +20,8 @@ from twind import DOFS
 from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.simulation.discretize import discrete_closed_loop, module_sections
 from twind.simulation.engine import Engine
+from twind.simulation import cache, kernel, rng
 from twind.simulation.noise import CHANNELS, NoiseSpec
-from twind.simulation import rng
 from twind.simulation.rng import fill_normal, fill_normal8, seed_states
 
 R = 16384.0  # model rate, Hz
@@ -153,6 +153,16 @@ def test_threads_do_not_change_the_result(cfg) -> None:
     many = Engine([cfg.optics[k].loop() for k in ("ETMX", "ITMX", "MC2")], seed=5, threads=64)
     assert many.threads == min(3, numba.config.NUMBA_NUM_THREADS)
     assert np.array_equal(many.step(3000, exc=exc).out, one.out)
+
+
+def test_the_loops_are_cached_by_every_source_they_compile_from() -> None:
+    # numba stamps a cached function with its own file: the loops would outlive a change of
+    # the generators or intrinsics they take in
+    for compiled in (kernel.run_optic, kernel.advance_parallel, rng.fill_normal8):
+        locator = compiled._cache._impl.locator
+        assert isinstance(locator, cache.EngineCacheLocator), type(locator)
+        assert locator.get_source_stamp() == cache.sources_hash()
+    assert cache.EngineCacheLocator.from_function(signal.sosfilt, signal.__file__) is None
 
 
 @pytest.mark.parametrize("eight", [False, True], ids=["one stream", "eight streams"])

@@ -30,6 +30,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from twind.simulation.cache import register
 from twind.simulation.rng import fill_normal8
 from twind.simulation.simd import (
     LANES,
@@ -44,6 +45,8 @@ from twind.simulation.simd import (
     swap_pairs,
     vec4,
 )
+
+register()
 
 N_DOF = 4  # POS, PIT, YAW, SIDE
 N_OSEM = 5  # UL, UR, LL, LR, SIDE

@@ -29,6 +29,10 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
+from twind.simulation.cache import register
+
+register()
+
 _LAYER_BITS = 10
 _LAYERS = 1 << _LAYER_BITS
 _R = 4.038849846109504  # start of the tail
