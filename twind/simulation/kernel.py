@@ -121,7 +121,7 @@ def draw_noise(states, sigma, filters, out, bits, outside):
 @nb.njit(inline="always", fastmath={"contract"})
 def _in1(x_to_in1, u_to_in1, noise_to_in1, x, u, noise, q):
     """The four DOFs' IN1 of this cycle, from noise sample `q`: noise, then state (two
-    sums), then the drives last, as they are the loop's critical path."""
+    sums), then the drives last, which come from the cycle before."""
     ya = splat4(0.0)
     for j in range(N_NOISE):
         ya = fma4(noise_to_in1, LANES * j, noise[N_NOISE * q + j], ya)
