@@ -3,7 +3,8 @@ effect is a claim with probability 0.01 at most and p-values no smaller than uni
 only many nulls can check; on an effect at the corpus' concealment, that it is found, which
 a handful of seeds checks better than one effect at 1e-200; and that the effect chosen is
 the claimed one of highest delta BIC. Every case is a drifted ETMX measured by the twin's
-engine, diagnosed two at a time."""
+engine, diagnosed two at a time; the nulls are measured as Welch's estimates and as the local
+polynomial method's."""
 
 from __future__ import annotations
 
@@ -30,8 +31,19 @@ def etmx():  # noqa: ANN201
 
 
 @pytest.fixture(scope="module")
-def nulls(etmx):  # noqa: ANN001, ANN201
+def welch_nulls(etmx):  # noqa: ANN001, ANN201
     return rates.nulls(etmx, N_NULLS)
+
+
+@pytest.fixture(scope="module")
+def lpm_nulls(etmx):  # noqa: ANN001, ANN201
+    return rates.nulls(etmx, N_NULLS, estimator="lpm")
+
+
+@pytest.fixture(scope="module", params=["welch_nulls", "lpm_nulls"])
+def nulls(request):  # noqa: ANN001, ANN201
+    """The same drifted optics, measured with each estimator."""
+    return request.getfixturevalue(request.param)
 
 
 @pytest.fixture(scope="module")
