@@ -214,9 +214,9 @@ def _smoothed_variance(var: NDArray[np.float64], q: int) -> tuple[NDArray[np.flo
     for a chi-square of ``2 q``, is taken out.
 
     Where the spectrum is not smooth on that scale, a quadratic understates its bumps: below
-    2 Hz the 40m's IN1 noise falls by decades over the 7 windows of a 100 s record, with the
-    damped resonances on it, and there the smoothed errors came out up to 5 times too small
-    in variance. A window whose own variance exceeds the smoothed one beyond chance (the
+    2 Hz the 40m's IN1 noise falls by decades over the 7 windows (2 Hz) of a one-minute
+    record, with the damped resonances on it, and a bump's variance can come out several
+    times too small. A window whose own variance exceeds the smoothed one beyond chance (the
     ratio's F(2 q, 2 dof) tail at :data:`GUARD`) keeps its own.
     """
     span = _span(var.shape[-1])
