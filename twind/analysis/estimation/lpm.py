@@ -207,17 +207,18 @@ def _smoothed_variance(var: NDArray[np.float64], q: int) -> tuple[NDArray[np.flo
 
     One window's variance has ``q`` (9) degrees of freedom: it scatters by a third, and a
     fit weighted by it gives the windows where it came out low the most weight, with
-    uncertainties that trust them. The noise spectrum is smooth on the scale of a few
-    windows (the LPM's windows are narrow against the resonances): a quadratic in
-    ``log var`` over :data:`SMOOTH_WINDOWS` (Savitzky-Golay) follows a resonance's peak
-    and has about three times the degrees of freedom. The log's bias, ``psi(q) - ln q``
+    uncertainties that trust them. Where the noise spectrum is smooth on the scale of a few
+    windows (windows narrow against the resonances), a quadratic in ``log var`` over
+    :data:`SMOOTH_WINDOWS` (Savitzky-Golay) follows a resonance's peak and has about three
+    times the degrees of freedom. The log's bias, ``psi(q) - ln q``
     for a chi-square of ``2 q``, is taken out.
 
     Where the spectrum is not smooth on that scale, a quadratic understates its bumps: below
     2 Hz the 40m's IN1 noise falls by decades over the 7 windows (2 Hz) of a one-minute
     record, with the damped resonances on it, and a bump's variance can come out several
     times too small. A window whose own variance exceeds the smoothed one beyond chance (the
-    ratio's F(2 q, 2 dof) tail at :data:`GUARD`) keeps its own.
+    ratio's F(2 q, 2 dof) tail at :data:`GUARD`) keeps its own, larger and with ``q``
+    degrees of freedom; the ones returned are the smoothed windows'.
     """
     span = _span(var.shape[-1])
     if span < 5 or not np.all(np.isfinite(var) & (var > 0)):
