@@ -1,9 +1,11 @@
-"""LIGO channel names of the twin's test points, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``."""
+"""Channel names of test points: a site's convention (``<IFO>:<SYSTEM>-<OPTIC>_<SUFFIX>``) and
+the 40m's names of the twin's, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``."""
 
 from __future__ import annotations
 
 import re
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -15,6 +17,59 @@ UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
 DOF_CHANNEL = re.compile(
     r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
 """A damping test point's name, parsed into ``ifo``, ``optic``, ``dof`` and ``point``."""
+
+
+POINT_NAME = re.compile(r"^(?P<ifo>[A-Za-z0-9]+):(?P<system>[A-Za-z0-9]+)-(?P<optic>[A-Za-z0-9]+)_"
+                        r"(?P<suffix>\w+)$")
+"""Any CDS test point's name: interferometer, system, optic, and what follows the optic."""
+
+
+@dataclass(frozen=True)
+class Convention:
+    """How a site names its test points: ``<ifo>:<system>-<OPTIC>_<suffix>``, the suffix a
+    filter module and a point (``SUSPOS_IN1`` at the 40m, ``IM_DAMP_L_IN1`` or
+    ``TM_TEST_P_EXC`` at KAGRA, ``TM_OPLEV_PIT_DIAG``). A site's configuration declares it
+    (``[channels]``); the analysis never spells a site's names itself.
+
+    Attributes
+    ----------
+    ifo : str
+        The interferometer prefix: ``C1`` (the 40m), ``K1`` (KAGRA).
+    system : str
+        The subsystem: ``SUS`` at the 40m, ``VIS`` at KAGRA.
+    """
+
+    ifo: str = "C1"
+    system: str = "SUS"
+
+    def channel(self, optic: str, suffix: str) -> str:
+        """The full name of `optic`'s test point `suffix`.
+
+        Examples
+        --------
+        >>> Convention("K1", "VIS").channel("SRM", "IM_DAMP_L_IN1")
+        'K1:VIS-SRM_IM_DAMP_L_IN1'
+        """
+        return f"{self.ifo}:{self.system}-{optic}_{suffix}"
+
+    def parse(self, name: str) -> tuple[str, str] | None:
+        """``(optic, suffix)`` of a channel of this site and system, else None.
+
+        Examples
+        --------
+        >>> Convention("K1", "VIS").parse("K1:VIS-SRM_TM_TEST_P_EXC")
+        ('SRM', 'TM_TEST_P_EXC')
+        >>> Convention("K1", "VIS").parse("C1:SUS-ETMX_SUSPOS_IN1") is None
+        True
+        """
+        m = POINT_NAME.match(name)
+        if not m or m["ifo"] != self.ifo or m["system"] != self.system:
+            return None
+        return m["optic"], m["suffix"]
+
+
+C1 = Convention("C1", "SUS")
+"""The 40m's convention, which the twin's own channels follow."""
 
 
 def dof_channel(ifo: str, optic: str, dof: str, point: str) -> str:

@@ -27,7 +27,11 @@ beside what it times."""
 def _response(p: argparse.ArgumentParser) -> None:
     """Arguments of ``twind model response``."""
     p.add_argument("--config", help=CONFIG_HELP)
-    p.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
+    p.add_argument("--optic", help="the optic (default: the file's only one, else ETMX)")
+    p.add_argument("--drives", help="a state-space optic: comma-separated drives (default: "
+                                    "its damping loops)")
+    p.add_argument("--readbacks", help="a state-space optic: comma-separated readbacks "
+                                       "(default: its damping loops' IN1)")
     p.add_argument("--fmin", type=frequency, default=0.05,
                    help="lowest frequency, Hz (default 0.05)")
     p.add_argument("--fmax", type=frequency, default=50.0,
@@ -42,7 +46,7 @@ def _response(p: argparse.ArgumentParser) -> None:
 def _compare(p: argparse.ArgumentParser) -> None:
     """Arguments of ``twind model compare``."""
     p.add_argument("--config", help=CONFIG_HELP)
-    p.add_argument("--optic", default="ETMX", help="the optic (default ETMX)")
+    p.add_argument("--optic", help="the optic (default: the file's only one, else ETMX)")
     p.add_argument("-o", "--output", default="geometric_vs_analytical.png",
                    help="PNG of both models' responses (default geometric_vs_analytical.png)")
 
@@ -50,11 +54,15 @@ def _compare(p: argparse.ArgumentParser) -> None:
 def _simulate(p: argparse.ArgumentParser) -> None:
     """Arguments of ``twind simulate``."""
     p.add_argument("--config", help=CONFIG_HELP)
-    p.add_argument("--optics", default="ETMX", help="comma-separated names, or 'all'")
+    p.add_argument("--optics", help="comma-separated names, or 'all' (default: the file's "
+                                    "only optic, else ETMX)")
     p.add_argument("--duration", type=float, required=True, help="simulated seconds")
     p.add_argument("--seed", type=seed, default=0, help=SEED_HELP)
     p.add_argument("--block", type=float, default=1.0, help="seconds per engine block")
     p.add_argument("--record", help="MCAP file to record every block to")
+    p.add_argument("--max-hz", type=frequency, default=None,
+                   help="a state-space optic: drop its modes above this (static part kept; "
+                        "the error it costs is printed)")
 
 
 def _serve(p: argparse.ArgumentParser) -> None:
@@ -207,6 +215,8 @@ def _rrd(p: argparse.ArgumentParser) -> None:
 def _tf(p: argparse.ArgumentParser) -> None:
     """Arguments of ``twind tf``."""
     input_arguments(p)
+    p.add_argument("--config", help="the optic's configuration: needed for a state-space "
+                                    "model's (another site's) channel names")
     p.add_argument("-o", "--output", help=".h5/.hdf5 or .csv results, or a .png Bode matrix")
 
 

@@ -20,6 +20,8 @@ from twind.analysis.identification.modes import fit_modes, read_mode_table
 from twind.analysis.identification.params import FIT_PARAMS, read_truth
 from twind.bus.session import zenoh_config
 from twind.channels import osem_channel
+from twind.cli import plant as statespace
+from twind.cli.plant import statespace_optic
 from twind.cli.twin import client
 from twind.client import TwinClient
 from twind.config import MEASURED_MODES, load_config
@@ -82,6 +84,9 @@ def cmd_tf(args: argparse.Namespace) -> int:
     """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs;
     any other diaggui measurement's transfer functions as they were measured."""
 
+    optic = statespace_optic(args)
+    if optic is not None:
+        return statespace.tf(args, optic)
     try:
         tfs = _measured_tfs(args)
     except TFError as err:
@@ -171,6 +176,9 @@ def _show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_jso
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit the nominal parameters to measured TFs; print them with calibrated sigmas."""
 
+    optic = statespace_optic(args)
+    if optic is not None:
+        return statespace.fit(args, optic)
     truth = read_truth(args.truth) if args.truth else None  # a bad file fails before the fit
     tfs = _measured_tfs(args)
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
@@ -263,6 +271,9 @@ def _recorded_osems(paths: list[str], ifo: str, optic: str, start: float | None,
 def cmd_diagnose(args: argparse.Namespace) -> int:
     """Locate the mismatch, name the physics left out, fit it, show the improvement."""
 
+    optic = statespace_optic(args)
+    if optic is not None:
+        return statespace.diagnose(args, optic)
     tfs = _measured_tfs(args)
     if args.band:
         tfs = tfs.band(*args.band)

@@ -11,6 +11,7 @@ import numpy as np
 
 from twind import DOFS, strictjson
 from twind.channels import block_channels
+from twind.cli import plant as statespace
 from twind.config import load_config
 from twind.errors import TwindError
 from twind.model.compare import compare_models
@@ -45,8 +46,10 @@ def _complex(a: np.ndarray) -> dict[str, list]:
 def cmd_model_response(args: argparse.Namespace) -> int:
     """Frequency responses of one optic's loop, as golden_tf.json or a Bode-matrix PNG."""
 
-    cfg = load_config(args.config, [args.optic]).select([args.optic])[0]
+    cfg = _optic(args)
     f = _frequencies(args)
+    if cfg.kind == "statespace":
+        return statespace.response(args, cfg, f)
     r = cfg.loop().responses(f)
     keys = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC",
             "closed_loop_IN2_per_EXC")
@@ -73,10 +76,21 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     return 0
 
 
+def _optic(args: argparse.Namespace):  # noqa: ANN202 - OpticConfig or StateSpaceOptic
+    """The optic ``--optic`` names (default: the file's only one, else ETMX)."""
+    if args.optic is None:
+        twin = load_config(args.config)
+        return next(iter(twin.optics.values())) if len(twin.optics) == 1 else twin.optics["ETMX"]
+    return load_config(args.config, [args.optic]).select([args.optic])[0]
+
+
 def cmd_model_compare(args: argparse.Namespace) -> int:
     """Geometric rigid-body model against the analytical model for one optic."""
 
-    cfg = load_config(args.config, [args.optic]).select([args.optic])[0]
+    cfg = _optic(args)
+    if cfg.kind == "statespace":
+        msg = f"{cfg.name} is a state-space model: it has no geometric and analytical models to compare"
+        raise TwindError(msg)
     cmp = compare_models(cfg.sus, np.geomspace(0.1, 10, 400))
     for dof, pct in cmp.eigen_difference_pct().items():
         print(f"{dof:5s} analytical {cmp.eigen_analytical_hz[dof]:8.5f} Hz  "
@@ -89,8 +103,17 @@ def cmd_model_compare(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Run the twin as fast as it can; print per-channel RMS and the speed reached."""
 
-    twin = load_config(args.config, args.optics)
-    optics = twin.select(args.optics)
+    chosen = args.optics
+    if chosen is None:  # the file's only optic, else ETMX
+        every = load_config(args.config)
+        chosen = list(every.optics) if len(every.optics) == 1 else "ETMX"
+    twin = load_config(args.config, chosen)
+    optics = twin.select(chosen)
+    if any(o.kind == "statespace" for o in optics):
+        if len(optics) != 1:
+            msg = "simulate runs one state-space optic at a time: choose it with --optics"
+            raise TwindError(msg)
+        return statespace.simulate(args, optics[0])
     for name in ("duration", "block"):
         if not getattr(args, name) > 0:
             msg = f"--{name} must be positive, got {getattr(args, name)}"

@@ -71,8 +71,8 @@ class Measured:
 
 def dof_unit(dof: str) -> str:
     """The unit of a DOF's signals in the damping loop (:data:`twind.channels.UNITS`), as
-    printed: µm, µrad."""
-    return UNITS[dof].replace("u", "µ")
+    printed: µm, µrad; another model's signals are in its own units (a.u.)."""
+    return UNITS[dof].replace("u", "µ") if dof in UNITS else "a.u."
 
 
 def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str],

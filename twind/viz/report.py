@@ -59,9 +59,9 @@ def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
     if d.separations:
         parts += ["<h2>Rivals and the measurement that separates them</h2>", _separations(d)]
     parts += ["<h2>Where the nominal model misses</h2>",
-              _bands("located", d.located, "none: no band stands out"),
+              bands("located", d.located, "none: no band stands out"),
               "<h2>Unexplained by the final model</h2>",
-              _bands("unexplained", d.unexplained, "nothing")]
+              bands("unexplained", d.unexplained, "nothing")]
     parts += [f'<h2>{html.escape(title)}</h2><img src="{html.escape(src)}" '
               f'alt="{html.escape(title)}">' for title, src in images]
     parts.append('<p><a href="diagnosis.json">diagnosis.json</a>; '
@@ -70,8 +70,8 @@ def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
             f"{optic}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>")
 
 
-def _table(table_id: str, header: Sequence[str], rows: Sequence[Sequence[str]],
-           classes: Sequence[str] | None = None) -> str:
+def table(table_id: str, header: Sequence[str], rows: Sequence[Sequence[str]],
+          classes: Sequence[str] | None = None) -> str:
     """An HTML table; cells are escaped, `classes` (one per row) mark rows."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     body = "".join(
@@ -80,18 +80,19 @@ def _table(table_id: str, header: Sequence[str], rows: Sequence[Sequence[str]],
     return f'<table id="{table_id}"><tr>{head}</tr>{body}</table>'
 
 
-def _number(x: float | None, digits: int = 4) -> str:
+def number(x: float | None, digits: int = 4) -> str:
+    """`x` to `digits` significant digits; a dash where it is undetermined."""
     return "—" if x is None or not math.isfinite(x) else f"{x:.{digits}g}"
 
 
 def _nominal(d: Diagnosis) -> str:
     """The refitted nominal parameters; what the data cannot fix is held at its start."""
     params = d.nominal.to_json()["params"]
-    rows = [(n, "held at start" if p["sigma"] is None else _number(p["value"], 6),
-             _number(p["sigma"], 3), "unidentifiable" if p["sigma"] is None else
-             f"{100 * p['sigma'] / abs(p['value']):.2g} %", _number(p["start"], 6))
+    rows = [(n, "held at start" if p["sigma"] is None else number(p["value"], 6),
+             number(p["sigma"], 3), "unidentifiable" if p["sigma"] is None else
+             f"{100 * p['sigma'] / abs(p['value']):.2g} %", number(p["start"], 6))
             for n, p in params.items()]
-    return _table("nominal", ("parameter", "value", "sigma", "relative", "start"), rows)
+    return table("nominal", ("parameter", "value", "sigma", "relative", "start"), rows)
 
 
 def _hypotheses(d: Diagnosis) -> str:
@@ -106,12 +107,12 @@ def _hypotheses(d: Diagnosis) -> str:
     for e in order:
         own = chosen.get(e.effect, e)
         values, sigma = own.values()
-        params = ", ".join(f"{n} {_number(v)} ± {_number(sigma.get(n), 2)}"
+        params = ", ".join(f"{n} {number(v)} ± {number(sigma.get(n), 2)}"
                            for n, v in values.items())
         role = ("rival of " + own.rival_of if own.rival_of else
                 "chosen" + (" (partial)" if own.partial else "")) if e.effect in chosen else (
             "not claimed")
-        rows.append((e.effect, role, _number(own.p_value, 2), _number(own.delta_bic, 3),
+        rows.append((e.effect, role, number(own.p_value, 2), number(own.delta_bic, 3),
                      params))
         classes.append("claimed" if e.effect in chosen else "")
     shown = set(tried)
@@ -120,23 +121,24 @@ def _hypotheses(d: Diagnosis) -> str:
             shown.add(x.effect)
             rows.append((x.effect, f"not weighed at step {x.step}: {x.reason}", "", "", ""))
             classes.append("")
-    return _table("hypotheses", ("hypothesis", "verdict", "p-value", "delta BIC",
+    return table("hypotheses", ("hypothesis", "verdict", "p-value", "delta BIC",
                                  "parameters ± sigma"), rows, classes)
 
 
 def _separations(d: Diagnosis) -> str:
     rows = [(a, b, dof, f"{response}/{dof}", f"{f:.3g}")
             for (a, b), (dof, response, f) in d.separations.items()]
-    return _table("separations", ("effect", "rival", "excite", "measure", "around (Hz)"),
+    return table("separations", ("effect", "rival", "excite", "measure", "around (Hz)"),
                   rows)
 
 
-def _bands(table_id: str, bands: Sequence[Located], empty: str) -> str:
-    if not bands:
+def bands(table_id: str, located: Sequence[Located], empty: str) -> str:
+    """The located bands as a table (`empty` in words where there are none)."""
+    if not located:
         return f'<p id="{table_id}">{html.escape(empty)}</p>'
     rows = [(x.element, f"{x.band_hz[0]:.3g}-{x.band_hz[1]:.3g}", f"{x.significance:.1f}",
-             f"{x.excess:.2f}") for x in bands]
-    return _table(table_id, ("element", "band (Hz)", "significance (sigma)",
+             f"{x.excess:.2f}") for x in located]
+    return table(table_id, ("element", "band (Hz)", "significance (sigma)",
                              "residual power / expected"), rows)
 
 

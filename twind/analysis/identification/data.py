@@ -100,13 +100,13 @@ class FitData:
         g2 = tfs.coherence["IN1"]
         # a bin this coherent on its own is no fluke (P < 1e-5 from zero coherence with 5
         # averages): it keeps the tones of a sparse multisine, which smoothing would dilute
-        coherent = (_smoothed(g2) >= min_coherence) | (g2 >= max(SURE_COHERENCE, min_coherence))
+        coherent = (smoothed(g2) >= min_coherence) | (g2 >= max(SURE_COHERENCE, min_coherence))
         if min_coherence <= 0:
             # every response where the excitation reached the optic (its own DOF coherent):
             # the incoherent elements there carry the noise's errors, and together they
             # show a coupling too small to lift one bin out of the noise
             own = [tfs.responses.index(d) for d in tfs.excited]
-            driven = _smoothed(g2[:, own, range(len(own))]) >= MIN_COHERENCE
+            driven = smoothed(g2[:, own, range(len(own))]) >= MIN_COHERENCE
             coherent = np.broadcast_to(driven[:, None, :], g2.shape)
         for lo, hi in whole:
             coherent = coherent | ((f >= lo) & (f <= hi))[:, None, None]
@@ -197,7 +197,7 @@ class FitData:
         return out
 
 
-def _smoothed(coherence: NDArray[np.float64], bins: int = SMOOTH_BINS) -> NDArray[np.float64]:
+def smoothed(coherence: NDArray[np.float64], bins: int = SMOOTH_BINS) -> NDArray[np.float64]:
     """Running mean over `bins` neighbouring frequencies.
 
     Bins are chosen by this, not by their own coherence: with few averages the estimate

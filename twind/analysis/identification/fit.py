@@ -207,7 +207,7 @@ def _lag_pairs(data: FitData, k: int) -> tuple[NDArray[np.int64], NDArray[np.int
     return idx[:-k][both], idx[k:][both]
 
 
-def _bin_correlation(r: NDArray[np.float64], datas: Sequence[FitData]) -> list[float]:
+def bin_correlation(r: NDArray[np.float64], datas: Sequence[FitData]) -> list[float]:
     """Correlation of whitened complex residuals ``k`` bins apart, pooled over elements."""
     power, lagged = 0.0, np.zeros(CORRELATION_LAGS)
     for data, rows in _slices(datas):
@@ -220,7 +220,7 @@ def _bin_correlation(r: NDArray[np.float64], datas: Sequence[FitData]) -> list[f
     return (lagged / power).tolist() if power > 0 else [0.0] * CORRELATION_LAGS
 
 
-def _sandwich(J: NDArray[np.float64], rho: list[float], datas: Sequence[FitData]
+def sandwich(J: NDArray[np.float64], rho: list[float], datas: Sequence[FitData]
               ) -> NDArray[np.float64]:
     """``J^T R J`` for errors correlated ``rho[k-1]`` between bins ``k`` apart."""
     B = J.T @ J
@@ -267,12 +267,12 @@ def _result(optic: str, coords: _Coords, x: NDArray, r: NDArray, J: NDArray, nul
     # chi2/nu it is not pulled up by the heavy tails of errors divided by an estimated sigma
     z2 = r[: r.size // 2] ** 2 + r[r.size // 2 :] ** 2
     scale2 = float(np.median(z2) / 2 / math.log(2)) * r.size / max(nu, 1)
-    rho = _bin_correlation(r, datas)
+    rho = bin_correlation(r, datas)
     A_pinv = np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
     if null.shape[1]:
         proj = np.eye(len(names)) - null @ null.T
         A_pinv = proj @ A_pinv @ proj
-    cov = scale2 * A_pinv @ _sandwich(J, rho, datas) @ A_pinv
+    cov = scale2 * A_pinv @ sandwich(J, rho, datas) @ A_pinv
     lost = np.any(np.abs(null) > NULL_COMPONENT, axis=1) if null.size else np.zeros(len(names), bool)
     values = coords.values(x)
     sigma = coords.sigma(x, np.diag(cov))

@@ -74,7 +74,13 @@ def locate(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult,
         pred = model.for_data(data)(result.as_dict())
         z = np.zeros(data.H.shape, dtype=complex)
         z[data.mask] = (data.H - pred)[data.mask] / data.sigma[data.mask]
-        tests += _band_tests(data, z, scale2, inflation, _null_moments(data.averages))
+        tests += band_tests(data, z, scale2, inflation)
+    return significant(tests, alpha)
+
+
+def significant(tests: list, alpha: float = ALPHA) -> list[Located]:
+    """The bands of :func:`band_tests` whose p-values, Holm-corrected over all of them, are
+    below `alpha`, most significant first."""
     if not tests:
         return []
     p = np.array([tt[2] for tt in tests])
@@ -96,9 +102,27 @@ def _null_moments(averages: int) -> tuple[float, float]:
     return f.mean() * k, f.var() * k * k
 
 
-def _band_tests(data: FitData, z: np.ndarray, scale2: float, inflation: float,
-                moments: tuple[float, float]) -> list:
-    mu, var = moments
+def band_tests(data: FitData, z: np.ndarray, scale2: float, inflation: float) -> list:
+    """Each element's residual power band by band (:data:`BANDS_PER_DECADE`) against its
+    distribution when the model is right.
+
+    Parameters
+    ----------
+    data : FitData
+        The bins fitted (their mask, frequencies and names).
+    z : ndarray of complex, shape of ``data.H``
+        Whitened residuals (zero where unused).
+    scale2 : float
+        The residuals' robust scale, squared.
+    inflation : float
+        ``1 + 2 sum rho_k^2`` of the bins' correlation.
+
+    Returns
+    -------
+    list of (element, band, p-value, excess)
+        Uncorrected p-values (:func:`significant` corrects them).
+    """
+    mu, var = _null_moments(data.averages)
     f = data.frequency_hz
     used = f[data.mask.any(axis=(1, 2))]
     if used.size == 0:

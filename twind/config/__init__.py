@@ -8,7 +8,6 @@ missing keys, wrong units, unreadable foton designs and unstable loops are repor
 from __future__ import annotations
 
 import functools
-import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -17,11 +16,25 @@ from typing import Any
 import numpy as np
 
 from twind import DOFS
+from twind.channels import C1, Convention
+from twind.config.reader import (
+    ModuleConfig,
+    Reader,
+    boolean,
+    fm_numbers,
+    non_negative_quantity,
+    positive,
+    positive_int,
+    positive_quantity,
+    quantity,
+    read_toml,
+    stage,
+)
+from twind.config.statespace import StateSpaceOptic, load_statespace_optic
 from twind.errors import ConfigError, TwindError
 from twind.limits import ServiceLimits
 from twind.loop.damping import DampingLoop
-from twind.loop.filtermodule import N_STAGES, FilterModule, Stage
-from twind.loop.foton import design_to_sos
+from twind.loop.filtermodule import N_STAGES, Stage
 from twind.loop.foton_file import read_filter_file
 from twind.model.analytical import analytical_mechanics
 from twind.model.geometric import WireGeometry, geometric_mechanics
@@ -31,7 +44,7 @@ from twind.simulation.discretize import closed_loop_matrices, closed_loop_modes,
 from twind.simulation.noise import NoiseSpec
 from twind.units import parse_quantity
 
-CONFIG_DIR = Path(__file__).parent / "configs"
+CONFIG_DIR = Path(__file__).parent.parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "c1.toml"
 MEASURED_MODES = CONFIG_DIR / "measured" / "c1_free_swinging_2020.csv"
 """The 40m optics' measured free-swinging frequencies (source in the file)."""
@@ -53,23 +66,9 @@ CDS_KEYS = {"rate": ("sample_rate_hz", "frequency"), "loop_delay": ("loop_delay_
 NOISE_KEYS = {"osem": ("osem_m", "length ASD"), "osem_corner": ("osem_corner_hz", "frequency"),
               "sp_x": ("sp_x_m", "length ASD"), "sp_y": ("sp_y_m", "length ASD"),
               "sp_phi": ("sp_phi_rad", "angle ASD"), "floor": ("floor_hz", "frequency")}
-MODELS = ("analytical", "geometric")
-
-
-@dataclass(frozen=True)
-class ModuleConfig:
-    """Settings of one damping filter module as written in the file."""
-
-    gain: float
-    stages: tuple[Stage | None, ...]
-    on: tuple[int, ...]
-    ramp_s: float = 0.0
-    limit: float = 0.0
-
-    def build(self) -> FilterModule:
-        """A fresh :class:`FilterModule` (mutable state for an engine)."""
-        return FilterModule(list(self.stages), set(self.on), self.gain, ramp_s=self.ramp_s,
-                            limit=self.limit)
+MODELS = ("analytical", "geometric", "statespace")
+"""An SOS's rigid-body models, or a state-space model of any suspension
+(:mod:`twind.config.statespace`)."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +81,13 @@ class OpticConfig:
     noise: NoiseSpec = field(default_factory=NoiseSpec)
     model: str = "analytical"
     source: str = "<defaults>"
+
+    kind = "sos"
+
+    @property
+    def rate_hz(self) -> float:
+        """The model rate (Hz)."""
+        return self.sus.sample_rate_hz
 
     def mechanics(self):  # noqa: ANN201 - Mechanics, imported lazily with the geometric model
         """Rigid-body dynamics of the configured model."""
@@ -108,11 +114,12 @@ class TwinConfig:
     """An interferometer's worth of optics, and what its service accepts."""
 
     ifo: str
-    optics: dict[str, OpticConfig]
+    optics: dict[str, OpticConfig | StateSpaceOptic]
     source: str
     service: ServiceLimits = field(default_factory=ServiceLimits)
+    convention: Convention = C1
 
-    def select(self, names: Sequence[str] | str | None) -> list[OpticConfig]:
+    def select(self, names: Sequence[str] | str | None) -> list[OpticConfig | StateSpaceOptic]:
         """Optics by name (``"all"`` or None for every one), in the file's order."""
         if names is None or names == "all" or names == ["all"]:
             return list(self.optics.values())
@@ -124,100 +131,23 @@ class TwinConfig:
         if len(set(names)) != len(names):
             raise ConfigError(self.source, "ifo.optics", f"an optic is named twice in {names}")
         chosen = [self.optics[n] for n in names]
-        rates = {o.sus.sample_rate_hz for o in chosen}
+        rates = {o.rate_hz for o in chosen}
         if len(rates) > 1:
             msg = f"optics run at different rates {sorted(rates)}; one engine runs one rate"
             raise ConfigError(self.source, "cds.rate", msg)
         return chosen
 
 
-class _Reader:
-    """Walks one TOML table, converting values and remembering the keys it used."""
-
-    def __init__(self, source: str, table: dict[str, Any], prefix: str = "") -> None:
-        self.source, self.table, self.prefix = source, table, prefix
-
-    def key(self, name: str) -> str:
-        return f"{self.prefix}{name}"
-
-    def fail(self, name: str, problem: str) -> ConfigError:
-        return ConfigError(self.source, self.key(name), problem)
-
-    def sub(self, name: str, required: bool = True) -> _Reader:
-        value = self.table.get(name, {} if not required else None)
-        if value is None:
-            raise self.fail(name, "missing table")
-        if not isinstance(value, dict):
-            raise self.fail(name, f"expected a table, got {value!r}")
-        return _Reader(self.source, value, self.key(name) + ".")
-
-    def get(self, name: str, convert: Callable[[Any], Any], default: Any = ...) -> Any:
-        if name not in self.table:
-            if default is ...:
-                raise self.fail(name, "missing parameter")
-            return default
-        try:
-            return convert(self.table[name])
-        except (ValueError, TypeError, TwindError) as err:
-            raise self.fail(name, str(err)) from None
-
-    def only(self, allowed: Sequence[str]) -> None:
-        for name in self.table:
-            if name not in allowed:
-                raise self.fail(name, f"unknown key; expected one of {', '.join(allowed)}")
-
-
-def _quantity(dimension: str) -> Callable[[Any], float]:
-
-    return lambda v: parse_quantity(v, dimension)
-
-
-def _positive_quantity(dimension: str) -> Callable[[Any], float]:
-    def convert(v: Any) -> float:
-        value = _quantity(dimension)(v)
-        if not value > 0:
-            msg = f"must be positive, got {v!r}"
-            raise ValueError(msg)
-        return value
-
-    return convert
-
-
-def _non_negative_quantity(dimension: str) -> Callable[[Any], float]:
-    def convert(v: Any) -> float:
-        value = _quantity(dimension)(v)
-        if not value >= 0:
-            msg = f"must not be negative, got {v!r}"
-            raise ValueError(msg)
-        return value
-
-    return convert
-
-
-def _boolean(v: Any) -> bool:
-    if not isinstance(v, bool):
-        msg = f"expected true or false (no quotes), got {v!r}"
-        raise ValueError(msg)
-    return v
-
-
-def _positive(v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-        msg = f"expected a positive number, got {v!r}"
-        raise ValueError(msg)
-    return float(v)
-
-
-def _read_sus(r: _Reader, name: str) -> SOSParams:
+def _read_sus(r: Reader, name: str) -> SOSParams:
     sus, osem, cds = r.sub("suspension"), r.sub("osem"), r.sub("cds")
     values: dict[str, Any] = {"name": name}
     for reader, keys in ((sus, SUSPENSION_KEYS), (osem, OSEM_KEYS), (cds, CDS_KEYS)):
         reader.only([*keys, "Q"] if reader is sus else list(keys))
         for key, (attr, dim) in keys.items():
-            values[attr] = reader.get(key, _quantity(dim))
+            values[attr] = reader.get(key, quantity(dim))
     q = sus.sub("Q")
     q.only(ALL_DOFS)
-    values["Q"] = {d: q.get(d, _positive) for d in ALL_DOFS}
+    values["Q"] = {d: q.get(d, positive) for d in ALL_DOFS}
     p = SOSParams(**values)
     for attr, problem in p.check():
         raise ConfigError(r.source, _config_key(attr), problem)
@@ -232,18 +162,7 @@ def _config_key(attr: str) -> str:
     return f"suspension.{attr}"
 
 
-def _stage(rate_hz: float) -> Callable[[Any], Stage]:
-    def convert(v: Any) -> Stage:
-        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, str) for x in v)):
-            msg = f"expected [\"name\", \"foton design\"], got {v!r}"
-            raise ValueError(msg)
-        design_to_sos(v[1], rate_hz)  # a FotonError here names the design and its problem
-        return Stage(v[0], v[1])
-
-    return convert
-
-
-def _foton_file(damping: _Reader):  # noqa: ANN202 - FilterFile or None
+def _foton_file(damping: Reader):  # noqa: ANN202 - FilterFile or None
     """The foton file named by ``foton_file`` (relative to the config file), if any."""
 
     name = damping.get("foton_file", str, None)
@@ -255,7 +174,7 @@ def _foton_file(damping: _Reader):  # noqa: ANN202 - FilterFile or None
         raise damping.fail("foton_file", str(err)) from None
 
 
-def _file_stages(damping: _Reader, ff, optic: str, dof: str,  # noqa: ANN001
+def _file_stages(damping: Reader, ff, optic: str, dof: str,  # noqa: ANN001
                  rate_hz: float) -> tuple[Stage | None, ...]:
     """FM1..FM10 of the filter module ``<optic>_SUS<dof>`` of foton file `ff`."""
     path = ff.path
@@ -270,14 +189,7 @@ def _file_stages(damping: _Reader, ff, optic: str, dof: str,  # noqa: ANN001
     return tuple(stages)
 
 
-def _on(v: Any) -> tuple[int, ...]:
-    if not isinstance(v, list) or not all(isinstance(x, int) and 1 <= x <= N_STAGES for x in v):
-        msg = f"expected a list of FM numbers 1..{N_STAGES}, got {v!r}"
-        raise ValueError(msg)
-    return tuple(v)
-
-
-def _read_damping(r: _Reader, optic: str, rate_hz: float) -> dict[str, ModuleConfig]:
+def _read_damping(r: Reader, optic: str, rate_hz: float) -> dict[str, ModuleConfig]:
     damping = r.sub("damping")
     fms = [f"FM{i}" for i in range(1, N_STAGES + 1)]
     common = ["on", "ramp", "limit", *fms]
@@ -291,30 +203,30 @@ def _read_damping(r: _Reader, optic: str, rate_hz: float) -> dict[str, ModuleCon
         def pick(key: str, convert: Callable[[Any], Any], default: Any = ..., own=own) -> Any:
             return own.get(key, convert, damping.get(key, convert, default))
 
-        stages = tuple(pick(fm, _stage(rate_hz), None) for fm in fms)
+        stages = tuple(pick(fm, stage(rate_hz), None) for fm in fms)
         if ff is not None:
             if any(stages):
                 raise damping.fail("foton_file", "give the stages either as FMn designs or "
                                    "in a foton file, not both")
             stages = _file_stages(damping, ff, optic, dof, rate_hz)
-        on = pick("on", _on, ())
+        on = pick("on", fm_numbers, ())
         for fm in on:
             if stages[fm - 1] is None:
                 where = own if "on" in own.table else damping
                 raise where.fail("on", f"FM{fm} is switched on but holds no filter")
         modules[dof] = ModuleConfig(
-            gain=own.get("gain", _quantity("velocity gain")), stages=stages, on=on,
-            ramp_s=pick("ramp", _non_negative_quantity("time"), 0.0),
-            limit=pick("limit", _non_negative_quantity("counts"), 0.0))
+            gain=own.get("gain", quantity("velocity gain")), stages=stages, on=on,
+            ramp_s=pick("ramp", non_negative_quantity("time"), 0.0),
+            limit=pick("limit", non_negative_quantity("counts"), 0.0))
     return modules
 
 
-def _read_noise(r: _Reader) -> NoiseSpec:
+def _read_noise(r: Reader) -> NoiseSpec:
     noise = r.sub("noise", required=False)
     noise.only([*NOISE_KEYS, "enabled"])
-    values = {attr: noise.get(key, _positive_quantity(dim), getattr(NoiseSpec(), attr))
+    values = {attr: noise.get(key, positive_quantity(dim), getattr(NoiseSpec(), attr))
               for key, (attr, dim) in NOISE_KEYS.items()}
-    values["enabled"] = noise.get("enabled", _boolean, True)
+    values["enabled"] = noise.get("enabled", boolean, True)
     return NoiseSpec(**values)
 
 
@@ -325,7 +237,7 @@ def _check_model(v: Any) -> str:
     return v
 
 
-def load_optic(path: str | Path) -> OpticConfig:
+def load_optic(path: str | Path) -> OpticConfig | StateSpaceOptic:
     """Read one optic's TOML file.
 
     Parameters
@@ -335,7 +247,9 @@ def load_optic(path: str | Path) -> OpticConfig:
 
     Returns
     -------
-    OpticConfig
+    OpticConfig or StateSpaceOptic
+        An SOS with its physical parameters, or a plant given as a state-space model
+        (``model = "statespace"``, :mod:`twind.config.statespace`).
 
     Raises
     ------
@@ -343,11 +257,13 @@ def load_optic(path: str | Path) -> OpticConfig:
         Naming the file, the key and the problem.
     """
     source = str(path)
-    r = _Reader(source, _read_toml(path))
-    r.only(["optic", "suspension", "osem", "cds", "damping", "noise"])
+    r = Reader(source, read_toml(path))
     optic = r.sub("optic")
     optic.only(["name", "model"])
     name = optic.get("name", str)
+    if optic.get("model", _check_model, "analytical") == "statespace":
+        return load_statespace_optic(r, name)
+    r.only(["optic", "suspension", "osem", "cds", "damping", "noise"])
     sus = _read_sus(r, name)
     cfg = OpticConfig(name=name, sus=sus, damping=_read_damping(r, name, sus.sample_rate_hz),
                       noise=_read_noise(r), model=optic.get("model", _check_model, "analytical"),
@@ -371,12 +287,13 @@ def load_config(path: str | Path | None = None, optics: Sequence[str] | str | No
     TwinConfig
     """
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    data = _read_toml(path)
+    data = read_toml(path)
     if "ifo" not in data:
         optic = load_optic(path)
-        return TwinConfig("C1", {optic.name: optic}, str(path))
-    r = _Reader(str(path), data)
-    r.only(["ifo", "service"])
+        convention = getattr(optic, "convention", C1)
+        return TwinConfig(convention.ifo, {optic.name: optic}, str(path), convention=convention)
+    r = Reader(str(path), data)
+    r.only(["ifo", "service", "channels"])
     ifo = r.sub("ifo")
     ifo.only(["name", "optics"])
     names = ifo.get("optics", lambda v: [str(x) for x in v])
@@ -388,36 +305,24 @@ def load_config(path: str | Path | None = None, optics: Sequence[str] | str | No
     loaded = {}
     for name in wanted:
         file = path.parent / "optics" / f"{name}.toml"
+        file = file if file.exists() else path.parent / f"{name}.toml"
         if not file.exists():
-            raise ifo.fail("optics", f"no file {file} for optic {name}")
+            raise ifo.fail("optics", f"no file {file} for optic {name} (in optics/ or beside it)")
         loaded[name] = load_optic(file)
-    return TwinConfig(ifo.get("name", str), loaded, str(path), _read_service(r.sub("service", False)))
+    name = ifo.get("name", str)
+    channels = r.sub("channels", False)
+    channels.only(["system"])
+    convention = Convention(name, channels.get("system", str, C1.system))
+    return TwinConfig(name, loaded, str(path), _read_service(r.sub("service", False)), convention)
 
 
-def _read_service(r: _Reader) -> ServiceLimits:
+def _read_service(r: Reader) -> ServiceLimits:
     """The ``[service]`` table: each key a positive number (counts whole)."""
     defaults = ServiceLimits()
     names = [f.name for f in fields(ServiceLimits)]
     r.only(names)
-    return ServiceLimits(**{n: r.get(n, _positive_int if isinstance(getattr(defaults, n), int)
-                                     else _positive, getattr(defaults, n)) for n in names})
-
-
-def _positive_int(v: Any) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-        msg = f"expected a whole number >= 1, got {v!r}"
-        raise ValueError(msg)
-    return v
-
-
-def _read_toml(path: str | Path) -> dict[str, Any]:
-    try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(str(path), "-", "file not found") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(str(path), "-", f"not valid TOML: {err}") from None
+    return ServiceLimits(**{n: r.get(n, positive_int if isinstance(getattr(defaults, n), int)
+                                     else positive, getattr(defaults, n)) for n in names})
 
 
 def check_stable(cfg: OpticConfig) -> None:

@@ -1,0 +1,324 @@
+"""A state-space plant as a measurement sees it: the model's modes and other blocks, what a real
+measurement adds to any model (calibrations, a delay, a low-pass), and the changes a diagnosis
+tries (a mode moved, a mode missing, a mode in no model, a readback reading another, a channel
+with its own frequency response).
+
+The measured element ``readback r / drive d`` is modelled as
+
+    g_r g_d L(f) C_r(f) [ sum_k S_k(f) + O(f) ] + sum_{r'} e_{r r'} g_{r'} g_d L(f) P_{r' d}(f)
+
+with ``S_k = (num_s s + num_1) / (s^2 + w_k s / Q_k + w_k^2)`` the model's modes
+(:class:`~twind.model.statespace.ModalForm`), ``O`` its other blocks and feedthrough,
+``g`` real calibration factors (sign included) per readback and per drive,
+``L = exp(-s tau) / (1 + s / (2 pi f_lp))`` the delay and low-pass every channel shares, and
+``C_r`` a readback's own stage. A Welch estimate averages the response over its window's
+kernel: every term is taken by the two-point rule (``f +- res / sqrt 3``), and a mode
+narrower than two bins by the Hann kernel itself within a few bins of it
+(:func:`~twind.analysis.identification.model.hann_kernel`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from twind.analysis.identification.model import NARROW_REACH_BINS, hann_kernel
+from twind.model.statespace import ModalForm
+
+FAMILIES = ("mode_frequency", "mode_amplitude", "resonance", "cross_coupling",
+            "channel_response")
+"""What a state-space diagnosis tries: a model mode's frequency and Q changed; its amplitude
+changed (0: missing); a mode the model lacks; a readback that also reads another; one
+readback with its own first-order stage."""
+
+_D2 = np.array([-1.0, 1.0]) / math.sqrt(3.0)  # the two-point rule's offsets (bins)
+_W2 = np.array([0.5, 0.5])
+_KERNEL_SAMPLES = 8  # a mode narrower than 1/8 bin is widened to it on the kernel's points
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One member of a family (:data:`FAMILIES`), applied to a :class:`PlantModel`.
+
+    Attributes
+    ----------
+    family : str
+    target : tuple of int
+        ``(k,)`` the model's mode k; ``(r, r2)`` readback r also reads readback r2; ``(r,)``
+        readback r's own stage; ``()`` a resonance.
+    """
+
+    family: str
+    target: tuple[int, ...] = ()
+
+    def params(self, elements: int = 0) -> list[str]:
+        """Its parameters' own names (a resonance has one numerator per element)."""
+        return {"mode_frequency": ["log_f", "log_q", "amplitude"], "mode_amplitude": ["amplitude"],
+                "resonance": ["f_hz", "q", *(f"b{i}" for i in range(elements))],
+                "cross_coupling": ["epsilon"],
+                "channel_response": ["inv_pole_hz", "inv_zero_hz"]}[self.family]
+
+    def start(self, elements: int = 0) -> dict[str, float]:
+        """Its parameters where the model is unchanged (a resonance's f and q: placeholders)."""
+        zero = dict.fromkeys(self.params(elements), 0.0)
+        if self.family in ("mode_frequency", "mode_amplitude"):
+            zero["amplitude"] = 1.0
+        if self.family == "resonance":
+            zero.update(f_hz=1.0, q=10.0)
+        return zero
+
+    def key(self) -> str:
+        """A unique name: ``mode_frequency[12]``, ``cross_coupling[3<4]``, ``resonance``."""
+        if not self.target:
+            return self.family
+        sep = "<" if self.family == "cross_coupling" else ","
+        return f"{self.family}[{sep.join(map(str, self.target))}]"
+
+
+@dataclass
+class Parts:
+    """A model evaluation in its stages: the plant, the calibrations (readback times drive),
+    the shared lag, each readback's own stage, the cross-couplings, each resonance's kernel
+    and each moved mode's section."""
+
+    plant: NDArray[np.complex128]
+    gains: NDArray[np.float64]
+    stage: NDArray[np.complex128]
+    cross: list
+    resonances: dict
+    moved: dict
+    lag: NDArray[np.complex128] | None = None
+    g: NDArray[np.float64] | None = None
+    gd: NDArray[np.float64] | None = None
+    inv_lp: float = 0.0
+    calibrated: NDArray[np.complex128] | None = None
+    out: NDArray[np.complex128] | None = None
+
+    def propagate(self, calibrated: NDArray[np.complex128]) -> NDArray[np.complex128]:
+        """What a calibrated plant (or a change of it) becomes after each readback's stage
+        and the cross-couplings; the first call keeps it as :attr:`calibrated`."""
+        if self.calibrated is None:
+            self.calibrated = calibrated
+        out = calibrated * self.stage[:, :, None]
+        for (r, r2), eps in self.cross:
+            out[:, r] += eps * calibrated[:, r2]
+        return out
+
+
+class PlantModel:
+    """The modal form at a measurement's bins, with nuisance parameters and effects.
+
+    Parameters
+    ----------
+    modal : ModalForm
+        Between the measurement's drives (columns) and readbacks (rows).
+    f_hz : ndarray
+        The bins' frequencies.
+    resolution_hz : float
+        Their Hann resolution (0: no window, the response at the bin itself).
+    """
+
+    def __init__(self, modal: ModalForm, f_hz: NDArray[np.float64], resolution_hz: float) -> None:
+        self.modal, self.f, self.res = modal, np.asarray(f_hz, dtype=float), resolution_hz
+        self.s = 2j * np.pi * self.f
+        points = self.f[:, None] + resolution_hz * _D2 if resolution_hz > 0 else self.f[:, None]
+        weights = _W2 if resolution_hz > 0 else np.ones(1)
+        s2 = 2j * np.pi * points
+        others = sum(w * modal.others(s2[:, i]) for i, w in enumerate(weights))
+        self.terms = np.array([self.section(modal.num_s[k], modal.num_1[k], modal.w[k],
+                                            modal.q[k]) for k in range(len(modal.modes))])
+        self.plant = (self.terms.sum(axis=0) if len(modal.modes) else 0) + others
+        self._cache: dict[tuple, NDArray] = {}
+
+    def _cached(self, key: tuple, make):  # noqa: ANN001, ANN202 - a memo of the last few
+        """`make()` remembered under `key` (a fit's Jacobian moves one parameter at a time:
+        every other effect's section is the same as the last evaluation's)."""
+        if key not in self._cache:
+            if len(self._cache) > 256:
+                self._cache.clear()
+            self._cache[key] = make()
+        return self._cache[key]
+
+    # -------------------------------------------------------------- a mode at the bins
+    def kernels(self, w: float, q: float) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+        """``1 / den`` and ``s / den`` of a mode at `w` (rad/s), `q`, as the estimate sees
+        them at every bin."""
+        q0, q1 = self.kernels_many(np.array([w]), q)
+        return q0[0], q1[0]
+
+    def kernels_many(self, w: NDArray[np.float64], q: float
+                     ) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+        """:meth:`kernels` of modes at each of `w` (rad/s), all at `q`: (len(w), nf)."""
+        w = np.asarray(w, dtype=float)[:, None]
+        if self.res <= 0:
+            den = 1.0 / (self.s * self.s + self.s * w / q + w * w)
+            return den, self.s * den
+        q0 = np.zeros((w.shape[0], self.f.size), dtype=complex)
+        q1 = np.zeros_like(q0)
+        for d2, w2 in zip(_D2, _W2, strict=True):  # the two-point rule
+            s = 2j * np.pi * (self.f + self.res * d2)
+            den = 1.0 / (s * s + s * w / q + w * w)
+            q0 += w2 * den
+            q1 += w2 * s * den
+        f0 = w[:, 0] / (2 * np.pi)
+        for t in np.flatnonzero(f0 / q < 2 * self.res):  # narrow: the kernel near it
+            near = np.flatnonzero(np.abs(self.f - f0[t]) < NARROW_REACH_BINS * self.res)
+            if not near.size:
+                continue
+            q_k = min(q, _KERNEL_SAMPLES * f0[t] / self.res)
+            d, wk = hann_kernel(self.res, f0[t] / q_k)
+            sk = 2j * np.pi * (self.f[near, None] + self.res * d)
+            den = 1.0 / (sk * sk + sk * w[t, 0] / q_k + w[t, 0] ** 2)
+            q0[t, near], q1[t, near] = den @ wk, (sk * den) @ wk
+        return q0, q1
+
+    def section(self, num_s: NDArray, num_1: NDArray, w: float, q: float) -> NDArray[np.complex128]:
+        """A mode's response at every bin, (nf, readbacks, drives)."""
+        q0, q1 = self.kernels(w, q)
+        return q1[:, None, None] * num_s + q0[:, None, None] * num_1
+
+    # -------------------------------------------------------------- the whole model
+    def __call__(self, nuisance: Mapping[str, float],
+                 effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()) -> NDArray[np.complex128]:
+        """The modelled measurement, (nf, readbacks, drives).
+
+        Parameters
+        ----------
+        nuisance : mapping of str to float
+            ``g_<r>`` per readback index, ``g_d<j>`` per drive index (default 1), ``tau_s``,
+            ``inv_lp_hz`` (``1 / f_lp``; 0 for none).
+        effects : sequence of (Effect, mapping)
+            Each with its own parameters' values.
+        """
+        return self.parts(nuisance, effects).out
+
+    def parts(self, nuisance: Mapping[str, float],
+              effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()) -> Parts:
+        """The model and the stages it is made in (for its derivatives)."""
+        nr, nd = self.plant.shape[1:]
+        P = self.plant.copy()
+        parts = Parts(P, np.ones((nr, nd)), np.ones((self.f.size, nr), dtype=complex), [], {}, {})
+        for effect, v in effects:
+            fam, t = effect.family, effect.target
+            if fam == "mode_frequency":
+                k = t[0]
+                moved = self._moved(k, v)
+                parts.moved[effect.key()] = moved
+                P += v["amplitude"] * moved - self.terms[k]
+            elif fam == "mode_amplitude":
+                P += (v["amplitude"] - 1.0) * self.terms[t[0]]
+            elif fam == "resonance":
+                b = np.array([v[f"b{i}"] for i in range(nr * nd)]).reshape(nr, nd)
+                q0 = self._cached(("q0", v["f_hz"], v["q"]), lambda v=v: self.kernels(
+                    2 * np.pi * v["f_hz"], v["q"])[0])
+                parts.resonances[effect.key()] = q0
+                P += q0[:, None, None] * b
+            elif fam == "cross_coupling":
+                parts.cross.append((t, v["epsilon"]))
+            elif fam == "channel_response":
+                parts.stage[:, t[0]] *= self.stage(v["inv_pole_hz"], v["inv_zero_hz"])
+        g = np.array([nuisance.get(f"g_{i}", 1.0) for i in range(nr)])
+        gd = np.array([nuisance.get(f"g_d{j}", 1.0) for j in range(nd)])
+        parts.g, parts.gd, parts.gains = g, gd, g[:, None] * gd[None, :]
+        parts.lag = self.lag(nuisance)
+        parts.inv_lp = nuisance.get("inv_lp_hz", 0.0)
+        parts.out = parts.propagate(P * parts.gains[None] * parts.lag[:, None, None])
+        return parts
+
+    def _moved(self, k: int, v: Mapping[str, float]) -> NDArray[np.complex128]:
+        """Mode `k`'s section at its moved frequency and Q (remembered)."""
+        w, q = self.modal.w[k] * math.exp(v["log_f"]), self.modal.q[k] * math.exp(v["log_q"])
+        return self._cached(("mode", k, w, q), lambda: self.section(
+            self.modal.num_s[k], self.modal.num_1[k], w, q))
+
+    def stage(self, inv_pole_hz: float, inv_zero_hz: float) -> NDArray[np.complex128]:
+        """A readback's own stage at the bins, ``(1 + s/2 pi z) / (1 + s/2 pi p)``, its
+        corners kept within a factor 3 of the band (beyond, a stage is a gain, which the
+        readback's calibration already is)."""
+        ip, iz, _ = self._corners(inv_pole_hz, inv_zero_hz)
+        return (1 + 1j * self.f * iz) / (1 + 1j * self.f * ip)
+
+    def _corners(self, inv_pole_hz: float, inv_zero_hz: float) -> tuple[float, float, dict]:
+        """A stage's corners (1/Hz) within a factor 3 of the band, and whether each was."""
+        lo, hi = 1.0 / (3.0 * self.f[-1]), 3.0 / max(self.f[0], 1e-3)
+        ip, iz = min(max(inv_pole_hz, lo), hi), min(max(inv_zero_hz, lo), hi)
+        return ip, iz, {"inv_pole_hz": ip == inv_pole_hz, "inv_zero_hz": iz == inv_zero_hz}
+
+    def derivative(self, parts: Parts, name: str, effects: Sequence[tuple[Effect, Mapping]]
+                   ) -> NDArray[np.complex128] | None:
+        """The model's derivative by a parameter it is linear in (a calibration, a
+        mode's amplitude, a resonance's numerator, a cross-coupling), None for the others.
+
+        Parameters
+        ----------
+        parts : Parts
+            The model where the derivative is taken.
+        name : str
+            ``g_<r>``, ``g_d<j>`` or ``<effect key>.<param>``.
+        effects : sequence of (Effect, mapping)
+            The effects `parts` was made with.
+        """
+        nf, nr, nd = parts.plant.shape
+        if name.startswith("g_"):
+            unit = np.zeros((nr, nd))
+            if name.startswith("g_d"):
+                j = int(name[3:])
+                unit[:, j] = parts.g
+            else:
+                r = int(name[2:])
+                unit[r] = parts.gd
+            return parts.propagate(parts.plant * unit[None] * parts.lag[:, None, None])
+        if name in ("tau_s", "inv_lp_hz"):
+            dlag = (-self.s if name == "tau_s" else
+                    -1j * self.f / (1 + 1j * self.f * parts.inv_lp)) * parts.lag
+            return parts.propagate(parts.plant * parts.gains[None] * dlag[:, None, None])
+        key, _, param = name.rpartition(".")
+        effect, own = next(((e, v) for e, v in effects if e.key() == key), (None, None))
+        if effect is None:
+            return None
+        if effect.family == "channel_response":
+            r = effect.target[0]
+            ip, iz, inside = self._corners(own["inv_pole_hz"], own["inv_zero_hz"])
+            d = np.zeros_like(parts.plant)
+            jf = 1j * self.f
+            factor = -jf / (1 + jf * ip) if param == "inv_pole_hz" else jf / (1 + jf * iz)
+            if inside[param]:
+                d[:, r] = parts.out[:, r] * factor[:, None]
+            for (rr, r2), eps in parts.cross:  # what the cross-coupling added is not staged
+                if rr == r and inside[param]:
+                    d[:, r] -= eps * parts.calibrated[:, r2] * factor[:, None]
+            return d
+        if effect.family == "mode_amplitude":
+            return parts.propagate(self.terms[effect.target[0]] * parts.gains[None]
+                                   * parts.lag[:, None, None])
+        if effect.family == "mode_frequency" and param == "amplitude":
+            return parts.propagate(parts.moved[key] * parts.gains[None]
+                                   * parts.lag[:, None, None])
+        if effect.family == "resonance" and param.startswith("b"):
+            i = int(param[1:])
+            d = np.zeros_like(parts.plant)
+            d[:, i // nd, i % nd] = parts.resonances[key]
+            return parts.propagate(d * parts.gains[None] * parts.lag[:, None, None])
+        if effect.family == "cross_coupling":
+            r, r2 = effect.target
+            d = np.zeros_like(parts.plant)
+            d[:, r] = parts.calibrated[:, r2]
+            return d
+        return None
+
+    def gain(self, nuisance: Mapping[str, float],
+             effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()) -> NDArray[np.complex128]:
+        """``g_r g_d L C_r``: what turns a change of the plant into one of the modelled
+        measurement, (nf, readbacks, drives) (cross-couplings left out)."""
+        parts = self.parts(nuisance, effects)
+        return parts.gains[None] * parts.lag[:, None, None] * parts.stage[:, :, None]
+
+    def lag(self, nuisance: Mapping[str, float]) -> NDArray[np.complex128]:
+        """``L(f)``: the delay and low-pass every channel shares."""
+        tau, inv_lp = nuisance.get("tau_s", 0.0), nuisance.get("inv_lp_hz", 0.0)
+        return self._cached(("lag", tau, inv_lp), lambda: np.exp(-self.s * tau)
+                            / (1 + 1j * self.f * inv_lp))
