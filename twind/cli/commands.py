@@ -15,11 +15,13 @@ from twind.cli.options import (
     seed,
 )
 
-BENCH_SUITES = ("engine", "tf", "pull", "information", "diagnose", "rates", "freeswing")
+BENCH_SUITES = ("engine", "tf", "pull", "information", "diagnose", "rates", "freeswing",
+                "statespace")
 """``twind bench --suite``: what each measures is in ``--help``."""
 
 BENCH_PROGRESS = {"tf": "segment", "pull": "evaluation", "information": "evaluation",
-                  "diagnose": "evaluation", "rates": "case", "freeswing": "optic"}
+                  "diagnose": "evaluation", "rates": "case", "freeswing": "optic",
+                  "statespace": "evaluation"}
 """What a bench suite's progress bar counts; the engine suite shows none, so that nothing runs
 beside what it times."""
 
@@ -363,21 +365,24 @@ def _bench(p: argparse.ArgumentParser) -> None:
                         "diagnose on the proof corpus (--route, --per-effect, --nulls); "
                         "rates: twind diagnose's claims on many nulls and finds at the "
                         "corpus' concealment (--nulls, default 20, --per-effect, --effects); "
-                        "freeswing: twind freeswing on random drifted optics")
+                        "freeswing: twind freeswing on random drifted optics; statespace: "
+                        "twind on KAGRA's state-space optics (--optic, default SRM,PRM): "
+                        "nulls and moved modes measured open and closed loop (--nulls, "
+                        "default 6, --per-effect: moved modes, default 4)")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--duration", type=float, default=None,
                    help="engine: simulated seconds per run (default 20); tf: seconds of "
                         "recording (default 3600)")
-    p.add_argument("--workdir", help="tf: directory for the session file (default a "
-                                     "temporary one)")
+    p.add_argument("--workdir", help="tf: directory for the session file; statespace: for "
+                                     "the diaggui files (default a temporary one)")
     p.add_argument("--keep", action="store_true", help="tf: keep the session file")
     p.add_argument("--realisations", type=int, default=None,
                    help="pull: noise realisations (default 100); freeswing: optics (8)")
     p.add_argument("--route", choices=["xml", "mcap", "both"], default="xml",
                    help="diagnose: the corpus as diaggui XML sets or MCAP sessions")
-    p.add_argument("--optic", default="ETMX",
+    p.add_argument("--optic",
                    help="diagnose, rates: the optic of --config whose drifts make the "
-                        "corpus")
+                        "corpus (default ETMX); statespace: comma-separated optics")
     p.add_argument("--per-effect", type=int, default=None,
                    help="diagnose, rates: cases per effect (default 3)")
     p.add_argument("--nulls", type=int, default=None,

@@ -7,6 +7,8 @@ import argparse
 from twind import DOFS
 from twind.config import load_config
 from twind.errors import TwindError
+from twind.config import CONFIG_DIR
+from twind.lab import plant_bench
 from twind.lab.calibration import information_benchmark, pull_test
 from twind.lab.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus, run_demo
 from twind.lab.engine_speed import run_benchmarks
@@ -41,9 +43,14 @@ def _bench_tf(args: argparse.Namespace) -> int:
     return 0
 
 
-def _optic(args: argparse.Namespace, name: str = "ETMX"):  # noqa: ANN202 - OpticConfig
+KAGRA = CONFIG_DIR / "kagra" / "k1.toml"
+"""The state-space optics the statespace suite runs on by default."""
+
+
+def _optic(args: argparse.Namespace, name: str | None = "ETMX"):  # noqa: ANN202 - OpticConfig
     """Optic `name` of ``--config``: the one the identification benchmarks run on."""
 
+    name = name or "ETMX"
     return load_config(args.config, [name]).optics[name]
 
 
@@ -106,6 +113,23 @@ def _bench_rates(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_statespace(args: argparse.Namespace) -> int:
+    """twind on state-space optics (KAGRA's by default): nulls and moved modes measured open
+    and closed loop, diagnosed file by file; closed-loop plants against open-loop ones."""
+
+    twin = load_config(args.config or KAGRA)
+    names = args.optic.split(",") if args.optic else [n for n in ("SRM", "PRM") if n in twin.optics]
+    optics = twin.select(names)
+    if any(o.kind != "statespace" for o in optics):
+        msg = f"--suite statespace runs on state-space optics; {args.config} holds SOSs"
+        raise TwindError(msg)
+    lines = plant_bench.run(optics, nulls=6 if args.nulls is None else args.nulls,
+                            moves=4 if args.per_effect is None else args.per_effect,
+                            workdir=args.workdir)
+    print("\n".join(lines))
+    return 0
+
+
 def _bench_freeswing(args: argparse.Namespace) -> int:
     """twind freeswing on the ringdowns of random drifted optics with OSEM imbalances."""
 
@@ -118,7 +142,8 @@ def _bench_freeswing(args: argparse.Namespace) -> int:
 
 SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
           "information": _bench_information, "diagnose": _bench_diagnose,
-          "rates": _bench_rates, "freeswing": _bench_freeswing}
+          "rates": _bench_rates, "freeswing": _bench_freeswing,
+          "statespace": _bench_statespace}
 """The functions of ``twind bench --suite`` (:data:`twind.cli.commands.BENCH_SUITES`)."""
 
 

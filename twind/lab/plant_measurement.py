@@ -176,7 +176,8 @@ def peak(f_hz: NDArray[np.float64], h: NDArray[np.complex128], near_hz: float,
          width: float = 0.1) -> float:
     """An independent fit of a resonance's frequency: a second-order section plus a constant
     and a slope, fitted by least squares to ``h`` within ``width`` (relative) of
-    `near_hz`, started at the largest magnitude there. Knows nothing of any model.
+    `near_hz`, started at the largest magnitude there and kept inside that window. Knows
+    nothing of any model.
 
     Returns
     -------
@@ -190,7 +191,8 @@ def peak(f_hz: NDArray[np.float64], h: NDArray[np.complex128], near_hz: float,
     def model(p: NDArray) -> NDArray:
         s = 2j * np.pi * f
         w = 2 * np.pi * p[0]
-        return (p[2] + 1j * p[3]) / (s * s + s * w / p[1] + w * w) + p[4] + 1j * p[5] + (p[6] + 1j * p[7]) * (f - f0)
+        return ((p[2] + 1j * p[3]) / (s * s + s * w / p[1] + w * w) + p[4] + 1j * p[5]
+                + (p[6] + 1j * p[7]) * (f - f0))
 
     def res(p: NDArray) -> NDArray:
         r = (model(p) - y) / np.abs(y).max()
@@ -198,6 +200,8 @@ def peak(f_hz: NDArray[np.float64], h: NDArray[np.complex128], near_hz: float,
 
     w0 = 2 * np.pi * f0
     a0 = y[np.argmax(np.abs(y))] * 1j * w0 * w0 / 50
-    p0 = [f0, 50.0, a0.real, a0.imag, 0, 0, 0, 0]
-    sol = least_squares(res, p0, x_scale="jac")
+    lo = [f[0], 0.5, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf]
+    hi = [f[-1], 1e7, np.inf, np.inf, np.inf, np.inf, np.inf, np.inf]
+    sol = least_squares(res, [f0, 50.0, a0.real, a0.imag, 0, 0, 0, 0], bounds=(lo, hi),
+                        x_scale="jac")
     return float(sol.x[0])

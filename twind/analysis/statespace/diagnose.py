@@ -50,8 +50,8 @@ from twind.analysis.statespace.fit import (
     start_gains,
 )
 from twind.analysis.statespace.measurement import PlantSet
-from twind.analysis.statespace.model import Effect, PlantModel
-from twind.analysis.statespace.search import Residuals
+from twind.analysis.statespace.model import Effect, PlantModel, other_loops
+from twind.analysis.statespace.search import Residuals, grid
 from twind.config.statespace import StateSpaceOptic
 from twind.model.statespace import ModalForm
 
@@ -251,7 +251,8 @@ class PlantDiagnosis:
             return f"calibration {self.plant.drives[int(name[3:])]}"
         if name.startswith("g_"):
             return f"calibration {self.plant.readbacks[int(name[2:])]}"
-        return {"tau_s": "delay_s", "inv_lp_hz": "inv_lowpass_hz"}.get(name, name)
+        return {"tau_s": "delay_s", "inv_lp_hz": "inv_lowpass_hz",
+                "loops": "other loops' gain (1: as configured)"}.get(name, name)
 
     def to_json(self) -> dict:
         """``twind diagnose --json`` of a state-space optic."""
@@ -345,19 +346,22 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
     """
     data = fit_data(plant.H, plant.sigma, plant.coherent(), plant.frequency_hz,
                     plant.readbacks, plant.drives, plant.averages, plant.resolution_hz)
+    loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
+                        data.resolution_hz)
     model = PlantModel(optic.modal(plant.drives, plant.readbacks), data.frequency_hz,
-                       data.resolution_hz)
+                       data.resolution_hz, loops)
     progress.note("calibrations, delay and low-pass")
-    start = {"tau_s": 0.0, "inv_lp_hz": 0.0}
+    start = {"tau_s": 0.0, "inv_lp_hz": 0.0, **({"loops": 1.0} if loops is not None else {})}
     gains = start_gains(data, model, start)
-    free = [*gains, *_drive_gains(plant), *NUISANCE]
+    free = [*gains, *_drive_gains(plant), *NUISANCE, *(["loops"] if loops is not None else [])]
     start.update(gains)
     first_fit = fit_plant(data, model, start, free)
     noise = Noise.of(first_fit.residual, data.averages)
     nominal = fit_plant(data, model, first_fit.nuisance, free, noise=noise)
     unit = _unit(nominal, data, noise)
     located = _located(data, model, nominal)
-    chosen, rivals, first = _select(data, model, plant, free, nominal, noise, unit, max_effects)
+    chosen, rivals, first = _select(data, model, optic, plant, free, nominal, noise, unit,
+                                    max_effects)
     if not chosen:
         return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, [], nominal,
                               located, first)
@@ -397,8 +401,8 @@ def _located(data: FitData, model: PlantModel, fit: PlantFit) -> list[Located]:
 
 
 # ------------------------------------------------------------------------------ selection
-def _select(data: FitData, model: PlantModel, plant: PlantSet, free: list[str],
-            nominal: PlantFit, noise: Noise, unit: float, most: int
+def _select(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+            free: list[str], nominal: PlantFit, noise: Noise, unit: float, most: int
             ) -> tuple[list[Claim], list[Claim], dict[str, float]]:
     """Forward selection: the chosen changes (best first), their rivals, and the p-value of
     every member fitted at the first step."""
@@ -418,8 +422,22 @@ def _select(data: FitData, model: PlantModel, plant: PlantSet, free: list[str],
         chosen.append(best)
         rivals += [replace(c, rival_of=best.effect.key()) for c in claimed[1:]
                    if c.effect.key() in best.equivalent]
-        current = best.fit
+        current = _with_loops(data, model, optic, plant, free, best.fit, noise)
+        best.fit = current
     return chosen, rivals, first
+
+
+def _with_loops(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+                free: list[str], fit: PlantFit, noise: Noise) -> PlantFit:
+    """`fit` again, with what the other damping loops feed back made from the model as it
+    now is (its modes moved or scaled): a closed loop's other loops answer the suspension
+    there is, not the one modelled."""
+    if model.loops is None or not any(e.family.startswith("mode_") for e, _ in fit.effects):
+        return fit
+    model.loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
+                              data.resolution_hz, fit.effects)
+    return fit_plant(data, model, fit.nuisance, free, fit.effects, noise=noise,
+                     limits=_limits(model, data, fit.effects))
 
 
 @dataclass(frozen=True)
@@ -459,23 +477,26 @@ def _step(data: FitData, model: PlantModel, plant: PlantSet, free: list[str],
             if claim is None:
                 continue
             if family == "resonance":
-                claim = _narrower(claim, res, model, current, screen_unit)
+                claim = _narrower(claim, res, model, screen_unit)
             claim.members = len(members)
             claim.p_value = min(1.0, claim.p_value * len(members) * len(families))
             claims.append(claim)
     return claims
 
 
-def _narrower(claim: Claim, res: Residuals, model: PlantModel, base: PlantFit,
-              unit: float) -> Claim:
+def _narrower(claim: Claim, res: Residuals, model: PlantModel, unit: float) -> Claim:
     """`claim` (a resonance) paying also for the search it would have needed at its own
     fitted Q, when that is narrower than the searched ones: a narrow mode has more places
-    to hide in the noise than a broad one."""
+    to hide in the noise than a broad one. Trials a quarter of a width (or bin) apart turn
+    the signature through about the same angle, so that search's path is the broadest
+    sweep's scaled by the trials each takes."""
     q = claim.fit.own(claim.effect)["q"]
     if q <= max(SEARCH_Q) * 1.5:
         return claim
-    extra = res.resonance(unit, _moved_to(model, base.effects), qs=(q,)).paths
-    paths = (*claim.paths, *extra)
+    f = res.data.frequency_hz[res.data.mask.any(axis=(1, 2))]
+    lo, hi = max(float(f[0]), 1e-3), float(f[-1])
+    trials = [grid(lo, hi, x, model.res).size for x in (SEARCH_Q[-1], q)]
+    paths = (*claim.paths, claim.paths[-1] * trials[1] / trials[0])
     return replace(claim, paths=paths, p_value=min(1.0, _p_value(claim.lr, claim.k, paths)))
 
 

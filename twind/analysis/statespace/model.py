@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from twind.analysis.identification.model import NARROW_REACH_BINS, hann_kernel
+from twind.config.statespace import StateSpaceOptic
 from twind.model.statespace import ModalForm
 
 FAMILIES = ("mode_frequency", "mode_amplitude", "resonance", "cross_coupling",
@@ -120,10 +121,15 @@ class PlantModel:
         The bins' frequencies.
     resolution_hz : float
         Their Hann resolution (0: no window, the response at the bin itself).
+    loops : ndarray, shape (nf, readbacks, drives), optional
+        What the other damping loops, closed, add to a closed-loop column
+        (:func:`other_loops`); scaled by the nuisance parameter ``loops``.
     """
 
-    def __init__(self, modal: ModalForm, f_hz: NDArray[np.float64], resolution_hz: float) -> None:
+    def __init__(self, modal: ModalForm, f_hz: NDArray[np.float64], resolution_hz: float,
+                 loops: NDArray[np.complex128] | None = None) -> None:
         self.modal, self.f, self.res = modal, np.asarray(f_hz, dtype=float), resolution_hz
+        self.loops = loops
         self.s = 2j * np.pi * self.f
         points = self.f[:, None] + resolution_hz * _D2 if resolution_hz > 0 else self.f[:, None]
         weights = _W2 if resolution_hz > 0 else np.ones(1)
@@ -165,15 +171,21 @@ class PlantModel:
             q0 += w2 * den
             q1 += w2 * s * den
         f0 = w[:, 0] / (2 * np.pi)
-        for t in np.flatnonzero(f0 / q < 2 * self.res):  # narrow: the kernel near it
-            near = np.flatnonzero(np.abs(self.f - f0[t]) < NARROW_REACH_BINS * self.res)
-            if not near.size:
-                continue
-            q_k = min(q, _KERNEL_SAMPLES * f0[t] / self.res)
-            d, wk = hann_kernel(self.res, f0[t] / q_k)
-            sk = 2j * np.pi * (self.f[near, None] + self.res * d)
-            den = 1.0 / (sk * sk + sk * w[t, 0] / q_k + w[t, 0] ** 2)
-            q0[t, near], q1[t, near] = den @ wk, (sk * den) @ wk
+        narrow = np.flatnonzero(f0 / q < 2 * self.res)  # these: the kernel itself near them
+        if narrow.size:
+            reach = NARROW_REACH_BINS
+            d, wk = hann_kernel(self.res, 0.0)  # the finest kernel serves every narrow trial
+            centre = np.searchsorted(self.f, f0[narrow])
+            near = centre[:, None] + np.arange(-reach, reach + 1)[None, :]  # (T, bins)
+            inside = (near >= 0) & (near < self.f.size)
+            near = np.clip(near, 0, self.f.size - 1)
+            q_k = np.minimum(q, _KERNEL_SAMPLES * f0[narrow] / self.res)[:, None, None]
+            wn = w[narrow, 0][:, None, None]
+            sk = 2j * np.pi * (self.f[near][:, :, None] + self.res * d)
+            den = 1.0 / (sk * sk + sk * wn / q_k + wn * wn)
+            rows = np.repeat(narrow[:, None], near.shape[1], axis=1)
+            q0[rows[inside], near[inside]] = (den @ wk)[inside]
+            q1[rows[inside], near[inside]] = ((sk * den) @ wk)[inside]
         return q0, q1
 
     def section(self, num_s: NDArray, num_1: NDArray, w: float, q: float) -> NDArray[np.complex128]:
@@ -221,6 +233,8 @@ class PlantModel:
                 parts.cross.append((t, v["epsilon"]))
             elif fam == "channel_response":
                 parts.stage[:, t[0]] *= self.stage(v["inv_pole_hz"], v["inv_zero_hz"])
+        if self.loops is not None:
+            P += nuisance.get("loops", 1.0) * self.loops
         g = np.array([nuisance.get(f"g_{i}", 1.0) for i in range(nr)])
         gd = np.array([nuisance.get(f"g_d{j}", 1.0) for j in range(nd)])
         parts.g, parts.gd, parts.gains = g, gd, g[:, None] * gd[None, :]
@@ -250,8 +264,8 @@ class PlantModel:
 
     def derivative(self, parts: Parts, name: str, effects: Sequence[tuple[Effect, Mapping]]
                    ) -> NDArray[np.complex128] | None:
-        """The model's derivative by a parameter it is linear in (a calibration, a
-        mode's amplitude, a resonance's numerator, a cross-coupling), None for the others.
+        """The model's derivative by a parameter: analytic for all but a moved mode's or a
+        resonance's frequency and Q (None: take differences).
 
         Parameters
         ----------
@@ -272,6 +286,8 @@ class PlantModel:
                 r = int(name[2:])
                 unit[r] = parts.gd
             return parts.propagate(parts.plant * unit[None] * parts.lag[:, None, None])
+        if name == "loops":
+            return parts.propagate(self.loops * parts.gains[None] * parts.lag[:, None, None])
         if name in ("tau_s", "inv_lp_hz"):
             dlag = (-self.s if name == "tau_s" else
                     -1j * self.f / (1 + 1j * self.f * parts.inv_lp)) * parts.lag
@@ -322,3 +338,101 @@ class PlantModel:
         tau, inv_lp = nuisance.get("tau_s", 0.0), nuisance.get("inv_lp_hz", 0.0)
         return self._cached(("lag", tau, inv_lp), lambda: np.exp(-self.s * tau)
                             / (1 + 1j * self.f * inv_lp))
+
+
+def other_loops(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequence[str],
+                f_hz: NDArray[np.float64], resolution_hz: float,
+                effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()
+                ) -> NDArray[np.complex128] | None:
+    """What the optic's other damping loops, closed with the configuration's controllers, add
+    to each closed-loop column.
+
+    A readback ``R`` per unit of loop ``d``'s OUT is ``P_Rd`` with loop ``d`` alone closed;
+    with the others closed too it is ``R/EXC`` over ``OUT/EXC`` of the whole closed loop,
+    each estimated (Hann-averaged) on its own, as diaggui does. This returns that less the
+    Hann-averaged ``P_Rd``, averaged as :class:`PlantModel` averages (the two-point rule, the
+    kernel near a mode narrower than two bins, such a mode widened to an eighth of a bin).
+    None when no column is a closed loop with other loops configured.
+
+    Parameters
+    ----------
+    optic : StateSpaceOptic
+    drives, readbacks : sequence of str
+        The measurement's columns and rows.
+    f_hz : ndarray
+    resolution_hz : float
+    effects : sequence of (Effect, mapping)
+        Changes of the model's modes (moved, scaled) to make first.
+
+    Returns
+    -------
+    ndarray of complex, shape (nf, readbacks, drives), or None
+    """
+    closed = [m for m, spec in optic.loops.items() if spec.filters is not None]
+    f_hz = np.asarray(f_hz, dtype=float)
+    out = np.zeros((f_hz.size, len(readbacks), len(drives)), dtype=complex)
+    for j, d in enumerate(drives):
+        others = [m for m in closed if m != d]
+        if d not in optic.loops or not others:
+            continue
+        loops = [d, *others]
+        rows = tuple(dict.fromkeys([*readbacks, *(f"{m}_IN1" for m in loops)]))
+        modal = changed(optic.modal(tuple(loops), rows), effects)
+        if resolution_hz > 0:  # as the model's kernels: none narrower than an eighth of a bin
+            modal = replace(modal, q=np.minimum(modal.q, _KERNEL_SAMPLES * modal.w
+                                                / (2 * np.pi * resolution_hz)))
+        points, weights, owner = _kernel_points(f_hz, resolution_hz, modal)
+        P = modal.response(points)
+        K = np.stack([optic.loops[m].filters.build().response(points) for m in loops], axis=1)
+        inner = [rows.index(f"{m}_IN1") for m in loops]
+        u = np.linalg.solve(np.eye(len(loops)) - K[:, :, None] * P[:, inner],
+                            K[:, :, None] * np.eye(len(loops))[None, :, :1])[:, :, 0]
+        R = np.einsum("prl,pl->pr", P[:, : len(readbacks)], u)
+        out[:, :, j] = _averaged(R, owner, weights, f_hz.size) / \
+            _averaged(u[:, :1], owner, weights, f_hz.size) - \
+            _averaged(P[:, : len(readbacks), 0], owner, weights, f_hz.size)
+    return out if np.any(out) else None
+
+
+def changed(modal: ModalForm, effects: Sequence[tuple[Effect, Mapping[str, float]]]) -> ModalForm:
+    """`modal` with the modes `effects` move or scale changed as :class:`PlantModel` changes
+    them (the same modes, in the same order, whatever the inputs and outputs)."""
+    w, q = modal.w.copy(), modal.q.copy()
+    scale = np.ones(len(modal.modes))
+    for effect, v in effects:
+        k = effect.target[0] if effect.family in ("mode_frequency", "mode_amplitude") else None
+        if k is None:
+            continue
+        scale[k] *= v["amplitude"]
+        if effect.family == "mode_frequency":
+            w[k] *= math.exp(v["log_f"])
+            q[k] *= math.exp(v["log_q"])
+    return replace(modal, w=w, q=q, num_s=modal.num_s * scale[:, None, None],
+                   num_1=modal.num_1 * scale[:, None, None])
+
+
+def _averaged(x: NDArray[np.complex128], owner: NDArray[np.intp], weights: NDArray[np.float64],
+              bins: int) -> NDArray[np.complex128]:
+    """Each bin's weighted sum of the rows of `x` that belong to it: (bins, columns)."""
+    out = np.zeros((bins, x.shape[1]), dtype=complex)
+    np.add.at(out, owner, weights[:, None] * x)
+    return out
+
+
+def _kernel_points(f_hz: NDArray[np.float64], res: float, modal: ModalForm
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+    """The frequencies a Welch estimate at each bin averages over, their weights and their
+    bins: the two-point rule, the Hann kernel itself within reach of a narrow mode."""
+    if res <= 0:
+        return f_hz, np.ones(f_hz.size), np.arange(f_hz.size)
+    narrow = np.array([m.f_hz for m in modal.modes if m.f_hz / m.q < 2 * res])
+    near = np.zeros(f_hz.size, dtype=bool)
+    for f0 in narrow:
+        near |= np.abs(f_hz - f0) < NARROW_REACH_BINS * res
+    d, wk = hann_kernel(res, 0.0)
+    far, close = np.flatnonzero(~near), np.flatnonzero(near)
+    points = np.concatenate([(f_hz[far, None] + res * _D2).ravel(),
+                             (f_hz[close, None] + res * d).ravel()])
+    weights = np.concatenate([np.tile(_W2, far.size), np.tile(wk, close.size)])
+    owner = np.concatenate([np.repeat(far, _D2.size), np.repeat(close, d.size)])
+    return points, weights, owner

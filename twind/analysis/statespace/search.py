@@ -89,29 +89,29 @@ class Residuals:
         f0 = m.w[k] / (2 * math.pi)
         best, paths = (-np.inf, f0, m.q[k]), []
         for q in SEARCH_Q:
-            drop, grid, path = self._sweep(sums, old, _grid(f0 / SHIFT, f0 * SHIFT, q,
+            drop, trials, path = self._sweep(sums, old, grid(f0 / SHIFT, f0 * SHIFT, q,
                                                              self.model.res), q)
             paths.append(path)
             i = int(np.argmax(drop))
             if drop[i] > best[0]:
-                best = (float(drop[i]), float(grid[i]), q)
+                best = (float(drop[i]), float(trials[i]), q)
         q = min(FINE_Q, m.q[k]) if m.q[k] > SEARCH_Q[-1] else None
         if q is not None:
             reach = 5 * best[1] / SEARCH_Q[-1]
-            drop, grid, path = self._sweep(sums, old, _grid(best[1] - reach, best[1] + reach,
+            drop, trials, path = self._sweep(sums, old, grid(best[1] - reach, best[1] + reach,
                                                              q, self.model.res), q)
             paths.append(path)
             i = int(np.argmax(drop))
             if drop[i] > best[0]:
-                best = (float(drop[i]), float(grid[i]), q)
+                best = (float(drop[i]), float(trials[i]), q)
         return Sweep(best[0] / unit, best[1], best[2], tuple(paths))
 
-    def _sweep(self, sums: _Sums, old: tuple, grid: NDArray[np.float64], q: float
+    def _sweep(self, sums: _Sums, old: tuple, trials: NDArray[np.float64], q: float
                ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
         """Each trial's drop in chi^2 for a mode moved from `old` (its kernels) to the
-        frequencies `grid` at `q`, and the sweep's path."""
+        frequencies `trials` at `q`, and the sweep's path."""
         drops, path, last = [], 0.0, None
-        for chunk in np.array_split(grid, max(1, grid.size // _CHUNK)):
+        for chunk in np.array_split(trials, max(1, trials.size // _CHUNK)):
             d0, d1 = self.model.kernels_many(2 * math.pi * chunk, q)
             d0, d1 = d0 - old[0], d1 - old[1]
             drops.append(2 * sums.project(d0, d1) - sums.norm2(d0, d1))
@@ -119,25 +119,24 @@ class Residuals:
                 d0, d1 = np.vstack([last[0], d0]), np.vstack([last[1], d1])
             path += sums.path(d0, d1)
             last = (d0[-1:], d1[-1:])
-        return np.concatenate(drops), grid, path
+        return np.concatenate(drops), trials, path
 
     # ---------------------------------------------------------------- a mode in no model
-    def resonance(self, unit: float, avoid: Sequence[tuple[float, float]] = (),
-                  qs: Sequence[float] = SEARCH_Q) -> Sweep:
+    def resonance(self, unit: float, avoid: Sequence[tuple[float, float]] = ()) -> Sweep:
         """A mode with a real numerator per element, anywhere in the data's band but the
         ranges `avoid` (Hz: where a mode of the model was moved, which it would only
-        duplicate), at each of `qs`."""
+        duplicate), at each of :data:`~twind.analysis.identification.narrow.SEARCH_Q`."""
         f = self.data.frequency_hz[self.data.mask.any(axis=(1, 2))]
         lo, hi = max(float(f[0]), 1e-3), float(f[-1])
         Gz = (np.conj(self.z) * self.G).reshape(self.z.shape[0], -1)  # (nf, elements)
         G2 = (np.abs(self.G) ** 2).reshape(self.z.shape[0], -1)
-        best, paths = (-np.inf, lo, qs[0], None), []
-        for q in qs:
-            grid = _grid(lo, hi, q, self.model.res)
-            grid = grid[~np.any([(grid > a) & (grid < b) for a, b in avoid], axis=0)] \
-                if avoid else grid
+        best, paths = (-np.inf, lo, SEARCH_Q[0], None), []
+        for q in SEARCH_Q:
+            trials = grid(lo, hi, q, self.model.res)
+            trials = trials[~np.any([(trials > a) & (trials < b) for a, b in avoid], axis=0)] \
+                if avoid else trials
             path, last = 0.0, None
-            for chunk in np.array_split(grid, max(1, grid.size // _CHUNK)):
+            for chunk in np.array_split(trials, max(1, trials.size // _CHUNK)):
                 q0, _ = self.model.kernels_many(2 * math.pi * chunk, q)
                 proj = (q0 @ Gz).real  # (trials, elements)
                 norm = np.abs(q0) ** 2 @ G2
@@ -192,8 +191,9 @@ class _Sums:
         return float(np.sum(np.arccos(np.clip(np.abs(cos), 0, 1))))
 
 
-def _grid(lo: float, hi: float, q: float, res: float) -> NDArray[np.float64]:
-    """Trial frequencies from `lo` to `hi` in steps of a quarter of a bin or of the width."""
+def grid(lo: float, hi: float, q: float, res: float) -> NDArray[np.float64]:
+    """A search's trial frequencies from `lo` to `hi` in steps of a quarter of a bin or of
+    the width."""
     out, f = [], lo
     while f <= hi:
         out.append(f)
