@@ -32,9 +32,10 @@ def running(cmd: list[str], timeout: float = 20) -> Iterator[subprocess.Popen]:
 
 
 @contextmanager
-def serving(*args: str, port: int | None = None) -> Iterator[str]:
-    """Run ``twind serve`` on a loopback port in a subprocess; yields its endpoint."""
+def serving(*args: str, port: int | None = None, ifo: str = "C1") -> Iterator[str]:
+    """Run ``twind serve`` on a loopback port in a subprocess; yields its endpoint once the
+    twin of `ifo` answers."""
     endpoint = f"tcp/127.0.0.1:{port or free_port()}"
     with running([sys.executable, "-m", "twind", "serve", "--listen", endpoint, *args]) as proc:
-        TwinClient.wait([endpoint], alive=lambda: proc.poll() is None).close()
+        TwinClient.wait([endpoint], alive=lambda: proc.poll() is None, ifo=ifo).close()
         yield endpoint

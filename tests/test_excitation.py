@@ -321,12 +321,21 @@ def test_rms_limit_is_separate_from_the_peak_limit() -> None:
 
 
 @pytest.mark.parametrize("channel", ["C1:SUS-ETMX_SUSPOS_IN1", "c1:sus-etmx_suspos_exc",
-                                     "C1:SUS-ETMX_SUSVERT_EXC", "C1:LSC-ETMX_SUSPOS_EXC",
-                                     "C1:SUS-ETMX_SUSPOS_EXC ", "SUS-ETMX_SUSPOS_EXC", "", 42])
-def test_channel_must_be_an_sus_exc_test_point(channel: object) -> None:
+                                     "C1:SUS-ETMX_SUSPOS_EXC ", "SUS-ETMX_SUSPOS_EXC",
+                                     "K1:VIS-SRM_EXC", "C1:SUS-ETMX-SUSPOS_EXC", "", 42])
+def test_channel_must_be_an_exc_test_point(channel: object) -> None:
     with pytest.raises(ExcitationError) as err:
         check(ExcitationRequest(channel, "sine", freq=5.0), _OK, FS)  # type: ignore[arg-type]
     assert err.value.key == "channel"
+
+
+@pytest.mark.parametrize("channel", ["C1:SUS-ETMX_SUSPOS_EXC", "K1:VIS-SRM_TM_TEST_P_EXC",
+                                     "K1:VIS-SRM_IM_DAMP_P_EXC"])
+def test_any_sites_exc_test_point_is_a_channel(channel: str) -> None:
+    """Which test points exist, the serving twin says (``test_serve``); here, the form."""
+    req = ExcitationRequest(channel, "sine", freq=5.0)
+    check(req, _OK, FS)
+    assert req.optic == channel.split("-")[1].split("_")[0]
 
 
 def test_bad_rate_and_limits_are_refused_not_ignored() -> None:

@@ -140,6 +140,10 @@ def files(tmp_path_factory, srm):  # noqa: ANN001, ANN201 - dict of paths
         out[name] = measure(srm, drive, folder / f"{name}.xml", model=truth, seed=7,
                             rate_hz=1024.0, noise=noise, closed=closed)
     out["f_true"] = f_true
+    # the IM L mode moved, seen through all six loops: the others damp it and shift its peak
+    model, out["f_true_closed"] = moved(srm.model, 1.246, 1.14)
+    out["moved_closed"] = measure(srm, "IM_DAMP_L", folder / "moved_closed.xml", model=model,
+                                  seed=8, rate_hz=1024.0, noise=1e-2, closed=None)
     return out
 
 
@@ -182,6 +186,18 @@ def test_a_null_claims_nothing_and_a_moved_mode_is_found(files, srm) -> None:  #
                                   rel=0.02)
     assert found == pytest.approx(files["f_true"], rel=0.002)
     assert d.nominal.chi2_nu / d.final.chi2_nu >= 2
+
+
+def test_a_mode_moved_is_found_through_the_closed_loops(files, srm) -> None:  # noqa: ANN001
+    plant = read_plant([files["moved_closed"]], srm)
+    d = diagnose_plant(plant, srm)
+    claim = next(c for c in d.chosen if c.effect.family == "mode_frequency")
+    mode = d.modal.modes[claim.effect.target[0]]
+    assert mode.label == "IM L"
+    found = mode.f_hz * math.exp(d.final.own(claim.effect)["log_f"])
+    assert found == pytest.approx(files["f_true_closed"], rel=0.005)
+    before, after, _ = claim.local
+    assert before / after >= 2
 
 
 # ------------------------------------------------------------------------------ the real SRM

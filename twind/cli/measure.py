@@ -227,10 +227,12 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
     matrix from a ringdown, made on the twin (in process or served) or read from a
     recording."""
 
-    optic = load_config(args.config, [args.optic]).optics[args.optic]
+    twin = load_config(args.config, [args.optic])
+    optic = twin.optics[args.optic]
     duration = 1000.0 if args.duration is None else args.duration
     if args.input:
-        sen, rate = _recorded_osems(args.input, args.ifo, args.optic, args.start, args.duration)
+        sen, rate = _recorded_osems(args.input, args.ifo or twin.ifo, args.optic, args.start,
+                                    args.duration)
     elif args.connect:
         sen, rate = _served_ringdown(args, optic, duration)
     else:

@@ -33,7 +33,8 @@ def seed(text: str) -> int:
 def bus_arguments(p: argparse.ArgumentParser) -> None:
     """How a command reaches a running twin."""
     p.add_argument("--connect", action="append", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
+    p.add_argument("--ifo", help="the twin's interferometer prefix (default the excitation "
+                                 "channel's, else C1)")
     p.add_argument("--timeout", type=float, default=5.0,
                    help="seconds to wait for the twin's reply (default 5)")
     p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")

@@ -14,9 +14,8 @@ import numpy as np
 from twind import strictjson
 from twind.analysis.estimation.diaggui import read_transfers
 from twind.analysis.statespace.diagnose import diagnose_plant
-from twind.analysis.statespace.fit import fit_data, fit_plant, start_gains
+from twind.analysis.statespace.fit import fit_baseline
 from twind.analysis.statespace.measurement import PlantSet, read_plant
-from twind.analysis.statespace.model import PlantModel
 from twind.config import load_config
 from twind.config.statespace import StateSpaceOptic
 from twind.errors import TwindError
@@ -74,11 +73,12 @@ def tf(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
     the bins where it is coherent; a closed loop's controller OUT/IN2."""
     plant = _plant(args, optic)
     if args.json:
-        strictjson.dump(_plant_json(plant), sys.stdout)
+        strictjson.dump(plant.to_json(), sys.stdout)
         sys.stdout.write("\n")
     if args.output:
         if not args.output.lower().endswith(".png"):
-            msg = f"-o {args.output}: a state-space optic's TFs go to a .png; --json for the numbers"
+            msg = (f"-o {args.output}: a state-space optic's TFs go to a .png; --json for "
+                   "the numbers")
             raise TwindError(msg)
         written = plot_plant(plant, args.output)
         print(f"wrote {' and '.join(map(str, written))}", file=sys.stderr)
@@ -97,7 +97,8 @@ def _plant_lines(plant: PlantSet) -> list[str]:
     mask = plant.coherent()
     for (name, runs), n in zip(plant.coherent_bands().items(),
                                mask.reshape(f.size, -1).sum(axis=0), strict=True):
-        text = ", ".join(f"{a:.3g}-{b:.3g}" for a, b in runs[:6]) + (" ..." if len(runs) > 6 else "")
+        text = ", ".join(f"{a:.3g}-{b:.3g}" for a, b in runs[:6]) + (
+            " ..." if len(runs) > 6 else "")
         out.append(f"  {name:40s} {int(n):6d}  {text or 'none'}")
     for module, loop in plant.loops.items():
         k = loop.controller()
@@ -108,47 +109,14 @@ def _plant_lines(plant: PlantSet) -> list[str]:
     return out
 
 
-def _plant_json(plant: PlantSet) -> dict:
-    """The ``twind tf --json`` object of a state-space optic."""
-    def cplx(a: np.ndarray) -> dict:
-        return {"re": a.real.tolist(), "im": a.imag.tolist()}
-
-    out = {"optic": plant.optic, "frequency_hz": plant.frequency_hz.tolist(),
-           "drives": list(plant.drives), "readbacks": list(plant.readbacks),
-           "channels": dict(plant.channels), "averages": plant.averages,
-           "plant": cplx(plant.H), "sigma": plant.sigma.tolist(),
-           "coherence": plant.coherence.tolist(), "coherent": plant.coherent().tolist(),
-           "coherent_bands": plant.coherent_bands(), "sources": list(plant.sources)}
-    loops = {}
-    for module, loop in plant.loops.items():
-        entry = {f"{p}_per_EXC": cplx(h) for p, h in loop.tf.items()}
-        k = loop.controller()
-        if k is not None:
-            entry["controller_OUT_per_IN2"] = cplx(k[0])
-            entry["controller_sigma"] = k[1].tolist()
-        loops[module] = entry
-    out["loops"] = loops
-    return out
-
-
 def fit(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
     """``twind fit``: what the measurement adds to the model (calibrations, delay,
     low-pass), with sigmas."""
     plant = _plant(args, optic)
-    data = fit_data(plant.H, plant.sigma, plant.coherent(args.min_coherence),
-                    plant.frequency_hz, plant.readbacks, plant.drives, plant.averages,
-                    plant.resolution_hz)
-    model = PlantModel(optic.modal(plant.drives, plant.readbacks), data.frequency_hz,
-                       data.resolution_hz)
-    start = {"tau_s": 0.0, "inv_lp_hz": 0.0}
-    start.update(start_gains(data, model, start))
-    free = [k for k in start if k.startswith("g_")] + \
-        [f"g_d{j}" for j in range(1, len(plant.drives))] + ["tau_s", "inv_lp_hz"]
-    robust = fit_plant(data, model, start, free, robust=True)
-    result = fit_plant(data, model, robust.nuisance, free)
+    result = fit_baseline(plant, optic, args.min_coherence).fit
     names = {f"g_{i}": f"calibration {r}" for i, r in enumerate(plant.readbacks)}
     names.update({f"g_d{j}": f"calibration {d}" for j, d in enumerate(plant.drives)})
-    names.update(tau_s="delay_s", inv_lp_hz="inv_lowpass_hz")
+    names.update(tau_s="delay_s", inv_lp_hz="inv_lowpass_hz", loops="other loops' gain")
     params = {names[n]: {"value": float(v), "sigma": result.error(n)}
               for n, v in zip(result.names, result.values, strict=True)}
     if args.json:
@@ -178,7 +146,8 @@ def diagnose(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
     if args.output:
         print(f"wrote {write_plant_report(result, args.output)}", file=sys.stderr)
     if getattr(args, "push", None):
-        msg = "--push: a running twin takes an SOS's parameters; a state-space plant's are not pushed"
+        msg = ("--push: a running twin takes an SOS's parameters; a state-space plant's are "
+               "not pushed")
         raise TwindError(msg)
     return 0
 
@@ -186,7 +155,8 @@ def diagnose(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
 def response(args: argparse.Namespace, optic: StateSpaceOptic, f: np.ndarray) -> int:
     """``twind model response``: the model between its drives and readbacks (by default
     each damping loop's OUT to every loop's IN1), and its modes."""
-    drives = tuple(args.drives.split(",")) if args.drives else tuple(optic.loops) or tuple(optic.drives)
+    drives = (tuple(args.drives.split(",")) if args.drives
+              else tuple(optic.loops) or tuple(optic.drives))
     readbacks = tuple(args.readbacks.split(",")) if args.readbacks else \
         tuple(f"{m}_IN1" for m in optic.loops) or tuple(optic.readbacks)
     unknown = [r for r in readbacks if r not in optic.readbacks]

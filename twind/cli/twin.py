@@ -37,9 +37,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
                       record_config=args.record_zenoh_config)
 
 
-def client(args: argparse.Namespace) -> TwinClient:
-    """A client of the twin the command's bus arguments name."""
-    return TwinClient(connect=args.connect or [DEFAULT_ENDPOINT], ifo=args.ifo,
+def client(args: argparse.Namespace, channel: str = "") -> TwinClient:
+    """A client of the twin the command's bus arguments name; its interferometer is
+    ``--ifo``, else `channel`'s prefix (``K1`` of ``K1:VIS-SRM_TM_TEST_P_EXC``), else C1."""
+    ifo = args.ifo or (channel.partition(":")[0] if ":" in channel else "C1")
+    return TwinClient(connect=args.connect or [DEFAULT_ENDPOINT], ifo=ifo,
                       timeout=args.timeout, config_file=args.zenoh_config)
 
 
@@ -56,7 +58,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
         except ValueError as err:
             msg = f"{args.file}: not a column of numbers ({err})"
             raise TwindError(msg) from None
-    with client(args) as twin:
+    with client(args, args.channel) as twin:
         exc_id = twin.inject(args.channel, args.waveform, **settings)
     print(exc_id)
     return 0

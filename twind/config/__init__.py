@@ -42,7 +42,6 @@ from twind.model.params import ALL_DOFS, SOSParams
 from twind.model.plant import Plant
 from twind.simulation.discretize import closed_loop_matrices, closed_loop_modes, delay_samples
 from twind.simulation.noise import NoiseSpec
-from twind.units import parse_quantity
 
 CONFIG_DIR = Path(__file__).parent.parent / "configs"
 DEFAULT_CONFIG = CONFIG_DIR / "c1.toml"

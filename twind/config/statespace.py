@@ -136,7 +136,8 @@ class StateSpaceOptic:
     def engine(self, rate_hz: float | None = None, max_hz: float | None = None,
                noise: Mapping[str, float] | None = None, seed: int = 0,
                closed: Sequence[str] | None = None) -> StateSpaceEngine:
-        """The optic in a fixed-step engine (:class:`~twind.simulation.statespace.StateSpaceEngine`),
+        """The optic in a fixed-step engine
+        (:class:`~twind.simulation.statespace.StateSpaceEngine`),
         at its front-end rate unless `rate_hz` is given; the other arguments are the
         engine's."""
         loops = {m: (spec.drive, spec.filters.build() if spec.filters else None)
@@ -230,7 +231,8 @@ def _shapes(r: Reader, model: StateSpace) -> dict[str, tuple[str, str]]:
     """The DOFs that label modes: each a collocated ``[input, output]`` of the model."""
     out = {}
     for label, pair in r.table.items():
-        if not (isinstance(pair, list) and len(pair) == 2 and all(isinstance(x, str) for x in pair)):
+        if not (isinstance(pair, list) and len(pair) == 2
+                and all(isinstance(x, str) for x in pair)):
             raise r.fail(label, f"expected [\"model input\", \"model output\"], got {pair!r}")
         try:
             model.input_index(pair[0])

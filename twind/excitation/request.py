@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from twind import DOFS
 from twind.errors import TwindError
 
 WAVEFORMS: tuple[str, ...] = ("sine", "sweep", "noise", "multisine", "stream")
@@ -32,9 +31,10 @@ MAX_FINITE_SAMPLES = 2**53
 """Longest finite excitation or ramp (samples, ~17000 years at 16384 Hz; every sample index
 an int64 and a float64 hold exactly); beyond, use duration inf."""
 
-# IFO:SUS-OPTIC_SUSDOF_EXC, e.g. C1:SUS-ETMX_SUSPOS_EXC; upper case as in the CDS models.
-CHANNEL_RE = re.compile(r"(?P<ifo>[A-Z][A-Z0-9]*):SUS-(?P<optic>[A-Z][A-Z0-9]*)"
-                        r"_SUS(?P<dof>" + "|".join(DOFS) + r")_EXC")
+# IFO:SYSTEM-OPTIC_<point>_EXC, e.g. C1:SUS-ETMX_SUSPOS_EXC or K1:VIS-SRM_TM_TEST_P_EXC;
+# upper case as in the CDS models (which of them a twin has, the twin says)
+CHANNEL_RE = re.compile(r"(?P<ifo>[A-Z][A-Z0-9]*):(?P<system>[A-Z][A-Z0-9]*)-"
+                        r"(?P<optic>[A-Z][A-Z0-9]*)_(?P<point>[A-Z0-9_]+)_EXC")
 
 
 class ExcitationError(TwindError):
@@ -237,11 +237,6 @@ class ExcitationRequest:
         """The optic of `channel` (``ETMX``); the channel must be valid."""
         return _channel_match(self.channel).group("optic")
 
-    @property
-    def dof(self) -> str:
-        """The degree of freedom of `channel` (``POS``); the channel must be valid."""
-        return _channel_match(self.channel).group("dof")
-
     # -- equality (samples are arrays) ----------------------------------------------------------
     def _scalars(self) -> tuple[Any, ...]:
         return tuple(getattr(self, f.name) for f in fields(self) if f.name != "samples")
@@ -340,8 +335,8 @@ def _channel_match(channel: object) -> re.Match[str]:
     m = CHANNEL_RE.fullmatch(channel) if isinstance(channel, str) else None
     if m is None:
         raise ExcitationError(f"{channel!r:.60} is not an excitation test point; expected "
-                              "IFO:SUS-OPTIC_SUSDOF_EXC with DOF one of "
-                              f"{', '.join(DOFS)}, e.g. C1:SUS-ETMX_SUSPOS_EXC", "channel")
+                              "IFO:SYSTEM-OPTIC_<point>_EXC, e.g. C1:SUS-ETMX_SUSPOS_EXC or "
+                              "K1:VIS-SRM_TM_TEST_P_EXC", "channel")
     return m
 
 

@@ -217,7 +217,8 @@ def _model_fields(values: Mapping, variable: str | None, source: str) -> dict:
         v = values[variable]
         return lower({f: getattr(v, f) for f in v._fieldnames}) if hasattr(v, "_fieldnames") \
             else lower(values)
-    models = [k for k, v in structs.items() if {"a", "b", "c", "d"} <= {f.lower() for f in v._fieldnames}]
+    models = [k for k, v in structs.items()
+              if {"a", "b", "c", "d"} <= {f.lower() for f in v._fieldnames}]
     if len(models) == 1:
         v = structs[models[0]]
         return lower({f: getattr(v, f) for f in v._fieldnames})
@@ -371,281 +372,18 @@ class ModalForm:
                                 np.broadcast_to(blk.b, (s.size, *blk.b.shape)))
             out = out + blk.c @ x
         return out
-
-    def response(self, f_hz: NDArray[np.float64], inputs: Sequence[str],
-                 outputs: Sequence[str]) -> NDArray[np.complex128]:
-        """``C (sI - A)^-1 B + D`` at `f_hz`, solved directly at each frequency.
-
-        Parameters
-        ----------
-        f_hz : ndarray
-            Frequencies (Hz).
-        inputs, outputs : sequence of str
-            The columns and rows wanted.
-
-        Returns
-        -------
-        ndarray of complex, shape (nf, len(outputs), len(inputs))
-        """
-        cols = [self.input_index(x) for x in inputs]
-        rows = [self.output_index(x) for x in outputs]
-        s = 2j * np.pi * np.asarray(f_hz, dtype=float)
-        n = self.states
-        shifted = s[:, None, None] * np.eye(n) - self.a
-        x = np.linalg.solve(shifted, np.broadcast_to(self.b[:, cols], (s.size, n, len(cols))))
-        return self.c[rows] @ x + self.d[np.ix_(rows, cols)]
-
-
-def _index(name: str, names: Sequence[str], kind: str, source: str) -> int:
-    """The position of `name` among `names`, matched whole or by last path component."""
-    if name in names:
-        return names.index(name)
-    tails = [i for i, x in enumerate(names) if x.rsplit("/", 1)[-1] == name]
-    if len(tails) == 1:
-        return tails[0]
-    if len(tails) > 1:
-        msg = f"{source}: {kind} {name!r} is ambiguous: {', '.join(names[i] for i in tails)}"
-        raise StateSpaceError(msg)
-    short = [x.rsplit("/", 1)[-1] for x in names]
-    msg = f"{source}: no {kind} {name!r}; the model's {kind}s are {', '.join(short)}"
-    raise StateSpaceError(msg)
-
-
-# ------------------------------------------------------------------------------ .mat files
-def read_mat(path: str | Path, variable: str | None = None) -> StateSpace:
-    """A state-space model from a MATLAB ``.mat`` file (v4 to v7.2; scipy.io).
-
-    The file holds either a struct with fields ``a, b, c, d`` (any case) and optionally
-    ``InputName``, ``OutputName`` and ``Ts``, as Simulink's ``linmod`` and KAGRA's tools
-    save it, or bare variables ``A, B, C, D`` (any case) with optional ``InputName`` and
-    ``OutputName``. Signals without names are called ``u1 ...`` and ``y1 ...``.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file.
-    variable : str, optional
-        The struct to read, when the file holds several.
-
-    Returns
-    -------
-    StateSpace
-
-    Raises
-    ------
-    StateSpaceError
-        If the file cannot be read, holds no model, a discrete one (``Ts`` not 0), or
-        matrices whose shapes do not agree.
-    """
-    source = str(path)
-    try:
-        raw = scipy.io.loadmat(source, squeeze_me=True, struct_as_record=False)
-    except FileNotFoundError:
-        raise StateSpaceError(f"{source}: no such file") from None
-    except NotImplementedError:
-        msg = (f"{source}: a MATLAB v7.3 (HDF5) file; save it with save(..., '-v7') for "
-               "twind to read it")
-        raise StateSpaceError(msg) from None
-    except Exception as err:  # noqa: BLE001 - scipy raises several kinds on a bad file
-        msg = f"{source}: not a readable .mat file ({type(err).__name__}: {err})"
-        raise StateSpaceError(msg) from None
-    values = {k: v for k, v in raw.items() if not k.startswith("__")}
-    fields = _model_fields(values, variable, source)
-    ts = fields.get("ts", 0)
-    if np.size(ts) and float(np.ravel(ts)[0]) != 0:
-        msg = (f"{source}: a discrete model (Ts = {float(np.ravel(ts)[0]):g} s); twind "
-               "takes continuous models (Ts = 0)")
-        raise StateSpaceError(msg)
-    a = _matrix(fields, "a", source)
-    n = a.shape[0] if a.ndim == 2 else 0
-    b, c = _matrix(fields, "b", source, (n, -1)), _matrix(fields, "c", source, (-1, n))
-    d = _matrix(fields, "d", source, (c.shape[0], b.shape[1]))
-    inputs = _names(fields.get("inputname"), b.shape[1], "u")
-    outputs = _names(fields.get("outputname"), c.shape[0], "y")
-    return StateSpace(a, b, c, d, inputs, outputs, source)
-
-
-def _model_fields(values: Mapping, variable: str | None, source: str) -> dict:
-    """The model's fields, keyed in lower case: from struct `variable`, the one struct
-    holding a, b, c and d, or the file's bare variables."""
-    def lower(d: Mapping) -> dict:
-        return {k.lower(): v for k, v in d.items()}
-
-    structs = {k: v for k, v in values.items() if hasattr(v, "_fieldnames")}
-    if variable is not None:
-        if variable not in values:
-            msg = f"{source}: no variable {variable!r}; it holds {', '.join(values)}"
-            raise StateSpaceError(msg)
-        v = values[variable]
-        return lower({f: getattr(v, f) for f in v._fieldnames}) if hasattr(v, "_fieldnames") \
-            else lower(values)
-    models = [k for k, v in structs.items() if {"a", "b", "c", "d"} <= {f.lower() for f in v._fieldnames}]
-    if len(models) == 1:
-        v = structs[models[0]]
-        return lower({f: getattr(v, f) for f in v._fieldnames})
-    if len(models) > 1:
-        msg = f"{source}: several models ({', '.join(models)}); name one (variable = ...)"
-        raise StateSpaceError(msg)
-    bare = lower(values)
-    if {"a", "b", "c", "d"} <= set(bare):
-        return bare
-    msg = (f"{source}: no state-space model in it: expected a struct with fields a, b, c, d "
-           f"or variables A, B, C, D; it holds {', '.join(values) or 'nothing'}")
-    raise StateSpaceError(msg)
-
-
-def _matrix(fields: Mapping, name: str, source: str,
-            shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
-    """Field `name` as a 2-D real array, reshaped from what squeeze_me flattened."""
-    if name not in fields:
-        raise StateSpaceError(f"{source}: the model has no {name.upper()}")
-    try:
-        m = np.asarray(fields[name], dtype=float)
-    except (TypeError, ValueError):
-        raise StateSpaceError(f"{source}: {name.upper()} is not a real matrix") from None
-    if shape is None:
-        if m.ndim == 0:
-            m = m.reshape(1, 1)
-        if m.ndim != 2 or m.shape[0] != m.shape[1]:
-            raise StateSpaceError(f"{source}: A is {m.shape}, not square")
-        return m
-    if m.ndim < 2:  # squeeze_me flattened a row or a column
-        rows, cols = shape
-        if not m.size:
-            return np.zeros((max(rows, 0), max(cols, 0)))
-        if m.size % max(rows if rows >= 0 else cols, 1):
-            want = f"{rows} rows" if rows >= 0 else f"{cols} columns"
-            msg = f"{source}: {name.upper()} has {m.size} entries; the model needs {want}"
-            raise StateSpaceError(msg)
-        m = m.reshape((rows, -1) if rows >= 0 else (-1, cols))
-    return m
-
-
-def _names(raw, count: int, stem: str) -> tuple[str, ...]:  # noqa: ANN001 - what scipy read
-    """Signal names from a MATLAB cell array (or one string), else ``u1 ...``."""
-    if raw is None:
-        return tuple(f"{stem}{i + 1}" for i in range(count))
-    names = [str(x) for x in np.atleast_1d(raw)]
-    if len(names) != count:
-        return tuple(f"{stem}{i + 1}" for i in range(count))
-    return tuple(names)
-
-
-# ------------------------------------------------------------------------------ modal form
-@dataclass(frozen=True)
-class Mode:
-    """A complex pair of poles of the model: ``s^2 + w s / Q + w^2``.
-
-    Attributes
-    ----------
-    index : int
-        Its position among the model's modes (ascending frequency).
-    f_hz : float
-        Undamped natural frequency ``w / 2 pi`` (Hz).
-    q : float
-        Quality factor.
-    label : str
-        The DOF carrying the largest share of it (``""`` without shapes).
-    share : float
-        That share (0 to 1).
-    """
-
-    index: int
-    f_hz: float
-    q: float
-    label: str = ""
-    share: float = 0.0
-
-    def describe(self) -> str:
-        """E.g. ``4.92 Hz (Q 2015, TM P)``."""
-        tag = f", {self.label}" if self.label else ""
-        return f"{self.f_hz:.4g} Hz (Q {self.q:.3g}{tag})"
-
-
-@dataclass(frozen=True)
-class _Block:
-    """A block of the modal form with more than two states (a cluster of poles), or one
-    real pole: evaluated by solving ``(sI - T) x = B``."""
-
-    t: NDArray[np.float64]
-    b: NDArray[np.float64]
-    c: NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class ModalForm:
-    """A state-space model's responses between chosen inputs and outputs as a sum of modes
-    (second-order sections) and other blocks, plus its feedthrough.
-
-    Attributes
-    ----------
-    inputs, outputs : tuple of str
-        Its columns and rows (names as the configuration gives them).
-    modes : tuple of Mode
-        The complex pairs, ascending in frequency.
-    num_s, num_1 : ndarray, shape (modes, outputs, inputs)
-        Each mode's numerator ``num_s s + num_1``.
-    w, q : ndarray, shape (modes,)
-        Each mode's ``w`` (rad/s) and Q.
-    blocks : tuple
-        The other blocks (real poles, clusters).
-    d : ndarray, shape (outputs, inputs)
-    condition : float
-        The modal transformation's condition number.
-    """
-
-    inputs: tuple[str, ...]
-    outputs: tuple[str, ...]
-    modes: tuple[Mode, ...]
-    num_s: NDArray[np.float64]
-    num_1: NDArray[np.float64]
-    w: NDArray[np.float64]
-    q: NDArray[np.float64]
-    blocks: tuple[_Block, ...]
-    d: NDArray[np.float64]
-    condition: float
-    source: str = ""
-    states: int = 0
-    labels_from: Mapping[str, tuple[str, str]] = field(default_factory=dict)
-    realisation: tuple[_Block, ...] = field(default=(), repr=False)
-    """Each mode's own 2x2 block, in the order of :attr:`modes`."""
-
-    def blocks_all(self) -> tuple[_Block, ...]:
-        """Every block of the form (modes first): a realisation ``x' = T x + B u``,
-        ``y = C x`` of the response but for the feedthrough :attr:`d`."""
-        return (*self.realisation, *self.blocks)
-
-    def section(self, s: NDArray[np.complex128], k: int, w: float | None = None,
-                q: float | None = None) -> NDArray[np.complex128]:
-        """Mode `k`'s response at `s` (nf, outputs, inputs), at `w` and `q` if given (its
-        numerator kept: a change of stiffness, not of mass or shape)."""
-        w = self.w[k] if w is None else w
-        q = self.q[k] if q is None else q
-        den = 1.0 / (s * s + s * w / q + w * w)
-        return (s * den)[:, None, None] * self.num_s[k] + den[:, None, None] * self.num_1[k]
-
-    def others(self, s: NDArray[np.complex128]) -> NDArray[np.complex128]:
-        """What the non-mode blocks and the feedthrough add at `s` (nf, outputs, inputs)."""
-        out = np.broadcast_to(self.d, (s.size, *self.d.shape)).astype(complex)
-        for blk in self.blocks:
-            n = blk.t.shape[0]
-            x = np.linalg.solve(s[:, None, None] * np.eye(n) - blk.t,
-                                np.broadcast_to(blk.b, (s.size, *blk.b.shape)))
-            out = out + blk.c @ x
-        return out
-
-    def mode_terms(self, s: NDArray[np.complex128]) -> NDArray[np.complex128]:
-        """Every mode's response at `s`: (modes, nf, outputs, inputs)."""
-        den = 1.0 / (s[None] ** 2 + s[None] * (self.w / self.q)[:, None] + self.w[:, None] ** 2)
-        return (np.einsum("kf,koi->kfoi", s[None] * den, self.num_s)
-                + np.einsum("kf,koi->kfoi", den, self.num_1))
 
     def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
         """The model's response at `f_hz` (nf, outputs, inputs)."""
         s = 2j * np.pi * np.asarray(f_hz, dtype=float)
+        return self.modes_response(f_hz) + self.others(s)
+
+    def modes_response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """What the modes alone answer at `f_hz` (nf, outputs, inputs)."""
+        s = 2j * np.pi * np.asarray(f_hz, dtype=float)
         den = 1.0 / (s[None] ** 2 + s[None] * (self.w / self.q)[:, None] + self.w[:, None] ** 2)
         return (np.einsum("kf,koi->foi", s[None] * den, self.num_s, optimize=True)
-                + np.einsum("kf,koi->foi", den, self.num_1, optimize=True) + self.others(s))
+                + np.einsum("kf,koi->foi", den, self.num_1, optimize=True))
 
     def mode_near(self, f_hz: float) -> Mode:
         """The mode whose frequency is nearest `f_hz` (relative)."""
@@ -664,8 +402,8 @@ class ModalForm:
         """
         keep = np.array([m.f_hz <= f_max_hz for m in self.modes], dtype=bool)
         static = np.einsum("k,koi->oi", 1.0 / self.w[~keep] ** 2, self.num_1[~keep])
-        modes = tuple(Mode(i, m.f_hz, m.q, m.label, m.share)
-                      for i, m in enumerate(mm for mm, k in zip(self.modes, keep, strict=True) if k))
+        kept = (m for m, k in zip(self.modes, keep, strict=True) if k)
+        modes = tuple(Mode(i, m.f_hz, m.q, m.label, m.share) for i, m in enumerate(kept))
         real = tuple(b for b, k in zip(self.realisation, keep, strict=True) if k)
         return (ModalForm(self.inputs, self.outputs, modes, self.num_s[keep], self.num_1[keep],
                           self.w[keep], self.q[keep], self.blocks, self.d + static,
@@ -701,7 +439,8 @@ def modal_form(ss: StateSpace, inputs: Sequence[str], outputs: Sequence[str],
     cols = [ss.input_index(x) for x in inputs]
     rows = [ss.output_index(x) for x in outputs]
     t_blocks, W, Wi, condition = block_diagonal(ss.a)
-    unstable = [ev for t in t_blocks for ev in np.linalg.eigvals(t[2]) if ev.real > 1e-9 * max(1.0, abs(ev))]
+    unstable = [ev for t in t_blocks for ev in np.linalg.eigvals(t[2])
+                if ev.real > 1e-9 * max(1.0, abs(ev))]
     if unstable:
         worst = max(unstable, key=lambda e: e.real)
         msg = (f"{ss.source}: the model is unstable (a pole at {worst.real:.3g} "

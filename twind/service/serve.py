@@ -18,6 +18,7 @@ from threadpoolctl import threadpool_limits
 from twind.config import TwinConfig
 from twind.errors import TwindError
 from twind.limits import ServiceLimits
+from twind.service.plant_twin import PlantTwinService
 from twind.service.twin import TwinService
 from twind.timeutil import now_gps
 
@@ -64,7 +65,8 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
             # and no injection event escapes the recording
             recorder = (_recorder(record_dir, endpoints, twin.ifo, record_config)
                         if record_dir else None)
-            service = TwinService(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
+            kind = PlantTwinService if optics[0].kind == "statespace" else TwinService
+            service = kind(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
             print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
                   f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "
                   f"{service.gps0:.3f}, on {' '.join(endpoints) or 'the configured endpoints'}"

@@ -114,26 +114,16 @@ class TwinService:
         self.twin, self.optics, self.root = twin, optics, root
         self.accepts = twin.service  # what clients may ask (the file's [service] table)
         self.limits = Limits(peak=twin.service.exc_peak, rms=twin.service.exc_rms)
-        self.rate = optics[0].sus.sample_rate_hz
+        self.rate = optics[0].rate_hz
         self.n = int(round(block_s * self.rate))
         if self.n < 1:
             msg = f"a block of {block_s} s holds no sample at {self.rate:g} Hz"
             raise TwindError(msg)
         self.block_s, self.speed = self.n / self.rate, speed
-        self.engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
-                             seed=seed, rate_hz=self.rate)
-        # load the compiled kernels and the schema now, so the first block is not late (with
-        # several optics the engine runs the kernel that shares them among numba's threads:
-        # compiling it takes ~10 s where no cache is)
-        first = optics[:2]
-        Engine([o.loop() for o in first], {o.name: o.noise for o in first},
-               rate_hz=self.rate).step(self.n)
+        self._start_engine(seed)
         SampleBlock("warm-up", 0.0, self.rate, 0, np.zeros(self.n)).encode()
-        for optic in optics:  # and what a params or filter change checks, cached
-            _check_stable(optic.loop(), self.rate)
         self.gps0 = math.floor(now_gps() / self.block_s) * self.block_s  # blocks on GPS marks
         self.stats = Stats()
-        self._buf = self.engine.new_block(self.n)
         self._lock = threading.Lock()
         self._params_lock = threading.Lock()  # one parameter change at a time
         self._effects: dict[str, tuple[str, dict]] = {}  # physics pushed in beyond nominal
@@ -145,10 +135,6 @@ class TwinService:
         self._ended: set[str] = set()
         self._started = self._t0 = time.monotonic()
         self._session = session
-        # every block is computed into _buf, so its channels' views are taken once; the EXC
-        # test points first, so that an excitation goes out before every optic's responses
-        self._channels = sorted(block_channels(twin.ifo, self._buf),
-                                key=lambda c: not c[0].endswith("_EXC"))
         # Zenoh drops samples under congestion by default; a twin whose recordings have gaps is
         # worse than one that waits a moment for a slow subscriber
         self._pubs = {name: session.declare_publisher(
@@ -161,6 +147,41 @@ class TwinService:
         self._queryables = [
             session.declare_queryable(control_key(twin.ifo, verb, root), self._answer(verb))
             for verb in VERBS]
+
+    def _start_engine(self, seed: int) -> None:
+        """The engine, warmed up, and the channels it publishes (:attr:`_channels`: name,
+        unit and the view of the block's samples)."""
+        optics = self.optics
+        self.engine = Engine([o.loop() for o in optics], {o.name: o.noise for o in optics},
+                             seed=seed, rate_hz=self.rate)
+        # load the compiled kernels now, so the first block is not late (with several
+        # optics the engine runs the kernel that shares them among numba's threads:
+        # compiling it takes ~10 s where no cache is)
+        first = optics[:2]
+        Engine([o.loop() for o in first], {o.name: o.noise for o in first},
+               rate_hz=self.rate).step(self.n)
+        for optic in optics:  # and what a params or filter change checks, cached
+            _check_stable(optic.loop(), self.rate)
+        self._buf = self.engine.new_block(self.n)
+        # every block is computed into _buf, so its channels' views are taken once; the EXC
+        # test points first, so that an excitation goes out before every optic's responses
+        self._channels = sorted(block_channels(self.twin.ifo, self._buf),
+                                key=lambda c: not c[0].endswith("_EXC"))
+
+    def _advance(self, exc: dict[tuple[int, int], np.ndarray] | None) -> None:
+        """Compute the next block into the channels' views, with the excitations `exc` (by
+        optic and DOF index; under the lock)."""
+        drive = None
+        if exc is not None:
+            drive = np.zeros((len(self.optics), len(DOFS), self.n))
+            for (o, d), samples in exc.items():
+                drive[o, d] = samples
+        self._watch(self.engine.step(self.n, exc=drive, out=self._buf))
+
+    def _watchdogs(self) -> dict[str, str]:
+        """Each optic's watchdog, as ``status`` reports it."""
+        return {o.name: "tripped" if self.engine.tripped(o.name) else "armed"
+                for o in self.optics}
 
     # ---------------------------------------------------------------------------- pacing
     def run(self, duration: float | None = None, stop: threading.Event | None = None) -> None:
@@ -197,8 +218,7 @@ class TwinService:
         """Compute the next block, with the excitations that fall in it, and publish it."""
         with self._lock:
             first = self.engine.samples
-            exc = self._excitation(first)
-            self._watch(self.engine.step(self.n, exc=exc, out=self._buf))
+            self._advance(self._excitation(first))
             starting = collections.defaultdict(list)  # EXC channel -> excitations starting
             for act in self._unpublished.values():
                 if act.start_sample < first + self.n:
@@ -229,21 +249,25 @@ class TwinService:
                           "(service.watchdog_um)")
                 self._publish_event("tripped", None, optic=optic.name, reason=reason)
 
-    def _excitation(self, first: int) -> np.ndarray | None:
+    def _excitation(self, first: int) -> dict[tuple[int, int], np.ndarray] | None:
+        """The samples of this block's excitations, summed by test point ((optic, DOF) index;
+        a state-space optic's: (0, its EXC point)); those that end or fail leave, with their
+        event. Under the lock."""
         if not self._active:
             return None
-        exc = np.zeros((len(self.optics), len(DOFS), self.n))
+        exc: dict[tuple[int, int], np.ndarray] = {}
         for act in list(self._active.values()):
             a = max(0, act.start_sample - first)
             if a >= self.n:
                 continue
             try:
-                exc[act.optic, act.dof, a:] += act.waveform.next(self.n - a)
+                samples = act.waveform.next(self.n - a)
             except Exception as err:  # noqa: BLE001 - one excitation's fault ends it, not the loop
                 del self._active[act.id]
                 self._ended.add(act.id)
                 self._publish_event("error", act, reason=f"{type(err).__name__}: {err}")
                 continue
+            exc.setdefault((act.optic, act.dof), np.zeros(self.n))[a:] += samples
             if act.waveform.done:
                 del self._active[act.id]
                 self._ended.add(act.id)
@@ -314,8 +338,7 @@ class TwinService:
                 "injection_latency_s": self.stats.latency(),
                 "cpu_fraction": self.stats.busy_s / uptime if uptime > 0 else 0.0,
                 "excitations": active, "config": self.twin.source,
-                "watchdogs": {o.name: "tripped" if self.engine.tripped(o.name) else "armed"
-                              for o in self.optics}}
+                "watchdogs": self._watchdogs()}
 
     def inject(self, request: dict, received: float | None = None) -> dict:
         """Accept an excitation (reply with its id) or refuse it with the reason.

@@ -214,7 +214,8 @@ class StateSpaceEngine:
 
 
 def _samples(x: NDArray[np.float64] | float, n: int) -> NDArray[np.float64]:
-    arr = np.broadcast_to(np.asarray(x, dtype=float), (n,)) if np.ndim(x) == 0 else np.asarray(x, dtype=float)
+    arr = np.asarray(x, dtype=float)
+    arr = np.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr
     if arr.shape != (n,):
         msg = f"an excitation of {arr.shape[0]} samples for a step of {n}"
         raise EngineError(msg)
@@ -242,7 +243,8 @@ def _run(ad, bd, c, d, starts, x, u, drive, noise, loop_row, loop_col, loop_exc,
         for l in range(nl):
             v = y[t, loop_row[l]] + loop_exc[t, l]
             for s in range(sos_first[l], sos_first[l + 1]):  # transposed direct form II
-                b0, b1, b2, a0, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 3], sos[s, 4], sos[s, 5]
+                b0, b1, b2 = sos[s, 0], sos[s, 1], sos[s, 2]
+                a0, a1, a2 = sos[s, 3], sos[s, 4], sos[s, 5]
                 w = (b0 * v + zi[s, 0]) / a0
                 zi[s, 0] = (b1 * v - a1 * w) / a0 + zi[s, 1]
                 zi[s, 1] = (b2 * v - a2 * w) / a0

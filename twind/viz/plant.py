@@ -168,8 +168,9 @@ def plot_plant(plant: PlantSet, path: str | Path) -> list[Path]:
                       axis=1)[:, :, None]
         ok = np.isfinite(k) & (g2 >= 0.5)
         path = Path(path)
+        to = path.with_name(f"{path.stem}_controller{path.suffix}")
         out.append(plot_elements(plant.frequency_hz, k, s, g2, ok, [m for m, _ in loops],
-                                 ["OUT/IN2"], path.with_name(f"{path.stem}_controller{path.suffix}"),
+                                 ["OUT/IN2"], to,
                                  title=f"{plant.optic}: the controller as measured (OUT/IN2)",
                                  notes=measurement_notes(plant)))
     return out
@@ -252,5 +253,6 @@ def _measured(m: dict | None) -> str:
     if m is None:
         return "as modelled (no change claimed)"
     if "f_hz" in m:
-        return f"{number(m['f_hz'], 5)} ± {number(m['f_hz_sigma'], 2)} Hz, Q {number(m['q'], 3)}"
+        q = number(m["q"], 3) if m.get("q_resolved") else "not resolved (narrower than a bin)"
+        return f"{number(m['f_hz'], 5)} ± {number(m['f_hz_sigma'], 2)} Hz, Q {q}"
     return f"amplitude {number(m['amplitude'], 3)} ± {number(m['amplitude_sigma'], 2)}"

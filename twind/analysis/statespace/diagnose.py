@@ -16,21 +16,24 @@ alone:
    another, a readback's own first-order stage. The members of a family are screened on
    the residuals (:mod:`~twind.analysis.statespace.search`), the best fitted in full with
    the calibrations, the delay and the changes chosen before. The evidence is the drop in
-   deviance under the errors' own distribution (Student's t, :class:`~twind.analysis.statespace.fit.Noise`),
-   over the bins' correlation: a likelihood ratio whose p-value pays for the searches
-   (Davies) and for every member and family tried (Bonferroni). The claimed change of highest delta BIC
-   joins, up to :data:`MAX_EFFECTS`; those the later ones made redundant leave.
+   deviance under the errors' own distribution (Student's t,
+   :class:`~twind.analysis.statespace.fit.Noise`), over the bins' correlation: a likelihood
+   ratio whose p-value pays for the searches (Davies) and for every member and family tried
+   (Bonferroni). The claimed change of highest delta BIC joins, up to :data:`MAX_EFFECTS`;
+   those the later ones made redundant leave. In a closed loop whose other damping loops
+   are closed too, a mode's change is screened and fitted through the whole closed loop:
+   the other loops answer the suspension as changed, and damp and move the mode they see.
 3. What the final model still misses is searched again: ``unexplained``.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy import stats
 
 from twind import progress
@@ -41,14 +44,7 @@ from twind.analysis.identification.model import NARROW_REACH_BINS
 from twind.analysis.identification.narrow import SEARCH_Q
 from twind.analysis.identification.locate import Located, band_tests, significant
 from twind.analysis.identification.params import FitError
-from twind.analysis.statespace.fit import (
-    ROBUST_SCALE,
-    Noise,
-    PlantFit,
-    fit_data,
-    fit_plant,
-    start_gains,
-)
+from twind.analysis.statespace.fit import ROBUST_SCALE, Noise, PlantFit, fit_baseline, fit_plant
 from twind.analysis.statespace.measurement import PlantSet
 from twind.analysis.statespace.model import Effect, PlantModel, other_loops
 from twind.analysis.statespace.search import Residuals, grid
@@ -73,7 +69,6 @@ _STAGES = [(p, z) for p in (0.3, 1.0, 3.0, 10.0, 30.0, 100.0) for z in (math.inf
 HOPELESS = 0.25
 """A member whose screen drops the chi^2 by less than this part of what a claim needs is not
 fitted: its full fit (the calibrations refitted with it) seldom gains that much more."""
-NUISANCE = ("tau_s", "inv_lp_hz")
 
 
 @dataclass
@@ -107,6 +102,10 @@ class Claim:
     partial: bool = False
     p_given_others: float | None = None
     paths: tuple[float, ...] = field(default=(), repr=False)
+    local: tuple[float, float, int] | None = None
+    """chi2/nu of the model and of the final fit over the bins this change moves by more than
+    their error, and how many: where it acts (the whole band's chi2/nu dilutes a change
+    seen in a few bins)."""
 
 
 @dataclass
@@ -179,7 +178,8 @@ class PlantDiagnosis:
         if e.family == "mode_amplitude":
             mode = self.modal.modes[e.target[0]]
             a, sa = own["amplitude"], err("amplitude")
-            what = ("is missing from the measurement" if abs(a) < 2 * (sa or math.inf) and abs(a) < 0.5
+            missing = abs(a) < 2 * (sa or math.inf) and abs(a) < 0.5
+            what = ("is missing from the measurement" if missing
                     else "has another amplitude in the measurement")
             return (f"the model's mode at {mode.describe()} {what}: {_pm(a, sa or math.nan, 2)} "
                     f"of the model's (seen in {claim.seen_in})")
@@ -194,8 +194,9 @@ class PlantDiagnosis:
         r = self.plant.readbacks[e.target[0]]
         ip, iz = own["inv_pole_hz"], own["inv_zero_hz"]
         pole, zero = (f"{1 / x:.3g} Hz" if x > 0 else "none" for x in (ip, iz))
-        return (f"{r} has a stage of its own: pole {pole}, zero {zero}; a delay of "
-                f"{1e3 * (ip - iz) / (2 * math.pi):.3g} ms below them")
+        lag = 1e3 * (ip - iz) / (2 * math.pi)
+        return (f"{r} has a stage of its own: pole {pole}, zero {zero}; "
+                f"{'a delay' if lag >= 0 else 'an advance'} of {abs(lag):.3g} ms below them")
 
     def summary(self) -> str:
         """One line for a person."""
@@ -230,11 +231,12 @@ class PlantDiagnosis:
                 fm, qm = m.f_hz * math.exp(own["log_f"]), m.q * math.exp(own["log_q"])
                 sf, sq = self.final.error(f"{key}.log_f"), self.final.error(f"{key}.log_q")
                 row["measured"] = {"f_hz": fm, "f_hz_sigma": sf and sf * fm, "q": qm,
-                                   "q_sigma": sq and sq * qm}
+                                   "q_sigma": sq and sq * qm, "q_resolved": bool(
+                                       sq and qm < fm / self.data.resolution_hz)}
             elif c is not None:
                 own = self.final.own(c.effect)
-                row["measured"] = {"amplitude": own["amplitude"],
-                                   "amplitude_sigma": self.final.error(f"{c.effect.key()}.amplitude")}
+                row["measured"] = {"amplitude": own["amplitude"], "amplitude_sigma":
+                                   self.final.error(f"{c.effect.key()}.amplitude")}
             out.append(row)
         return out
 
@@ -276,6 +278,8 @@ class PlantDiagnosis:
         out = {"effect": key, "family": c.effect.family, "params": params, "sigma": sigma,
                "delta_bic": c.delta_bic, "p_value": c.p_value, "lr": c.lr, "k": c.k,
                "members": c.members, "seen_in": c.seen_in, "equivalent": c.equivalent,
+               "chi2_nu_where_it_acts": None if c.local is None else
+               {"model": c.local[0], "refitted": c.local[1], "bins": c.local[2]},
                "rival_of": c.rival_of, "partial": c.partial,
                "p_given_others": c.p_given_others, "reading": self.describe(c)}
         if c.effect.family in ("mode_frequency", "mode_amplitude"):
@@ -301,9 +305,13 @@ class PlantDiagnosis:
         for c in self.effects:
             role = f"rival of {c.rival_of}" if c.rival_of else "change" + (
                 " (partial)" if c.partial else "")
-            given = "" if c.p_given_others is None else f", p {c.p_given_others:.2g} given the others"
+            given = ("" if c.p_given_others is None
+                     else f", p {c.p_given_others:.2g} given the others")
+            where = "" if c.local is None else (
+                f"; chi2/nu {c.local[0]:.3g} -> {c.local[1]:.3g} over the {c.local[2]} bins it "
+                "moves")
             out.append(f"  {role} {c.effect.key()}: delta BIC {c.delta_bic:.1f}, p "
-                       f"{c.p_value:.2g}{given}")
+                       f"{c.p_value:.2g}{given}{where}")
             out.append(f"    {self.describe(c)}")
         nuis = self.nuisance()
         out.append("  what the measurement adds: " + ", ".join(
@@ -344,24 +352,12 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
     FitError
         If no bin of the measurement is coherent.
     """
-    data = fit_data(plant.H, plant.sigma, plant.coherent(), plant.frequency_hz,
-                    plant.readbacks, plant.drives, plant.averages, plant.resolution_hz)
-    loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
-                        data.resolution_hz)
-    model = PlantModel(optic.modal(plant.drives, plant.readbacks), data.frequency_hz,
-                       data.resolution_hz, loops)
-    progress.note("calibrations, delay and low-pass")
-    start = {"tau_s": 0.0, "inv_lp_hz": 0.0, **({"loops": 1.0} if loops is not None else {})}
-    gains = start_gains(data, model, start)
-    free = [*gains, *_drive_gains(plant), *NUISANCE, *(["loops"] if loops is not None else [])]
-    start.update(gains)
-    first_fit = fit_plant(data, model, start, free)
-    noise = Noise.of(first_fit.residual, data.averages)
-    nominal = fit_plant(data, model, first_fit.nuisance, free, noise=noise)
+    base = fit_baseline(plant, optic)
+    data, model, free, noise, nominal = base.data, base.model, base.free, base.noise, base.fit
     unit = _unit(nominal, data, noise)
     located = _located(data, model, nominal)
-    chosen, rivals, first = _select(data, model, optic, plant, free, nominal, noise, unit,
-                                    max_effects)
+    model, chosen, rivals, first = _select(data, model, optic, plant, free, nominal, noise,
+                                           unit, max_effects)
     if not chosen:
         return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, [], nominal,
                               located, first)
@@ -369,14 +365,30 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
     unexplained = _located(data, model, final)
     for c in chosen:
         c.fit, c.partial = final, bool(unexplained)
+        c.local = _local(data, model, nominal, final, c.effect)
     rivals = [r for r in rivals if any(c.effect.key() == r.rival_of for c in chosen)]
     return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, chosen + rivals,
                           final, unexplained, first)
 
 
-def _drive_gains(plant: PlantSet) -> list[str]:
-    """Every drive's calibration but the first's (only the products reach the data)."""
-    return [f"g_d{j}" for j in range(1, len(plant.drives))]
+def _local(data: FitData, model: PlantModel, nominal: PlantFit, final: PlantFit,
+           effect: Effect) -> tuple[float, float, int] | None:
+    """chi2/nu of `nominal` and of `final` over the bins where `effect` (at its final values)
+    moves the final prediction by more than the error, and their number."""
+    without = [(e, e.start(len(v) - 2) if e.key() == effect.key() else v)
+               for e, v in final.effects]
+    with_it = model(final.nuisance, final.effects)
+    moved = np.abs(with_it - model(final.nuisance, without)) > data.sigma
+    moved &= data.mask
+    if not moved.any():
+        return None
+    n = int(moved.sum())
+
+    def chi2_nu(fit: PlantFit) -> float:
+        z = (data.H - model(fit.nuisance, fit.effects))[moved] / data.sigma[moved]
+        return float(np.sum(np.abs(z) ** 2) / (2 * n))
+
+    return chi2_nu(nominal), chi2_nu(final), n
 
 
 def _unit(fit: PlantFit, data: FitData, noise: Noise) -> float:
@@ -403,15 +415,16 @@ def _located(data: FitData, model: PlantModel, fit: PlantFit) -> list[Located]:
 # ------------------------------------------------------------------------------ selection
 def _select(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
             free: list[str], nominal: PlantFit, noise: Noise, unit: float, most: int
-            ) -> tuple[list[Claim], list[Claim], dict[str, float]]:
-    """Forward selection: the chosen changes (best first), their rivals, and the p-value of
-    every member fitted at the first step."""
+            ) -> tuple[PlantModel, list[Claim], list[Claim], dict[str, float]]:
+    """Forward selection: the model as the chosen changes leave it (its other loops'
+    feedback), the chosen changes (best first), their rivals, and the p-value of every member
+    fitted at the first step."""
     chosen: list[Claim] = []
     rivals: list[Claim] = []
     first: dict[str, float] = {}
     current = nominal
     for step in range(most):
-        claims = _step(data, model, plant, free, chosen, current, noise, unit)
+        claims = _step(data, model, optic, plant, free, chosen, current, noise, unit)
         if step == 0:
             first = {c.effect.key(): c.p_value for c in claims}
         claimed = sorted((c for c in claims if c.p_value < ALPHA), key=lambda c: -c.delta_bic)
@@ -422,22 +435,35 @@ def _select(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Pla
         chosen.append(best)
         rivals += [replace(c, rival_of=best.effect.key()) for c in claimed[1:]
                    if c.effect.key() in best.equivalent]
-        current = _with_loops(data, model, optic, plant, free, best.fit, noise)
+        model, current = _relooped(data, model, optic, plant, free, best.fit, noise)
         best.fit = current
-    return chosen, rivals, first
+    return model, chosen, rivals, first
 
 
-def _with_loops(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
-                free: list[str], fit: PlantFit, noise: Noise) -> PlantFit:
-    """`fit` again, with what the other damping loops feed back made from the model as it
-    now is (its modes moved or scaled): a closed loop's other loops answer the suspension
-    there is, not the one modelled."""
-    if model.loops is None or not any(e.family.startswith("mode_") for e, _ in fit.effects):
-        return fit
-    model.loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
-                              data.resolution_hz, fit.effects)
-    return fit_plant(data, model, fit.nuisance, free, fit.effects, noise=noise,
-                     limits=_limits(model, data, fit.effects))
+def _relooped(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+              free: list[str], fit: PlantFit, noise: Noise, new: Effect | None = None
+              ) -> tuple[PlantModel, PlantFit]:
+    """`model` with the other loops' feedback of the model as `fit` changes it
+    (:func:`_looped`), and `fit` refitted with it."""
+    looped = _looped(data, model, optic, plant, fit.effects)
+    if looped is model:
+        return model, fit
+    return looped, fit_plant(data, looped, fit.nuisance, free, fit.effects, noise=noise,
+                             new=new, limits=_limits(looped, data, fit.effects))
+
+
+def _looped(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+            effects: Sequence[tuple[Effect, dict]]) -> PlantModel:
+    """`model` with what the other damping loops feed back made from the model as `effects`
+    change it (its modes moved or scaled): a closed loop's other loops answer the suspension
+    there is, not the one modelled. `model` itself when no other loop is closed or no change
+    acts on a mode."""
+    if model.loops is None or not any(e.family.startswith("mode_") for e, _ in effects):
+        return model
+    looped = copy.copy(model)
+    looped.loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
+                               data.resolution_hz, effects)
+    return looped
 
 
 @dataclass(frozen=True)
@@ -451,12 +477,15 @@ class _Member:
     paths: tuple[float, ...] = ()
 
 
-def _step(data: FitData, model: PlantModel, plant: PlantSet, free: list[str],
-          chosen: list[Claim], current: PlantFit, noise: Noise, unit: float) -> list[Claim]:
+def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+          free: list[str], chosen: list[Claim], current: PlantFit, noise: Noise, unit: float
+          ) -> list[Claim]:
     """Every family's likeliest members, each fitted with the changes `chosen`; their
     p-values paid for the members and the families screened."""
     res = Residuals(data, model, model(current.nuisance, current.effects),
-                    model.gain(current.nuisance, current.effects))
+                    model.gain(current.nuisance, current.effects),
+                    {r: current.nuisance[f"g_{r}"] for r in range(data.H.shape[1])
+                     if f"g_{r}" in free})
     # a screen's drop in chi^2 is, for residuals within the noise, (dof + 1) / dof / scale^2
     # of deviance
     screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
@@ -473,7 +502,7 @@ def _step(data: FitData, model: PlantModel, plant: PlantSet, free: list[str],
             progress.note(f"step {len(chosen) + 1}: {m.effect.key()}")
             if family == "channel_response":
                 m = replace(m, start=_stage_start(data, model, current, m.effect))
-            claim = _try(data, model, free, chosen, m, current, noise, unit)
+            claim = _try(data, model, optic, plant, free, chosen, m, current, noise, unit)
             if claim is None:
                 continue
             if family == "resonance":
@@ -514,7 +543,7 @@ def _screen(res: Residuals, model: PlantModel, plant: PlantSet, chosen: list[Cla
     f = res.data.frequency_hz[res.data.mask.any(axis=(1, 2))]
     modes = [k for k, m in enumerate(modal.modes) if k not in taken
              and f[0] / 1.5 <= m.f_hz <= 1.5 * f[-1]
-             and res.power(model.terms[k]) >= VISIBLE * unit]
+             and res.power(model.closed_term(k)) >= VISIBLE * unit]
     out: dict[str, list[_Member]] = {"mode_frequency": [], "mode_amplitude": []}
     for k in modes:
         progress.tick()
@@ -523,7 +552,7 @@ def _screen(res: Residuals, model: PlantModel, plant: PlantSet, chosen: list[Cla
             Effect("mode_frequency", (k,)), sweep.drop,
             {"log_f": math.log(2 * math.pi * sweep.f_hz / modal.w[k]),
              "log_q": math.log(sweep.q / modal.q[k]), "amplitude": 1.0}, sweep.paths))
-        drop, coef = res.linear(res.G * model.terms[k])
+        drop, coef = res.linear(res.G * model.closed_term(k))
         out["mode_amplitude"].append(_Member(Effect("mode_amplitude", (k,)), drop / unit,
                                              {"amplitude": 1.0 + coef}))
     repeat = sum(c.effect.family == "resonance" for c in chosen)
@@ -547,7 +576,8 @@ def _screen(res: Residuals, model: PlantModel, plant: PlantSet, chosen: list[Cla
     out["channel_response"] = []
     for r in gains:
         column = np.zeros_like(res.z)
-        column[:, r] = 1j * res.data.frequency_hz[:, None] * res.predicted[:, r] * res.whitener[:, r]
+        column[:, r] = (1j * res.data.frequency_hz[:, None] * res.predicted[:, r]
+                        * res.whitener[:, r])
         drop, _ = res.linear(column)
         out["channel_response"].append(_Member(Effect("channel_response", (r,)), drop / unit,
                                                {"inv_pole_hz": 0.0, "inv_zero_hz": 0.0}))
@@ -605,14 +635,22 @@ def _stage_start(data: FitData, model: PlantModel, base: PlantFit, effect: Effec
     return start
 
 
-def _try(data: FitData, model: PlantModel, free: list[str], chosen: list[Claim],
-         member: _Member, current: PlantFit, noise: Noise, unit: float) -> Claim | None:
+def _try(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+         free: list[str], chosen: list[Claim], member: _Member, current: PlantFit, noise: Noise,
+         unit: float) -> Claim | None:
     """`member` fitted with the changes `chosen` and every nuisance parameter, against
-    `current` (the model without it); None when the fit fails or adds no direction."""
+    `current` (the model without it); None when the fit fails or adds no direction. A
+    change of a mode is fitted with the other damping loops' feedback made from the model it
+    changes (at its start, then at its fit); other changes, with the feedback of the changes
+    `chosen`."""
     effects = [*((c.effect, current.own(c.effect)) for c in chosen), (member.effect, member.start)]
     try:
-        fit = fit_plant(data, model, current.nuisance, free, effects, noise=noise,
+        looped = _looped(data, model, optic, plant, effects) \
+            if member.effect.family.startswith("mode_") else model
+        fit = fit_plant(data, looped, current.nuisance, free, effects, noise=noise,
                         new=member.effect, limits=_limits(model, data, effects))
+        if looped is not model:
+            _, fit = _relooped(data, model, optic, plant, free, fit, noise, member.effect)
     except FitError:
         return None
     k = fit.rank - current.rank

@@ -27,10 +27,12 @@ from scipy import optimize, stats
 from scipy.optimize import least_squares
 
 from twind import progress
-from twind.analysis.identification.data import FitData
+from twind.analysis.identification.data import MIN_COHERENCE, FitData
 from twind.analysis.identification.fit import bin_correlation, sandwich
 from twind.analysis.identification.params import FitError
-from twind.analysis.statespace.model import Effect, PlantModel
+from twind.analysis.statespace.measurement import PlantSet
+from twind.analysis.statespace.model import Effect, PlantModel, loop_feedback, other_loops
+from twind.config.statespace import StateSpaceOptic
 
 _STEP = 1e-6
 """Relative step of the forward differences."""
@@ -179,6 +181,48 @@ def fit_data(H: NDArray, sigma: NDArray, mask: NDArray, f: NDArray, readbacks: S
         raise FitError(msg)
     return FitData(f, list(readbacks), list(drives), H, sigma, mask, averages,
                    resolution_hz).span()
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """What a state-space optic's diagnosis and fit start from: the measurement's bins, the
+    model at them, the nuisance parameters fitted (the model unchanged) and the noise."""
+
+    data: FitData
+    model: PlantModel
+    free: list[str]
+    noise: Noise
+    fit: PlantFit
+
+
+def fit_baseline(plant: PlantSet, optic: StateSpaceOptic,
+                 min_coherence: float = MIN_COHERENCE) -> Baseline:
+    """The model, its calibrations, delay and low-pass (and, for a closed loop, the other
+    loops' gain) fitted to `plant`: first with a Cauchy loss from the median ratios
+    (:func:`start_gains`), whose residuals give the noise (:meth:`Noise.of`), then with the
+    noise's own likelihood.
+
+    Raises
+    ------
+    FitError
+        If no bin of the measurement is coherent.
+    """
+    data = fit_data(plant.H, plant.sigma, plant.coherent(min_coherence), plant.frequency_hz,
+                    plant.readbacks, plant.drives, plant.averages, plant.resolution_hz)
+    loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
+                        data.resolution_hz)
+    model = PlantModel(optic.modal(plant.drives, plant.readbacks), data.frequency_hz,
+                       data.resolution_hz, loops,
+                       loop_feedback(optic, plant.drives, plant.readbacks, data.frequency_hz))
+    progress.note("calibrations, delay and low-pass")
+    start = {"tau_s": 0.0, "inv_lp_hz": 0.0, **({"loops": 1.0} if loops is not None else {})}
+    gains = start_gains(data, model, start)
+    free = [*gains, *(f"g_d{j}" for j in range(1, len(plant.drives))), "tau_s", "inv_lp_hz",
+            *(["loops"] if loops is not None else [])]
+    first = fit_plant(data, model, start | gains, free)
+    noise = Noise.of(first.residual, data.averages)
+    return Baseline(data, model, free, noise,
+                    fit_plant(data, model, first.nuisance, free, noise=noise))
 
 
 def start_gains(data: FitData, model: PlantModel, nuisance: Mapping[str, float]
@@ -445,7 +489,8 @@ def _result(data: FitData, names: list[str], coords: list[_Coordinate], x: NDArr
         inv = (keep.T / sv[~weak] ** 2) @ keep  # the pseudo-inverse of Js^T Js, determined part
         var = noise.scale**2 / noise.information if noise else scale2
         cov_s = var * inv @ sandwich(Js, rho, [data]) @ inv
-        lost = np.abs(vt[weak]).max(axis=0) > NULL_COMPONENT if weak.any() else np.zeros(len(names), bool)
+        lost = (np.abs(vt[weak]).max(axis=0) > NULL_COMPONENT if weak.any()
+                else np.zeros(len(names), bool))
         sd = np.sqrt(np.clip(np.diag(cov_s), 0, None)) * scale * width
         sigma = np.where(lost, np.nan, sd)
     values = np.array([c.value(v) for c, v in zip(coords, x, strict=True)])

@@ -140,7 +140,30 @@ class PlantSet:
                         self.H[keep], self.sigma[keep], self.coherence[keep], self.averages,
                         self.channels, loops, self.sources, self.window)
 
-    def coherent_bands(self, min_coherence: float = MIN_COHERENCE) -> dict[str, list[tuple[float, float]]]:
+    def to_json(self) -> dict:
+        """The ``twind tf --json`` object: the plant, its errors, coherence, the bins
+        trusted and their runs, and each closed loop's own test points and controller."""
+        def cplx(a: NDArray) -> dict:
+            return {"re": a.real.tolist(), "im": a.imag.tolist()}
+
+        loops = {}
+        for module, loop in self.loops.items():
+            entry = {f"{p}_per_EXC": cplx(h) for p, h in loop.tf.items()}
+            k = loop.controller()
+            if k is not None:
+                entry["controller_OUT_per_IN2"] = cplx(k[0])
+                entry["controller_sigma"] = k[1].tolist()
+            loops[module] = entry
+        return {"optic": self.optic, "frequency_hz": self.frequency_hz.tolist(),
+                "drives": list(self.drives), "readbacks": list(self.readbacks),
+                "channels": dict(self.channels), "averages": self.averages,
+                "plant": cplx(self.H), "sigma": self.sigma.tolist(),
+                "coherence": self.coherence.tolist(), "coherent": self.coherent().tolist(),
+                "coherent_bands": self.coherent_bands(), "sources": list(self.sources),
+                "loops": loops}
+
+    def coherent_bands(self, min_coherence: float = MIN_COHERENCE
+                       ) -> dict[str, list[tuple[float, float]]]:
         """Each element's runs of coherent bins, as (lowest, highest) frequency (Hz)."""
         mask = self.coherent(min_coherence)
         f = self.frequency_hz

@@ -124,12 +124,16 @@ class PlantModel:
     loops : ndarray, shape (nf, readbacks, drives), optional
         What the other damping loops, closed, add to a closed-loop column
         (:func:`other_loops`); scaled by the nuisance parameter ``loops``.
+    feedback : dict of int to Feedback, optional
+        Per closed-loop column, how a change of a mode reaches it through the other loops
+        (:func:`loop_feedback`), for the searches.
     """
 
     def __init__(self, modal: ModalForm, f_hz: NDArray[np.float64], resolution_hz: float,
-                 loops: NDArray[np.complex128] | None = None) -> None:
+                 loops: NDArray[np.complex128] | None = None,
+                 feedback: dict[int, Feedback] | None = None) -> None:
         self.modal, self.f, self.res = modal, np.asarray(f_hz, dtype=float), resolution_hz
-        self.loops = loops
+        self.loops, self.feedback = loops, feedback or {}
         self.s = 2j * np.pi * self.f
         points = self.f[:, None] + resolution_hz * _D2 if resolution_hz > 0 else self.f[:, None]
         weights = _W2 if resolution_hz > 0 else np.ones(1)
@@ -188,6 +192,23 @@ class PlantModel:
             q1[rows[inside], near[inside]] = ((sk * den) @ wk)[inside]
         return q0, q1
 
+    def numerators(self, k: int) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+        """Mode `k`'s numerators ``num_s``, ``num_1`` as a change of its section reaches each
+        element, (nf, readbacks, drives): the model's own, and in a closed-loop column what
+        the other loops feed back of it too (to first order, :class:`Feedback`)."""
+        nf = self.f.size
+        A = np.broadcast_to(self.modal.num_s[k], (nf, *self.modal.num_s[k].shape)).astype(complex)
+        B = np.broadcast_to(self.modal.num_1[k], (nf, *self.modal.num_1[k].shape)).astype(complex)
+        for j, fb in self.feedback.items():
+            A[:, :, j], B[:, :, j] = fb.reach(fb.modal.num_s[k]), fb.reach(fb.modal.num_1[k])
+        return A, B
+
+    def closed_term(self, k: int) -> NDArray[np.complex128]:
+        """Mode `k`'s section as :meth:`numerators` carry it to each element."""
+        A, B = self.numerators(k)
+        q0, q1 = self.kernels(self.modal.w[k], self.modal.q[k])
+        return q1[:, None, None] * A + q0[:, None, None] * B
+
     def section(self, num_s: NDArray, num_1: NDArray, w: float, q: float) -> NDArray[np.complex128]:
         """A mode's response at every bin, (nf, readbacks, drives)."""
         q0, q1 = self.kernels(w, q)
@@ -195,7 +216,8 @@ class PlantModel:
 
     # -------------------------------------------------------------- the whole model
     def __call__(self, nuisance: Mapping[str, float],
-                 effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()) -> NDArray[np.complex128]:
+                 effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()
+                 ) -> NDArray[np.complex128]:
         """The modelled measurement, (nf, readbacks, drives).
 
         Parameters
@@ -340,6 +362,79 @@ class PlantModel:
                             / (1 + 1j * self.f * inv_lp))
 
 
+@dataclass(frozen=True)
+class Feedback:
+    """How a change of the plant reaches a closed-loop column, to first order.
+
+    With loop ``d`` excited and the others closed, the column is ``T = P_R a`` per unit of
+    ``d``'s OUT, ``a`` the loops' drives per unit of it. A change ``dP`` of the plant changes
+    it by ``dP_R a + W dP_in a``, ``W = (P_R - T e_d^T) (1 - K P_in)^-1 K``, with ``P_in`` the
+    loops' IN1 rows and ``K`` their controllers.
+
+    Attributes
+    ----------
+    modal : ModalForm
+        From the loops (``d`` first) to the readbacks, then the loops' IN1 (as
+        :func:`other_loops` makes it; its modes are the plant's, in the same order).
+    P : ndarray, shape (nf, rows, loops)
+        `modal`'s response at the bins.
+    K : ndarray, shape (nf, loops)
+        The loops' controllers at the bins.
+    a : ndarray, shape (nf, loops)
+    W : ndarray, shape (nf, readbacks, loops)
+    inner : tuple of int
+        The rows of `modal` that are the loops' IN1.
+    """
+
+    modal: ModalForm
+    P: NDArray[np.complex128]
+    K: NDArray[np.complex128]
+    a: NDArray[np.complex128]
+    W: NDArray[np.complex128]
+    inner: tuple[int, ...]
+
+    def reach(self, num: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """What a mode's numerator `num` (a row of `modal` per output, a column per loop)
+        becomes in the column: ``num_R a + W num_in a``, (nf, readbacks)."""
+        nr = self.W.shape[1]
+        drive = np.einsum("il,fl->fi", num[list(self.inner)], self.a)
+        return np.einsum("rl,fl->fr", num[:nr], self.a) + np.einsum("frl,fl->fr", self.W, drive)
+
+
+def loop_feedback(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequence[str],
+                  f_hz: NDArray[np.float64]) -> dict[int, Feedback]:
+    """:class:`Feedback` of each closed-loop column with other loops closed, from the model
+    at the bins' centres."""
+    out = {}
+    for j, (loops, rows) in _closed_columns(optic, drives, readbacks).items():
+        modal = optic.modal(tuple(loops), rows)
+        inner = tuple(rows.index(f"{m}_IN1") for m in loops)
+        P = modal.response(np.asarray(f_hz, dtype=float))
+        K = np.stack([optic.loops[m].filters.build().response(f_hz) for m in loops], axis=1)
+        M = np.linalg.solve(np.eye(len(loops)) - K[:, :, None] * P[:, inner],
+                            K[:, :, None] * np.eye(len(loops)))  # (1 - K P_in)^-1 K
+        a = M[:, :, 0] / M[:, :1, 0]
+        PR = P[:, : len(readbacks)]
+        T = np.einsum("frl,fl->fr", PR, a)
+        W = np.einsum("frl,flm->frm", PR - T[:, :, None] * np.eye(len(loops))[0], M)
+        out[j] = Feedback(modal, P, K, a, W, inner)
+    return out
+
+
+def _closed_columns(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequence[str]
+                    ) -> dict[int, tuple[list[str], tuple[str, ...]]]:
+    """Each column that is a damping loop with other loops closed: its loops (its own first)
+    and the rows its model needs (the readbacks, then the loops' IN1)."""
+    closed = [m for m, spec in optic.loops.items() if spec.filters is not None]
+    out = {}
+    for j, d in enumerate(drives):
+        others = [m for m in closed if m != d]
+        if d in optic.loops and others:
+            loops = [d, *others]
+            out[j] = loops, tuple(dict.fromkeys([*readbacks, *(f"{m}_IN1" for m in loops)]))
+    return out
+
+
 def other_loops(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequence[str],
                 f_hz: NDArray[np.float64], resolution_hz: float,
                 effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()
@@ -368,22 +463,16 @@ def other_loops(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequen
     -------
     ndarray of complex, shape (nf, readbacks, drives), or None
     """
-    closed = [m for m, spec in optic.loops.items() if spec.filters is not None]
     f_hz = np.asarray(f_hz, dtype=float)
     out = np.zeros((f_hz.size, len(readbacks), len(drives)), dtype=complex)
-    for j, d in enumerate(drives):
-        others = [m for m in closed if m != d]
-        if d not in optic.loops or not others:
-            continue
-        loops = [d, *others]
-        rows = tuple(dict.fromkeys([*readbacks, *(f"{m}_IN1" for m in loops)]))
+    for j, (loops, rows) in _closed_columns(optic, drives, readbacks).items():
         modal = changed(optic.modal(tuple(loops), rows), effects)
         if resolution_hz > 0:  # as the model's kernels: none narrower than an eighth of a bin
             modal = replace(modal, q=np.minimum(modal.q, _KERNEL_SAMPLES * modal.w
                                                 / (2 * np.pi * resolution_hz)))
         points, weights, owner = _kernel_points(f_hz, resolution_hz, modal)
-        P = modal.response(points)
-        K = np.stack([optic.loops[m].filters.build().response(points) for m in loops], axis=1)
+        others, K = _unchanged(optic, loops, modal, points)
+        P = modal.modes_response(points) + others
         inner = [rows.index(f"{m}_IN1") for m in loops]
         u = np.linalg.solve(np.eye(len(loops)) - K[:, :, None] * P[:, inner],
                             K[:, :, None] * np.eye(len(loops))[None, :, :1])[:, :, 0]
@@ -392,6 +481,23 @@ def other_loops(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequen
             _averaged(u[:, :1], owner, weights, f_hz.size) - \
             _averaged(P[:, : len(readbacks), 0], owner, weights, f_hz.size)
     return out if np.any(out) else None
+
+
+_UNCHANGED: dict[tuple, tuple[NDArray[np.complex128], NDArray[np.complex128]]] = {}
+
+
+def _unchanged(optic: StateSpaceOptic, loops: Sequence[str], modal: ModalForm,
+               points: NDArray[np.float64]
+               ) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """What no change of a mode alters at `points`: the non-mode blocks' response and the
+    loops' controllers (remembered: a diagnosis asks for them at every change it tries)."""
+    key = (id(optic), tuple(loops), id(modal.d), points.size, hash(points.tobytes()))
+    if key not in _UNCHANGED:
+        if len(_UNCHANGED) > 8:
+            _UNCHANGED.clear()
+        _UNCHANGED[key] = (modal.others(2j * np.pi * points), np.stack(
+            [optic.loops[m].filters.build().response(points) for m in loops], axis=1))
+    return _UNCHANGED[key]
 
 
 def changed(modal: ModalForm, effects: Sequence[tuple[Effect, Mapping[str, float]]]) -> ModalForm:
