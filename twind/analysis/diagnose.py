@@ -350,9 +350,7 @@ class Diagnosis:
                f"{self.nominal.chi2_nu:.3f}: "
                + ("consistent with the data" if self.consistent else
                   f"misses in {len(self.located)} band(s)")]
-        for x in self.located[:8]:
-            out.append(f"  {x.element:9s} {x.band_hz[0]:7.3g}-{x.band_hz[1]:<7.3g} Hz  "
-                       f"{x.significance:5.1f} sigma, residual power x{x.excess:.2f}")
+        out += [x.line() for x in self.located[:8]]
         for e in self.effects:
             entry_json = e.to_json()
             params = ", ".join(

@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 
 from twind import DOFS
-from twind.config import load_config
+from twind.config import CONFIG_DIR, load_config, optic_kinds
 from twind.errors import TwindError
-from twind.config import CONFIG_DIR
 from twind.lab import plant_bench
 from twind.lab.calibration import information_benchmark, pull_test
 from twind.lab.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus, run_demo
@@ -117,12 +116,15 @@ def _bench_statespace(args: argparse.Namespace) -> int:
     """twind on state-space optics (KAGRA's by default): nulls and moved modes measured open
     and closed loop, diagnosed file by file; closed-loop plants against open-loop ones."""
 
-    twin = load_config(args.config or KAGRA)
-    names = args.optic.split(",") if args.optic else [n for n in ("SRM", "PRM") if n in twin.optics]
-    optics = twin.select(names)
-    if any(o.kind != "statespace" for o in optics):
-        msg = f"--suite statespace runs on state-space optics; {args.config} holds SOSs"
+    path = args.config or KAGRA
+    kinds = optic_kinds(path)
+    names = args.optic.split(",") if args.optic else [
+        n for n in ("SRM", "PRM") if kinds.get(n) == "statespace"]
+    if not names or any(kinds.get(n) != "statespace" for n in names):
+        msg = (f"--suite statespace runs on state-space optics; {path} has "
+               f"{', '.join(f'{n} ({k})' for n, k in kinds.items())}: name them with --optic")
         raise TwindError(msg)
+    optics = load_config(path, names).select(names)
     lines = plant_bench.run(optics, nulls=6 if args.nulls is None else args.nulls,
                             moves=4 if args.per_effect is None else args.per_effect,
                             workdir=args.workdir)

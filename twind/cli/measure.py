@@ -21,7 +21,7 @@ from twind.analysis.identification.params import FIT_PARAMS, read_truth
 from twind.bus.session import zenoh_config
 from twind.channels import osem_channel
 from twind.cli import plant as statespace
-from twind.cli.plant import statespace_optic
+from twind.cli.options import show
 from twind.cli.twin import client
 from twind.client import TwinClient
 from twind.config import MEASURED_MODES, load_config
@@ -84,7 +84,7 @@ def cmd_tf(args: argparse.Namespace) -> int:
     """Closed-loop TFs, coherence, errors and the recovered plant from XML or MCAP inputs;
     any other diaggui measurement's transfer functions as they were measured."""
 
-    optic = statespace_optic(args)
+    optic = statespace.statespace_optic(args)
     if optic is not None:
         return statespace.tf(args, optic)
     try:
@@ -164,19 +164,10 @@ def _show_transfers(args: argparse.Namespace, why: str) -> int:
     return 0
 
 
-def _show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_json and lines
-    """Print a result as its JSON object or as lines for a person."""
-    if as_json:
-        strictjson.dump(result.to_json(), sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print("\n".join(result.lines()))
-
-
 def cmd_fit(args: argparse.Namespace) -> int:
     """Fit the nominal parameters to measured TFs; print them with calibrated sigmas."""
 
-    optic = statespace_optic(args)
+    optic = statespace.statespace_optic(args)
     if optic is not None:
         return statespace.fit(args, optic)
     truth = read_truth(args.truth) if args.truth else None  # a bad file fails before the fit
@@ -184,7 +175,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
     band = tuple(args.band) if args.band else None
     result = fit(tfs, cfg, args.params or FIT_PARAMS, args.min_coherence, band)
-    _show(result, args.json)
+    show(result, args.json)
     if truth:
         print(f"(fitted - truth) / sigma: {result.pulls(truth)}",
               file=sys.stderr if args.json else sys.stdout)
@@ -229,9 +220,10 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
 
     twin = load_config(args.config, [args.optic])
     optic = twin.optics[args.optic]
+    args.ifo = args.ifo or twin.ifo  # a recording's channels and a served twin's keys
     duration = 1000.0 if args.duration is None else args.duration
     if args.input:
-        sen, rate = _recorded_osems(args.input, args.ifo or twin.ifo, args.optic, args.start,
+        sen, rate = _recorded_osems(args.input, args.ifo, args.optic, args.start,
                                     args.duration)
     elif args.connect:
         sen, rate = _served_ringdown(args, optic, duration)
@@ -240,7 +232,7 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
               "ringdown on the twin ...", file=sys.stderr, flush=True)
         sen, rate = ringdown(optic, duration, seed=args.seed)
     result = analyse(optic, sen, rate)
-    _show(result, args.json)
+    show(result, args.json)
     if args.output:
         print(f"wrote {plot_freeswing(result, sen, rate, args.output)}", file=sys.stderr)
     return 0
@@ -273,7 +265,7 @@ def _recorded_osems(paths: list[str], ifo: str, optic: str, start: float | None,
 def cmd_diagnose(args: argparse.Namespace) -> int:
     """Locate the mismatch, name the physics left out, fit it, show the improvement."""
 
-    optic = statespace_optic(args)
+    optic = statespace.statespace_optic(args)
     if optic is not None:
         return statespace.diagnose(args, optic)
     tfs = _measured_tfs(args)
@@ -281,7 +273,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         tfs = tfs.band(*args.band)
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
     result = diagnose(tfs, cfg)
-    _show(result, args.json)
+    show(result, args.json)
     if args.output:
         print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
     if args.push:

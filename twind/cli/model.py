@@ -12,7 +12,7 @@ import numpy as np
 from twind import DOFS, strictjson
 from twind.channels import block_channels
 from twind.cli import plant as statespace
-from twind.config import load_config
+from twind.config import default_optic, load_config
 from twind.errors import TwindError
 from twind.model.compare import compare_models
 from twind.recording.writer import SessionWriter
@@ -78,10 +78,8 @@ def cmd_model_response(args: argparse.Namespace) -> int:
 
 def _optic(args: argparse.Namespace):  # noqa: ANN202 - OpticConfig or StateSpaceOptic
     """The optic ``--optic`` names (default: the file's only one, else ETMX)."""
-    if args.optic is None:
-        twin = load_config(args.config)
-        return next(iter(twin.optics.values())) if len(twin.optics) == 1 else twin.optics["ETMX"]
-    return load_config(args.config, [args.optic]).select([args.optic])[0]
+    name = args.optic or default_optic(args.config)
+    return load_config(args.config, [name]).optics[name]
 
 
 def cmd_model_compare(args: argparse.Namespace) -> int:
@@ -103,10 +101,7 @@ def cmd_model_compare(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Run the twin as fast as it can; print per-channel RMS and the speed reached."""
 
-    chosen = args.optics
-    if chosen is None:  # the file's only optic, else ETMX
-        every = load_config(args.config)
-        chosen = list(every.optics) if len(every.optics) == 1 else "ETMX"
+    chosen = args.optics or default_optic(args.config)
     twin = load_config(args.config, chosen)
     optics = twin.select(chosen)
     if any(o.kind == "statespace" for o in optics):

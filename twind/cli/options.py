@@ -1,9 +1,13 @@
-"""Options several commands share, and the argument types that check them."""
+"""Options several commands share, the argument types that check them, and how a result is
+printed."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
+
+from twind import strictjson
 
 CONFIG_HELP = "twin config (TOML); default: the 40m file shipped with twind"
 SEED_HELP = "seed of the twin's noise (default 0)"
@@ -33,8 +37,8 @@ def seed(text: str) -> int:
 def bus_arguments(p: argparse.ArgumentParser) -> None:
     """How a command reaches a running twin."""
     p.add_argument("--connect", action="append", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--ifo", help="the twin's interferometer prefix (default the excitation "
-                                 "channel's, else C1)")
+    p.add_argument("--ifo", help="the twin's interferometer prefix (default C1; inject: the "
+                                 "channel's)")
     p.add_argument("--timeout", type=float, default=5.0,
                    help="seconds to wait for the twin's reply (default 5)")
     p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
@@ -76,3 +80,12 @@ def input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--band", type=frequency, nargs=2, metavar=("LO", "HI"),
                    help="only the frequencies from LO to HI Hz")
     p.add_argument("--json", action="store_true", help="the numbers as JSON")
+
+
+def show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_json and lines
+    """Print a result as its JSON object or as lines for a person."""
+    if as_json:
+        strictjson.dump(result.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(result.lines()))

@@ -16,8 +16,9 @@ from twind.analysis.estimation.diaggui import read_transfers
 from twind.analysis.statespace.diagnose import diagnose_plant
 from twind.analysis.statespace.fit import fit_baseline
 from twind.analysis.statespace.measurement import PlantSet, read_plant
-from twind.config import load_config
-from twind.config.statespace import StateSpaceOptic
+from twind.config import load_config, optic_kinds
+from twind.config.statespace import SENSOR_NOISE, StateSpaceOptic
+from twind.cli.options import show
 from twind.errors import TwindError
 from twind.simulation.statespace import truncation_error
 from twind.viz.plant import plot_plant, write_plant_report
@@ -29,14 +30,16 @@ def statespace_optic(args: argparse.Namespace) -> StateSpaceOptic | None:
     in the first input when the file lists several), None for an SOS."""
     if not getattr(args, "config", None):
         return None
-    twin = load_config(args.config)
-    kinds = {o.kind for o in twin.optics.values()}
-    if kinds == {"sos"}:
+    kinds = optic_kinds(args.config)
+    if set(kinds.values()) == {"sos"}:
         return None
     name = getattr(args, "optic", None)
-    if name is None and len(twin.optics) > 1:
-        name = _excited_optic(args.inputs, twin.convention)
-    return twin.select([name])[0] if name else next(iter(twin.optics.values()))
+    if name is None:
+        name = next(iter(kinds)) if len(kinds) == 1 else _excited_optic(
+            args.inputs, load_config(args.config, []).convention)
+    if kinds.get(name) == "sos":
+        return None
+    return load_config(args.config, [name]).optics[name]
 
 
 def _excited_optic(inputs: list[str], convention) -> str:  # noqa: ANN001 - Convention
@@ -62,8 +65,18 @@ def _checked(inputs: list[str]) -> list[Path]:
     return paths
 
 
+_SOS_ONLY = {"params": "an SOS's physical parameters are what --params chooses",
+             "truth": "--truth holds a simulated SOS's parameters",
+             "push": "a running twin takes an SOS's parameters; a state-space plant's are "
+                     "not pushed"}
+
+
 def _plant(args: argparse.Namespace, optic: StateSpaceOptic) -> PlantSet:
-    """The measured plant of the inputs, in ``--band`` if given."""
+    """The measured plant of the inputs, in ``--band`` if given; a TwindError first for an
+    option only an SOS takes."""
+    for name, why in _SOS_ONLY.items():
+        if getattr(args, name, None):
+            raise TwindError(f"--{name}: {optic.name} is a state-space model; {why}")
     plant = read_plant(_checked(args.inputs), optic)
     return plant.band(*args.band) if getattr(args, "band", None) else plant
 
@@ -138,17 +151,9 @@ def diagnose(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
     """``twind diagnose`` of a state-space optic."""
     plant = _plant(args, optic)
     result = diagnose_plant(plant, optic)
-    if args.json:
-        strictjson.dump(result.to_json(), sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        print("\n".join(result.lines()))
+    show(result, args.json)
     if args.output:
         print(f"wrote {write_plant_report(result, args.output)}", file=sys.stderr)
-    if getattr(args, "push", None):
-        msg = ("--push: a running twin takes an SOS's parameters; a state-space plant's are "
-               "not pushed")
-        raise TwindError(msg)
     return 0
 
 
@@ -162,6 +167,11 @@ def response(args: argparse.Namespace, optic: StateSpaceOptic, f: np.ndarray) ->
     unknown = [r for r in readbacks if r not in optic.readbacks]
     if unknown:
         msg = f"--readbacks {', '.join(unknown)}: not readbacks of {optic.source}"
+        raise TwindError(msg)
+    unknown = [d for d in drives if d not in optic.drives and d not in optic.loops]
+    if unknown:
+        msg = (f"--drives {', '.join(unknown)}: not TEST points or damping loops of "
+               f"{optic.source}")
         raise TwindError(msg)
     modal = optic.modal(drives, readbacks)
     H = modal.response(f)
@@ -189,24 +199,35 @@ def response(args: argparse.Namespace, optic: StateSpaceOptic, f: np.ndarray) ->
 
 def simulate(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
     """``twind simulate`` of a state-space optic: its engine with the damping loops closed,
-    run as fast as it goes; the channels' RMS and the speed."""
+    each loop's EXC driven by white noise, run as fast as it goes in ``--block`` steps; the
+    channels' RMS and the speed."""
+    if args.record:
+        msg = ("--record: a state-space optic's session is recorded from the bus: twind serve "
+               "--config ... --record DIR")
+        raise TwindError(msg)
     engine = optic.engine(max_hz=args.max_hz, seed=args.seed,
-                          noise=dict.fromkeys(optic.readbacks, 1e-3))
+                          noise=dict.fromkeys(optic.readbacks, SENSOR_NOISE))
     if engine.dropped:
         err = truncation_error(engine.full, engine.modal, min(args.max_hz / 3, 100.0))
         print(f"{engine.dropped} modes above {args.max_hz:g} Hz dropped (static part kept): "
               f"the response up to {min(args.max_hz / 3, 100.0):g} Hz differs by at most "
               f"{100 * err:.2g} % of each element's largest")
-    n = int(round(args.duration * engine.rate))
+    n, per = int(round(args.duration * engine.rate)), max(1, int(round(args.block * engine.rate)))
     if n < 1:
         raise TwindError(f"--duration {args.duration:g}: not one sample at {engine.rate:g} Hz")
-    rng = np.random.default_rng(args.seed)
-    exc = {f"{m}_EXC": rng.standard_normal(n) for m in engine.loops}
-    t0 = time.perf_counter()
-    block = engine.step(n, exc)
-    wall = time.perf_counter() - t0
-    for name, x in block.channels.items():
-        print(f"{optic.channel(name):40s} rms {math.sqrt(float(np.mean(x * x))):11.4g}")
+    rng = np.random.default_rng([args.seed, 1])  # not the engine's noise stream
+    power: dict[str, float] = {}
+    wall = 0.0
+    for start in range(0, n, per):
+        k = min(per, n - start)
+        exc = {f"{m}_EXC": rng.standard_normal(k) for m in engine.loops}
+        t0 = time.perf_counter()
+        block = engine.step(k, exc)
+        wall += time.perf_counter() - t0
+        for name, x in block.channels.items():
+            power[name] = power.get(name, 0.0) + float(np.sum(x * x))
+    for name, total in power.items():
+        print(f"{optic.channel(name):40s} rms {math.sqrt(total / n):11.4g}")
     print(f"simulated {args.duration:g} s of {optic.name} ({engine.ad.shape[0]} states, "
           f"loops closed: {', '.join(engine.closed) or 'none'}) in {wall:.3f} s: "
           f"{args.duration / wall:.1f} x real time")

@@ -1,7 +1,7 @@
 """Configuration files: one TOML file per optic, and an interferometer file listing optics.
 
 Every dimensional value is written ``"number unit"`` (see :mod:`twind.units`); unknown keys,
-missing keys, wrong units, unreadable foton designs and unstable loops are reported as
+missing keys, wrong units, unreadable foton designs and an SOS's unstable loops are reported as
 :class:`~twind.errors.ConfigError` naming the file, the key and the problem.
 """
 
@@ -259,14 +259,13 @@ def load_optic(path: str | Path) -> OpticConfig | StateSpaceOptic:
     r = Reader(source, read_toml(path))
     optic = r.sub("optic")
     optic.only(["name", "model"])
-    name = optic.get("name", str)
-    if optic.get("model", _check_model, "analytical") == "statespace":
+    name, model = optic.get("name", str), optic.get("model", _check_model, "analytical")
+    if model == "statespace":
         return load_statespace_optic(r, name)
     r.only(["optic", "suspension", "osem", "cds", "damping", "noise"])
     sus = _read_sus(r, name)
     cfg = OpticConfig(name=name, sus=sus, damping=_read_damping(r, name, sus.sample_rate_hz),
-                      noise=_read_noise(r), model=optic.get("model", _check_model, "analytical"),
-                      source=source)
+                      noise=_read_noise(r), model=model, source=source)
     check_stable(cfg)
     return cfg
 
@@ -295,24 +294,64 @@ def load_config(path: str | Path | None = None, optics: Sequence[str] | str | No
     r.only(["ifo", "service", "channels"])
     ifo = r.sub("ifo")
     ifo.only(["name", "optics"])
-    names = ifo.get("optics", lambda v: [str(x) for x in v])
-    wanted = names if optics in (None, "all", ["all"]) else (
+    files = optic_files(path)
+    wanted = list(files) if optics in (None, "all", ["all"]) else (
         optics.split(",") if isinstance(optics, str) else list(optics))
-    unknown = [n for n in wanted if n not in names]
+    unknown = [n for n in wanted if n not in files]
     if unknown:
-        raise ifo.fail("optics", f"unknown optic(s) {', '.join(unknown)}; the file has {', '.join(names)}")
-    loaded = {}
-    for name in wanted:
+        raise ifo.fail("optics", f"unknown optic(s) {', '.join(unknown)}; the file has "
+                       f"{', '.join(files)}")
+    loaded = {name: load_optic(files[name]) for name in wanted}
+    channels = r.sub("channels", False)
+    channels.only(["system"])
+    convention = Convention(ifo.get("name", str), channels.get("system", str, C1.system))
+    for optic in loaded.values():
+        own = getattr(optic, "convention", convention)
+        if own != convention:
+            raise channels.fail("system", f"{optic.name} names its channels {own.ifo}:"
+                                f"{own.system}-..., this file {convention.ifo}:"
+                                f"{convention.system}-...; make them agree")
+    return TwinConfig(convention.ifo, loaded, str(path), _read_service(r.sub("service", False)),
+                      convention)
+
+
+def optic_files(path: str | Path | None = None) -> dict[str, Path]:
+    """Each optic of an interferometer file and the file that holds it (in ``optics/`` or
+    beside it), in the file's order, none of them read; a single optic's file holds one."""
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    data = read_toml(path)
+    r = Reader(str(path), data)
+    if "ifo" not in data:
+        return {r.sub("optic").get("name", str): path}
+    ifo = r.sub("ifo")
+    out = {}
+    for name in ifo.get("optics", lambda v: [str(x) for x in v]):
         file = path.parent / "optics" / f"{name}.toml"
         file = file if file.exists() else path.parent / f"{name}.toml"
         if not file.exists():
             raise ifo.fail("optics", f"no file {file} for optic {name} (in optics/ or beside it)")
-        loaded[name] = load_optic(file)
-    name = ifo.get("name", str)
-    channels = r.sub("channels", False)
-    channels.only(["system"])
-    convention = Convention(name, channels.get("system", str, C1.system))
-    return TwinConfig(name, loaded, str(path), _read_service(r.sub("service", False)), convention)
+        out[name] = file
+    return out
+
+
+def optic_kinds(path: str | Path | None = None) -> dict[str, str]:
+    """Each optic's kind, ``"sos"`` or ``"statespace"``, from its ``[optic]`` table alone."""
+    kinds = {}
+    for name, file in optic_files(path).items():
+        model = Reader(str(file), read_toml(file)).sub("optic").get("model", str, "analytical")
+        kinds[name] = "statespace" if model == "statespace" else "sos"
+    return kinds
+
+
+def default_optic(path: str | Path | None = None) -> str:
+    """The optic a command takes when none is named: the file's only one, else the 40m's
+    ETMX; a ConfigError naming the choices when the file has several and no ETMX."""
+    names = list(optic_files(path))
+    if len(names) == 1 or "ETMX" in names:
+        return names[0] if len(names) == 1 else "ETMX"
+    source = str(path or DEFAULT_CONFIG)
+    raise ConfigError(source, "ifo.optics", f"several optics ({', '.join(names)}): name one "
+                      "with --optic (or --optics)")
 
 
 def _read_service(r: Reader) -> ServiceLimits:

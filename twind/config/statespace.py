@@ -54,28 +54,26 @@ from twind.loop.filtermodule import N_STAGES
 from twind.model.statespace import ModalForm, StateSpace, StateSpaceError, modal_form, read_mat
 from twind.simulation.statespace import StateSpaceEngine
 
-POINTS = ("EXC", "IN1", "IN2", "OUT")
-"""A damping loop's test points."""
+SENSOR_NOISE = 1e-3
+"""Each readback's white noise when the optic is simulated or served (per rtHz, in the
+model's units: a thousandth of the excitations' unit DC response)."""
 
 
 @dataclass(frozen=True)
 class LoopSpec:
     """One damping loop of a state-space optic.
 
+    Its filter module (its key in :attr:`StateSpaceOptic.loops`, e.g. ``IM_DAMP_L``) has the
+    test points ``<module>_EXC`` ... ``_OUT``; its IN1 is the readback ``<module>_IN1``.
+
     Attributes
     ----------
-    module : str
-        Its filter module, e.g. ``IM_DAMP_L``: test points ``<module>_EXC`` ... ``_OUT``.
-    readback : str
-        The model output its IN1 reads (that of ``<module>_IN1`` in the readbacks).
     drive : str
         The model input its OUT drives.
     filters : ModuleConfig or None
         Its controller, if the file gives one.
     """
 
-    module: str
-    readback: str
     drive: str
     filters: ModuleConfig | None = None
 
@@ -130,7 +128,7 @@ class StateSpaceOptic:
             return self.drives[drive]
         if drive in self.loops:
             return self.loops[drive].drive
-        msg = f"{self.source}: no drive {drive!r}; it has {', '.join([*self.drives, *self.loops])}"
+        msg = f"no drive {drive!r}; it has {', '.join([*self.drives, *self.loops])}"
         raise ConfigError(self.source, "drives", msg)
 
     def engine(self, rate_hz: float | None = None, max_hz: float | None = None,
@@ -251,7 +249,7 @@ def _loops(r: Reader, model: StateSpace, readbacks: Mapping[str, str], rate_hz: 
     fms = [f"FM{i}" for i in range(1, N_STAGES + 1)]
     for module in r.table:
         own = r.sub(module)
-        own.only(["drive", "gain", "on", "ramp", "limit", *fms])
+        own.only(["drive", "gain", "on", "limit", *fms])  # no ramp: its gain is not changed live
         drive = own.get("drive", str)
         try:
             model.input_index(drive)
@@ -269,9 +267,8 @@ def _loops(r: Reader, model: StateSpace, readbacks: Mapping[str, str], rate_hz: 
                 if stages[fm - 1] is None:
                     raise own.fail("on", f"FM{fm} is switched on but holds no filter")
             filters = ModuleConfig(own.get("gain", _gain), stages, on,
-                                   own.get("ramp", non_negative_quantity("time"), 0.0),
-                                   own.get("limit", non_negative_quantity("counts"), 0.0))
-        loops[module] = LoopSpec(module, readbacks[in1], drive, filters)
+                                   limit=own.get("limit", non_negative_quantity("counts"), 0.0))
+        loops[module] = LoopSpec(drive, filters)
     return loops
 
 

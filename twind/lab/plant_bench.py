@@ -214,6 +214,7 @@ def closed_against_open(optic: StateSpaceOptic, dof: str, workdir: Path, seed: i
     if not both.any():
         return Agreement(optic.name, dof, 0, math.nan, math.nan, math.nan, math.nan)
     loops = other_loops(optic, b.drives, b.readbacks, b.frequency_hz, b.resolution_hz)
+    loops = np.zeros_like(b.H) if loops is None else loops  # None: no other loop closed
     ha, hb = a.H[both, i, 0], b.H[both, i, 0]
     sa, sb = a.sigma[both, i, 0], b.sigma[both, i, 0]
     median = float(np.median(np.abs(hb / ha - 1)))

@@ -4,8 +4,8 @@ point, Welch's transfer functions written as diaggui saves them, in the site's n
 This is what proves the diagnosis of a plant known by its matrices: the data come from the
 time-domain engine (:class:`~twind.simulation.statespace.StateSpaceEngine`) and Welch's
 estimate (scipy.signal), never from the frequency-domain model the diagnosis fits, and a
-change hidden in them is made to the model's own matrices (:func:`stiffened`), not to its
-modal form.
+change hidden in them is made to the model's own matrices (:func:`moved`, Brauer's update),
+not to its modal form.
 """
 
 from __future__ import annotations
@@ -55,56 +55,6 @@ def moved(model: StateSpace, f_hz: float, factor: float, q: float | None = None
     new = -wn / (2 * qn) + 1j * wn * math.sqrt(max(1 - 1 / (4 * qn * qn), 0.0))
     update = (new - lam) * np.outer(vr[:, k], u) / (u @ vr[:, k])
     return replace(model, a=model.a + 2 * update.real), float(wn / (2 * math.pi))
-
-
-def stiffened(model: StateSpace, f_hz: float, factor: float) -> tuple[StateSpace, float]:
-    """`model` with one stiffness scaled: that of the position coordinate which carries the
-    largest share of the mode nearest `f_hz`.
-
-    A model written as ``x_i' = x_j`` (a position and its velocity) and ``x_j' = ... + a_ji
-    x_i + ...`` keeps the stiffness of coordinate ``i`` over its inertia in ``a_ji``; scaling
-    it is a spring stiffer or softer than modelled, which moves that mode (and, less, those
-    it couples to) as physics does, not as a modal form is edited.
-
-    Parameters
-    ----------
-    model : StateSpace
-    f_hz : float
-        Near the mode to move.
-    factor : float
-        The stiffness's scale.
-
-    Returns
-    -------
-    StateSpace
-        The changed model.
-    float
-        The moved mode's frequency (Hz): the eigenvalue of the changed matrix nearest
-        ``f_hz sqrt(factor)``.
-    """
-    a = model.a
-    velocity = {}
-    for i in range(a.shape[0]):
-        nz = np.flatnonzero(a[i])
-        if nz.size == 1 and a[i, nz[0]] == 1.0:
-            velocity[i] = int(nz[0])
-    w, v = np.linalg.eig(a)
-    k = int(np.argmin(np.abs(np.abs(w) / (2 * math.pi) - f_hz) + (w.imag < 0)))
-    share = np.abs(v[:, k])
-    before = np.abs(w[w.imag > 0]) / (2 * math.pi)
-    for i in sorted(velocity, key=lambda s: -share[s]):
-        changed = a.copy()
-        changed[velocity[i], i] *= factor
-        w2 = np.linalg.eigvals(changed)
-        if w2.real.max() > 1e-3:  # rad/s (a free mass's double pole splits by rounding)
-            continue  # that coordinate's spring holds another mode up: try the next
-        up = np.abs(w2[w2.imag > 0]) / (2 * math.pi)
-        moved = float(up[np.argmin(np.abs(np.log(up / (f_hz * math.sqrt(factor)))))])
-        new = np.min(np.abs(np.log(before / moved))) > 0.005  # not a mode that was there
-        if new and abs(math.log(moved / f_hz)) >= 0.1 * abs(math.log(factor)):
-            return replace(model, a=changed), moved
-    msg = f"no stiffness of the mode near {f_hz:g} Hz scales by {factor:g} stably"
-    raise ValueError(msg)
 
 
 def measure(optic: StateSpaceOptic, drive: str, path: str | Path, *,

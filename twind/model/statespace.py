@@ -15,12 +15,13 @@ their signal names, and :func:`modal_form` turns them into what twind fits and i
   Stewart 1979), each transformation well conditioned;
 * each mode as a second-order section per input/output pair, ``(a s + b) / (s^2 + w s / Q
   + w^2)``: a mode whose stiffness changes keeps its numerator (its modal mass and shape)
-  and moves its denominator, which is how twind refits it (:meth:`ModalForm.response`);
+  and moves its denominator, which is how twind refits it
+  (:class:`~twind.analysis.statespace.model.PlantModel`);
 * each mode's **label**: the degree of freedom that carries the largest share of it. For a
   collocated drive and sensor (a force on a body and its displacement, KAGRA's ``f_TMP`` and
   ``dispTMP``) the sections' ``b`` are the squares of the mass-normalised mode shape, so
   ``b_k / sum_k b`` is the share of that DOF's inverse mass that mode ``k`` carries: a
-  number from 0 to 1 whatever the units, compared across DOFs (:meth:`ModalForm.labels`).
+  number from 0 to 1 whatever the units, compared across DOFs.
 
 :meth:`ModalForm.truncated` drops the modes above a frequency (their static part kept, so
 the response below them is unchanged to first order) for an engine that integrates the model
@@ -303,8 +304,8 @@ class Mode:
 
 @dataclass(frozen=True)
 class _Block:
-    """A block of the modal form with more than two states (a cluster of poles), or one
-    real pole: evaluated by solving ``(sI - T) x = B``."""
+    """A block of the modal form and its realisation ``x' = T x + B u``, ``y = C x``: a mode's
+    2x2 block, a real pole, or a cluster of poles (evaluated by solving ``(sI - T) x = B``)."""
 
     t: NDArray[np.float64]
     b: NDArray[np.float64]
@@ -344,8 +345,6 @@ class ModalForm:
     d: NDArray[np.float64]
     condition: float
     source: str = ""
-    states: int = 0
-    labels_from: Mapping[str, tuple[str, str]] = field(default_factory=dict)
     realisation: tuple[_Block, ...] = field(default=(), repr=False)
     """Each mode's own 2x2 block, in the order of :attr:`modes`."""
 
@@ -353,15 +352,6 @@ class ModalForm:
         """Every block of the form (modes first): a realisation ``x' = T x + B u``,
         ``y = C x`` of the response but for the feedthrough :attr:`d`."""
         return (*self.realisation, *self.blocks)
-
-    def section(self, s: NDArray[np.complex128], k: int, w: float | None = None,
-                q: float | None = None) -> NDArray[np.complex128]:
-        """Mode `k`'s response at `s` (nf, outputs, inputs), at `w` and `q` if given (its
-        numerator kept: a change of stiffness, not of mass or shape)."""
-        w = self.w[k] if w is None else w
-        q = self.q[k] if q is None else q
-        den = 1.0 / (s * s + s * w / q + w * w)
-        return (s * den)[:, None, None] * self.num_s[k] + den[:, None, None] * self.num_1[k]
 
     def others(self, s: NDArray[np.complex128]) -> NDArray[np.complex128]:
         """What the non-mode blocks and the feedthrough add at `s` (nf, outputs, inputs)."""
@@ -385,10 +375,6 @@ class ModalForm:
         return (np.einsum("kf,koi->foi", s[None] * den, self.num_s, optimize=True)
                 + np.einsum("kf,koi->foi", den, self.num_1, optimize=True))
 
-    def mode_near(self, f_hz: float) -> Mode:
-        """The mode whose frequency is nearest `f_hz` (relative)."""
-        return min(self.modes, key=lambda m: abs(math.log(m.f_hz / f_hz)))
-
     def truncated(self, f_max_hz: float) -> tuple[ModalForm, int]:
         """The modes at or below `f_max_hz`; those above leave their static response
         (``num_1 / w^2``) in the feedthrough, so the response well below them is unchanged
@@ -407,7 +393,7 @@ class ModalForm:
         real = tuple(b for b, k in zip(self.realisation, keep, strict=True) if k)
         return (ModalForm(self.inputs, self.outputs, modes, self.num_s[keep], self.num_1[keep],
                           self.w[keep], self.q[keep], self.blocks, self.d + static,
-                          self.condition, self.source, self.states, self.labels_from, real),
+                          self.condition, self.source, real),
                 int((~keep).sum()))
 
 
@@ -439,8 +425,8 @@ def modal_form(ss: StateSpace, inputs: Sequence[str], outputs: Sequence[str],
     cols = [ss.input_index(x) for x in inputs]
     rows = [ss.output_index(x) for x in outputs]
     t_blocks, W, Wi, condition = block_diagonal(ss.a)
-    unstable = [ev for t in t_blocks for ev in np.linalg.eigvals(t[2])
-                if ev.real > 1e-9 * max(1.0, abs(ev))]
+    eigenvalues = [np.linalg.eigvals(t) for _, _, t in t_blocks]
+    unstable = [ev for evs in eigenvalues for ev in evs if ev.real > 1e-9 * max(1.0, abs(ev))]
     if unstable:
         worst = max(unstable, key=lambda e: e.real)
         msg = (f"{ss.source}: the model is unstable (a pole at {worst.real:.3g} "
@@ -450,9 +436,8 @@ def modal_form(ss: StateSpace, inputs: Sequence[str], outputs: Sequence[str],
     shape_cols = {k: ss.input_index(i) for k, (i, _) in shapes.items()}
     shape_rows = {k: ss.output_index(o) for k, (_, o) in shapes.items()}
     modes, num_s, num_1, w, q, blocks, shape_b, real = [], [], [], [], [], [], [], []
-    for lo, hi, t in t_blocks:
+    for (lo, hi, t), ev in zip(t_blocks, eigenvalues, strict=True):
         b, c = Bm[lo:hi][:, cols], Cm[rows][:, lo:hi]
-        ev = np.linalg.eigvals(t)
         if t.shape[0] == 2 and abs(ev[0].imag) > 0:
             real.append(_Block(t, b, c))
             ns, n1 = _section(t, b, c)
@@ -475,8 +460,8 @@ def modal_form(ss: StateSpace, inputs: Sequence[str], outputs: Sequence[str],
                      np.array([num_s[k] for k in order]) if modes else empty,
                      np.array([num_1[k] for k in order]) if modes else empty,
                      np.array([w[k] for k in order]), np.array([q[k] for k in order]),
-                     tuple(blocks), ss.d[np.ix_(rows, cols)], condition, ss.source, ss.states,
-                     shapes, tuple(real[k] for k in order))
+                     tuple(blocks), ss.d[np.ix_(rows, cols)], condition, ss.source,
+                     tuple(real[k] for k in order))
 
 
 def _section(t: NDArray, b: NDArray, c: NDArray) -> tuple[NDArray, NDArray]:

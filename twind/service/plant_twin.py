@@ -14,7 +14,7 @@ import zenoh
 
 from twind.bus.keys import ROOT
 from twind.config import TwinConfig
-from twind.config.statespace import StateSpaceOptic
+from twind.config.statespace import SENSOR_NOISE, StateSpaceOptic
 from twind.errors import TwindError
 from twind.service.twin import TwinService
 
@@ -47,22 +47,22 @@ class PlantTwinService(TwinService):
         """The optic's engine with its damping loops closed, and its channels: each EXC
         point, each readback, each loop's IN2 and OUT (the EXC points first)."""
         optic = self.optics[0]
-        self.engine = optic.engine(seed=seed, noise=dict.fromkeys(optic.readbacks, 1e-3))
-        self.points = [f"{t}_EXC" for t in self.engine.tests] + \
-            [f"{m}_EXC" for m in self.engine.loops]
+        self.engine = optic.engine(seed=seed, noise=dict.fromkeys(optic.readbacks, SENSOR_NOISE))
+        self.points = self.engine.points
         block = self.engine.step(0)  # compiles the kernel: the first block is not late
         self._suffixes = sorted(block.channels, key=lambda c: not c.endswith("_EXC"))
-        self._publish(block, np.zeros(0))
+        self._names = [optic.channel(c) for c in self._suffixes]
+        self._publish(block)
 
-    def _publish(self, block, empty: np.ndarray) -> None:  # noqa: ANN001 - engine's Block
-        """The channels of `block` as the service publishes them (an EXC not driven: zeros)."""
-        self._channels = [(self.optics[0].channel(c), UNIT, block.channels.get(c, empty))
-                          for c in self._suffixes]
+    def _publish(self, block) -> None:  # noqa: ANN001 - the engine's Block
+        """The channels of `block` as the service publishes them."""
+        self._channels = [(name, UNIT, block.channels[c])
+                          for name, c in zip(self._names, self._suffixes, strict=True)]
 
     def _advance(self, exc: dict[tuple[int, int], np.ndarray] | None) -> None:
         """The next block, the excitations by EXC point."""
         drive = {self.points[p]: samples for (_, p), samples in (exc or {}).items()}
-        self._publish(self.engine.step(self.n, drive), np.zeros(self.n))
+        self._publish(self.engine.step(self.n, drive))
 
     def _test_point(self, channel: str) -> tuple[int, int]:
         """``(0, index)`` of EXC point `channel`."""

@@ -52,6 +52,10 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
     if not (speed > 0 and block_s > 0):
         msg = f"--speed and --block must be positive, got {speed} and {block_s}"
         raise TwindError(msg)
+    kinds = {o.kind for o in optics}
+    if len(kinds) > 1:
+        msg = "a twin serves SOSs or one state-space optic, not both: choose --optics"
+        raise TwindError(msg)
     priority = _raise_priority()  # before any thread starts: they all inherit it
     limit_zenoh(conf, twin.service)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
@@ -65,7 +69,7 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
             # and no injection event escapes the recording
             recorder = (_recorder(record_dir, endpoints, twin.ifo, record_config)
                         if record_dir else None)
-            kind = PlantTwinService if optics[0].kind == "statespace" else TwinService
+            kind = PlantTwinService if kinds == {"statespace"} else TwinService
             service = kind(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
             print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
                   f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "

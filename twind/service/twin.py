@@ -267,7 +267,10 @@ class TwinService:
                 self._ended.add(act.id)
                 self._publish_event("error", act, reason=f"{type(err).__name__}: {err}")
                 continue
-            exc.setdefault((act.optic, act.dof), np.zeros(self.n))[a:] += samples
+            key = (act.optic, act.dof)
+            if key not in exc:
+                exc[key] = np.zeros(self.n)
+            exc[key][a:] += samples
             if act.waveform.done:
                 del self._active[act.id]
                 self._ended.add(act.id)

@@ -3,13 +3,13 @@ end closes them.
 
 The model is taken in its modal form (:func:`~twind.model.statespace.modal_form`), each
 block discretised exactly for a held input (zero-order hold, ``expm``), so a cycle costs the
-blocks' own sizes and not the square of the states (KAGRA's SRM: 112 states, ~1.6 k
+blocks' own sizes and not the square of the states (KAGRA's SRM: 112 states, ~3 k
 multiply-adds a cycle). Modes above a frequency may be dropped (:meth:`ModalForm.truncated`,
 their static response kept); :func:`truncation_error` states what that costs.
 
 A cycle: every readback is read (``y = C x + D u``, with its sensor noise); each damping loop
 takes ``IN1`` (its readback), ``IN2 = IN1 + EXC`` and ``OUT = K IN2`` (its filter module's
-second-order sections, bilinear at the rate); the drives are the TEST points' EXC plus the
+second-order sections, bilinear at the rate, and its output limiter); the drives are the TEST points' EXC plus the
 loops' OUT, held over the cycle while the state advances.
 """
 
@@ -24,10 +24,9 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from twind.errors import TwindError
-from twind.loop.filtermodule import FilterModule
+from twind.loop.filtermodule import IDENTITY_SECTION, FilterModule
 from twind.model.statespace import ModalForm, StateSpace, modal_form
 
-_IDENTITY = np.array([[1.0, 0.0, 0.0, 1.0, 0.0, 0.0]])  # a section passing its input
 
 
 class EngineError(TwindError):
@@ -81,6 +80,8 @@ class StateSpaceEngine:
 
     Attributes
     ----------
+    points : list of str
+        The excitation points, by channel suffix: each TEST point's EXC, then each loop's.
     modal, full : ModalForm
         The form integrated and the model's whole one.
     dropped : int
@@ -101,6 +102,7 @@ class StateSpaceEngine:
                    "(gain, FMs) to close them with")
             raise EngineError(msg)
         self.tests, self.loops = list(drives), list(loops)
+        self.points = [f"{t}_EXC" for t in self.tests] + [f"{m}_EXC" for m in self.loops]
         self._modules = {m: fm for m, (_, fm) in loops.items()}
         inputs = list(dict.fromkeys([*drives.values(), *(loops[m][0] for m in self.loops)]))
         self.readbacks = list(readbacks)
@@ -152,22 +154,23 @@ class StateSpaceEngine:
 
     def _filters(self) -> None:
         """Every loop's switched-on sections and gain (closed loops only)."""
-        sos, gains, first = [], [], [0]
+        sos, gains, limits, first = [], [], [], [0]
         for module in self.loops:
-            rows = [_IDENTITY]
-            gain = 0.0
+            rows = [IDENTITY_SECTION[None, :]]
+            gain = limit = 0.0
             if module in self.closed:
                 fm = self._modules[module]
                 layout, where = fm.section_layout(self.rate)
-                rows = [layout[where[k]] for k in sorted(fm.on)] or [_IDENTITY]
-                gain = fm.gain
+                rows = [layout[where[k]] for k in sorted(fm.on)] or [IDENTITY_SECTION[None, :]]
+                gain, limit = fm.gain, fm.limit
             stacked = np.vstack(rows)
             sos.append(stacked)
             gains.append(gain)
+            limits.append(limit)
             first.append(first[-1] + len(stacked))
         self.sos = np.vstack(sos) if sos else np.zeros((0, 6))
         self.sos_first = np.array(first, dtype=np.int64)
-        self.gains = np.array(gains)
+        self.gains, self.limits = np.array(gains), np.array(limits)
         self.zi = np.zeros((len(self.sos), 2))
 
     def step(self, n: int, exc: Mapping[str, NDArray[np.float64]] | None = None) -> Block:
@@ -181,16 +184,16 @@ class StateSpaceEngine:
             every readback.
         """
         exc = dict(exc or {})
-        known = [f"{t}_EXC" for t in self.tests] + [f"{m}_EXC" for m in self.loops]
-        unknown = [k for k in exc if k not in known]
+        unknown = [k for k in exc if k not in self.points]
         if unknown:
             msg = f"no excitation point {', '.join(unknown)} on {self.name}"
             raise EngineError(msg)
         m = self.d.shape[1]
         drive = np.zeros((n, m))
+        tests = {f"{t}_EXC": _samples(exc[f"{t}_EXC"], n) if f"{t}_EXC" in exc else np.zeros(n)
+                 for t in self.tests}
         for t in self.tests:
-            if f"{t}_EXC" in exc:
-                drive[:, self._drive_column[t]] += _samples(exc[f"{t}_EXC"], n)
+            drive[:, self._drive_column[t]] += tests[f"{t}_EXC"]
         loop_exc = np.zeros((n, len(self.loops)))
         for j, module in enumerate(self.loops):
             if f"{module}_EXC" in exc:
@@ -200,11 +203,10 @@ class StateSpaceEngine:
         out = np.zeros((n, len(self.loops)))
         _run(self.ad, self.bd, self.c, self.d, self.starts, self.x, self.u, drive, noise,
              self._loop_row, self._loop_column, loop_exc, self.sos, self.sos_first, self.gains,
-             self.zi, y, out)
+             self.limits, self.zi, y, out)
         start = self.samples
         self.samples += n
-        channels = {f"{t}_EXC": drive[:, self._drive_column[t]].copy() for t in self.tests
-                    if f"{t}_EXC" in exc}
+        channels = dict(tests)
         channels.update({r: y[:, i] for i, r in enumerate(self.readbacks)})
         for j, module in enumerate(self.loops):
             channels[f"{module}_EXC"] = loop_exc[:, j]
@@ -224,7 +226,7 @@ def _samples(x: NDArray[np.float64] | float, n: int) -> NDArray[np.float64]:
 
 @nb.njit(cache=True)
 def _run(ad, bd, c, d, starts, x, u, drive, noise, loop_row, loop_col, loop_exc, sos,  # noqa: ANN001, PLR0913
-         sos_first, gains, zi, y, out):  # pragma: no cover - numba
+         sos_first, gains, limits, zi, y, out):  # pragma: no cover - numba
     """The cycles: read, close the loops, drive, advance (see the module's docstring)."""
     n, m = drive.shape
     ns, p = x.size, y.shape[1]
@@ -249,7 +251,10 @@ def _run(ad, bd, c, d, starts, x, u, drive, noise, loop_row, loop_col, loop_exc,
                 zi[s, 0] = (b1 * v - a1 * w) / a0 + zi[s, 1]
                 zi[s, 1] = (b2 * v - a2 * w) / a0
                 v = w
-            out[t, l] = gains[l] * v
+            v = gains[l] * v
+            if limits[l] > 0:  # the module's output limiter
+                v = min(max(v, -limits[l]), limits[l])
+            out[t, l] = v
             u[loop_col[l]] += out[t, l]
         for b in range(starts.size - 1):
             lo, hi = starts[b], starts[b + 1]

@@ -17,7 +17,8 @@ from twind import __version__, strictjson
 from twind.analysis.statespace.diagnose import PlantDiagnosis
 from twind.analysis.statespace.measurement import PlantSet
 from twind.errors import TwindError
-from twind.viz.report import STYLE, bands, number, table
+from twind.viz.plotting import MIN_COHERENCE, phase
+from twind.viz.report import bands, html_page, number, report_dir, table
 
 COLUMNS = 3
 """Elements side by side in a figure."""
@@ -115,9 +116,7 @@ def _element(mag, ph, co, f, h, s, g2, good, models) -> None:  # noqa: ANN001 - 
         if not there.any():
             continue
         mag.plot(f, np.where(there, np.abs(m), np.nan), color=f"C{k}", lw=1.1, label=name)
-        deg = np.degrees(np.angle(m))
-        deg[1:][np.abs(np.diff(deg)) > 180] = np.nan
-        ph.plot(f, np.where(there, deg, np.nan), color=f"C{k}", lw=1.1)
+        ph.plot(f, phase(np.where(there, m, np.nan)), color=f"C{k}", lw=1.1)
         if not np.abs(m).max() > 1e-9 * max(top, 1e-300):
             mag.text(0.5, 0.05, f"{name}: zero here", transform=mag.transAxes, fontsize=FONT - 1,
                      color=f"C{k}", ha="center")
@@ -159,14 +158,14 @@ def plot_plant(plant: PlantSet, path: str | Path) -> list[Path]:
     out = [plot_elements(plant.frequency_hz, plant.H, plant.sigma, plant.coherence, good,
                          plant.readbacks, plant.drives, path, title=title,
                          notes=measurement_notes(plant))]
-    loops = [(m, lp.controller()) for m, lp in plant.loops.items() if lp.controller()]
+    loops = [(m, c) for m, lp in plant.loops.items() if (c := lp.controller()) is not None]
     if loops:
         k = np.stack([c[0] for _, c in loops], axis=1)[:, :, None]
         s = np.stack([c[1] for _, c in loops], axis=1)[:, :, None]
         g2 = np.stack([np.minimum(plant.loops[m].coherence["OUT"],
                                   plant.loops[m].coherence["IN2"]) for m, _ in loops],
                       axis=1)[:, :, None]
-        ok = np.isfinite(k) & (g2 >= 0.5)
+        ok = np.isfinite(k) & (g2 >= MIN_COHERENCE)
         path = Path(path)
         to = path.with_name(f"{path.stem}_controller{path.suffix}")
         out.append(plot_elements(plant.frequency_hz, k, s, g2, ok, [m for m, _ in loops],
@@ -208,13 +207,7 @@ def write_plant_report(d: PlantDiagnosis, out: str | Path) -> Path:
     Path
         The page.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    names = ["diagnosis.png", "diagnosis.json", "index.html"]
-    taken = [n for n in names if (out / n).exists()]
-    if taken:
-        msg = f"{out} already holds {', '.join(taken)}; twind does not overwrite reports"
-        raise TwindError(msg)
+    out = report_dir(out, ["diagnosis.png", "diagnosis.json", "index.html"], TwindError)
     plot_diagnosis(d, out / "diagnosis.png")
     (out / "diagnosis.json").write_text(strictjson.dumps(d.to_json(), indent=1))
     (out / "index.html").write_text(_page(d))
@@ -233,6 +226,7 @@ def _page(d: PlantDiagnosis) -> str:
     parts = [f"<h1>twind diagnose: {optic} (state-space model)</h1>",
              f'<p class="verdict" id="verdict">{html.escape(d.summary())}</p>',
              f"<p>{html.escape(' '.join(measurement_notes(d.plant)))}</p>",
+             f"<p>The model: {html.escape(d.optic.model_source or d.optic.source)}</p>",
              "<h2>Changes</h2>",
              table("changes", ("change", "verdict", "p-value", "delta BIC", "reading"), changes)
              if changes else "<p>none claimed</p>",
@@ -245,8 +239,7 @@ def _page(d: PlantDiagnosis) -> str:
              bands("unexplained", d.unexplained, "nothing"),
              '<h2>Measured, model and refitted</h2><img src="diagnosis.png" alt="figure">',
              '<p><a href="diagnosis.json">diagnosis.json</a></p>']
-    return (f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>twind diagnose: "
-            f"{optic}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>")
+    return html_page(f"twind diagnose: {optic}", parts)
 
 
 def _measured(m: dict | None) -> str:

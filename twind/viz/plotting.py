@@ -155,11 +155,11 @@ def _models(cell: Sequence[Axes], f: NDArray, models: Mapping[str, NDArray], i: 
         there = mag > 1e-13 * top  # points where the model is exactly zero: not drawn
         drawn = True
         cell[0].loglog(f, np.where(there, mag, np.nan), color=f"C{k}", lw=1, label=name)
-        cell[1].semilogx(f, _phase(np.where(there, h[:, i, j], np.nan)), color=f"C{k}", lw=1)
+        cell[1].semilogx(f, phase(np.where(there, h[:, i, j], np.nan)), color=f"C{k}", lw=1)
     return drawn
 
 
-def _phase(h: NDArray[np.complex128]) -> NDArray[np.float64]:
+def phase(h: NDArray[np.complex128]) -> NDArray[np.float64]:
     """Phase in degrees, broken (NaN) where it wraps, so that no line crosses the panel."""
     deg = np.degrees(np.angle(h))
     deg[1:][np.abs(np.diff(deg)) > 180] = np.nan

@@ -66,8 +66,25 @@ def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
               f'alt="{html.escape(title)}">' for title, src in images]
     parts.append('<p><a href="diagnosis.json">diagnosis.json</a>; '
                  "<code>rerun diagnosis.rrd</code> (timeline frequency_hz)</p>")
-    return (f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>twind diagnose: "
-            f"{optic}</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>")
+    return html_page(f"twind diagnose: {optic}", parts)
+
+
+def html_page(title: str, parts: Sequence[str]) -> str:
+    """A report's page: `parts` (HTML) under `title`, in the reports' style."""
+    return (f"<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{html.escape(title)}"
+            f"</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>")
+
+
+def report_dir(out: str | Path, names: Sequence[str], error: type[Exception]) -> Path:
+    """Folder `out`, made if need be, for a report's files `names`; `error` if it already
+    holds any of them: reports are never overwritten."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    taken = [n for n in names if (out / n).exists()]
+    if taken:
+        msg = f"{out} already holds {', '.join(taken)}; twind does not overwrite reports"
+        raise error(msg)
+    return out
 
 
 def table(table_id: str, header: Sequence[str], rows: Sequence[Sequence[str]],
@@ -167,13 +184,8 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
     DiagnoseError
         If `out` already holds a report's files: reports are never overwritten.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    names = ["nominal.png", "augmented.png", "diagnosis.json", "index.html", "diagnosis.rrd"]
-    taken = [n for n in names if (out / n).exists()]
-    if taken:
-        msg = f"{out} already holds {', '.join(taken)}; twind does not overwrite reports"
-        raise DiagnoseError(msg)
+    out = report_dir(out, ["nominal.png", "augmented.png", "diagnosis.json", "index.html",
+                           "diagnosis.rrd"], DiagnoseError)
     plot_fit(tfs, cfg, diagnosis.nominal, str(out / "nominal.png"))
     if diagnosis.effects:
         plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))

@@ -40,6 +40,11 @@ class Located:
     p_value: float  # Holm-corrected
     excess: float  # residual power over its expectation
 
+    def line(self, width: int = 9) -> str:
+        """One line of a diagnosis's summary, the element's name padded to `width`."""
+        return (f"  {self.element:{width}s} {self.band_hz[0]:7.3g}-{self.band_hz[1]:<7.3g} Hz  "
+                f"{self.significance:5.1f} sigma, residual power x{self.excess:.3g}")
+
     def to_json(self) -> dict:
         """``{"element", "band_hz", "significance"}`` as ``twind diagnose`` prints it."""
         return {"element": self.element, "band_hz": list(self.band_hz),

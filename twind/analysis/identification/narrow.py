@@ -276,7 +276,7 @@ def _columns(data: FitData, cfg: OpticConfig, plant: Plant, sus: SOSParams, dof:
         # the last size written out: -1 is ambiguous when no bin is near the band
         return B.reshape(*at.shape, int(np.prod(B.shape[at.ndim:]))), loop[3]
 
-    d2, w2 = _two_point(res)
+    d2, w2 = two_point(res)
     B2, s2 = first_order(f[bins, None] + res * d2)
     red, far_coords = _far(data, near, far, B2[~is_near] * w2[:, None],
                            mode(s2[~is_near][None], grid[:, None, None]), Q, len(patterns))
@@ -377,7 +377,7 @@ def _first_order(loop: tuple[NDArray, NDArray, NDArray, NDArray], c: NDArray[np.
     return B.reshape(*s.shape, len(rows), len(cols))
 
 
-def _two_point(res: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def two_point(res: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """ClosedLoopModel's rule away from narrow features: f +- res / sqrt(3), or f itself."""
     if res <= 0:
         return np.zeros(1), np.ones(1)
@@ -585,7 +585,7 @@ class _Trials:
         self.entry_bin = np.repeat(np.arange(self.bins.size), counts)
         self.start = np.concatenate([[0], np.cumsum(counts)])
         self.Qr = Q.T @ r
-        self.d2, self.w2 = _two_point(self.res)
+        self.d2, self.w2 = two_point(self.res)
         B2, self.s2 = self._first_order(self.f[:, None] + self.res * self.d2)
         self.Z = self._whitened(B2, self.bins)  # (points, patterns, entries)
         self._fine: dict[int, NDArray] = {}

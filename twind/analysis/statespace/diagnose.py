@@ -34,6 +34,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy import stats
 
 from twind import progress
@@ -299,9 +300,7 @@ class PlantDiagnosis:
                f"fitted: chi2/nu {self.nominal.chi2_nu:.3g}; "
                + ("consistent with the data" if self.consistent else
                   f"misses in {len(self.located)} band(s)")]
-        for x in self.located[:8]:
-            out.append(f"  {x.element:34s} {x.band_hz[0]:7.3g}-{x.band_hz[1]:<7.3g} Hz "
-                       f"{x.significance:5.1f} sigma, residual power x{x.excess:.3g}")
+        out += [x.line(34) for x in self.located[:8]]
         for c in self.effects:
             role = f"rival of {c.rival_of}" if c.rival_of else "change" + (
                 " (partial)" if c.partial else "")
@@ -361,20 +360,21 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
     if not chosen:
         return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, [], nominal,
                               located, first)
-    final = _prune(data, model, free, chosen, noise, unit)
-    unexplained = _located(data, model, final)
+    final_model, final = _prune(data, model, optic, plant, free, chosen, noise, unit)
+    unexplained = _located(data, final_model, final)
     for c in chosen:
         c.fit, c.partial = final, bool(unexplained)
-        c.local = _local(data, model, nominal, final, c.effect)
+        c.local = _local(data, base.model, final_model, nominal, final, c.effect)
     rivals = [r for r in rivals if any(c.effect.key() == r.rival_of for c in chosen)]
-    return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, chosen + rivals,
-                          final, unexplained, first)
+    return PlantDiagnosis(optic, plant, data, final_model, nominal, noise, located,
+                          chosen + rivals, final, unexplained, first)
 
 
-def _local(data: FitData, model: PlantModel, nominal: PlantFit, final: PlantFit,
-           effect: Effect) -> tuple[float, float, int] | None:
-    """chi2/nu of `nominal` and of `final` over the bins where `effect` (at its final values)
-    moves the final prediction by more than the error, and their number."""
+def _local(data: FitData, nominal_model: PlantModel, model: PlantModel, nominal: PlantFit,
+           final: PlantFit, effect: Effect) -> tuple[float, float, int] | None:
+    """chi2/nu of `nominal` (on `nominal_model`) and of `final` (on `model`) over the bins
+    where `effect` (at its final values) moves the final prediction by more than the error,
+    and their number."""
     without = [(e, e.start(len(v) - 2) if e.key() == effect.key() else v)
                for e, v in final.effects]
     with_it = model(final.nuisance, final.effects)
@@ -384,11 +384,11 @@ def _local(data: FitData, model: PlantModel, nominal: PlantFit, final: PlantFit,
         return None
     n = int(moved.sum())
 
-    def chi2_nu(fit: PlantFit) -> float:
-        z = (data.H - model(fit.nuisance, fit.effects))[moved] / data.sigma[moved]
+    def chi2_nu(prediction: NDArray[np.complex128]) -> float:
+        z = (data.H - prediction)[moved] / data.sigma[moved]
         return float(np.sum(np.abs(z) ** 2) / (2 * n))
 
-    return chi2_nu(nominal), chi2_nu(final), n
+    return chi2_nu(nominal_model(nominal.nuisance, nominal.effects)), chi2_nu(with_it), n
 
 
 def _unit(fit: PlantFit, data: FitData, noise: Noise) -> float:
@@ -456,13 +456,16 @@ def _looped(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Pla
             effects: Sequence[tuple[Effect, dict]]) -> PlantModel:
     """`model` with what the other damping loops feed back made from the model as `effects`
     change it (its modes moved or scaled): a closed loop's other loops answer the suspension
-    there is, not the one modelled. `model` itself when no other loop is closed or no change
-    acts on a mode."""
-    if model.loops is None or not any(e.family.startswith("mode_") for e, _ in effects):
+    there is, not the one modelled. `model` itself when no other loop is closed or its
+    feedback was made with these changes of its modes already."""
+    modes = tuple((e.key(), tuple(sorted(v.items()))) for e, v in effects
+                  if e.family.startswith("mode_"))
+    if model.loops is None or modes == model.loops_made_with:
         return model
     looped = copy.copy(model)
     looped.loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
                                data.resolution_hz, effects)
+    looped.loops_made_with = modes
     return looped
 
 
@@ -489,7 +492,7 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
     # a screen's drop in chi^2 is, for residuals within the noise, (dof + 1) / dof / scale^2
     # of deviance
     screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
-    families = {name: members for name, members in _screen(res, model, plant, chosen, current,
+    families = {name: members for name, members in _screen(res, model, chosen, current,
                                                             screen_unit).items() if members}
     claims: list[Claim] = []
     for family, members in families.items():
@@ -506,14 +509,14 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
             if claim is None:
                 continue
             if family == "resonance":
-                claim = _narrower(claim, res, model, screen_unit)
+                claim = _narrower(claim, res, model)
             claim.members = len(members)
             claim.p_value = min(1.0, claim.p_value * len(members) * len(families))
             claims.append(claim)
     return claims
 
 
-def _narrower(claim: Claim, res: Residuals, model: PlantModel, unit: float) -> Claim:
+def _narrower(claim: Claim, res: Residuals, model: PlantModel) -> Claim:
     """`claim` (a resonance) paying also for the search it would have needed at its own
     fitted Q, when that is narrower than the searched ones: a narrow mode has more places
     to hide in the noise than a broad one. Trials a quarter of a width (or bin) apart turn
@@ -534,33 +537,37 @@ def _needed(tried: int, k: int) -> float:
     return float(stats.chi2.isf(ALPHA / tried, k))
 
 
-def _screen(res: Residuals, model: PlantModel, plant: PlantSet, chosen: list[Claim],
+def _screen(res: Residuals, model: PlantModel, chosen: list[Claim],
             base: PlantFit, unit: float) -> dict[str, list[_Member]]:
     """Each family's members, screened on the residuals of `base`."""
     modal = model.modal
     taken = {c.effect.target[0] for c in chosen
              if c.effect.family in ("mode_frequency", "mode_amplitude")}
     f = res.data.frequency_hz[res.data.mask.any(axis=(1, 2))]
-    modes = [k for k, m in enumerate(modal.modes) if k not in taken
-             and f[0] / 1.5 <= m.f_hz <= 1.5 * f[-1]
-             and res.power(model.closed_term(k)) >= VISIBLE * unit]
+    terms = {k: model.closed_term(k) for k, m in enumerate(modal.modes)
+             if k not in taken and f[0] / 1.5 <= m.f_hz <= 1.5 * f[-1]}
     out: dict[str, list[_Member]] = {"mode_frequency": [], "mode_amplitude": []}
-    for k in modes:
+    for k, term in terms.items():
+        if res.power(term) < VISIBLE * unit:
+            continue
         progress.tick()
         sweep = res.moved(k, unit)
         out["mode_frequency"].append(_Member(
             Effect("mode_frequency", (k,)), sweep.drop,
             {"log_f": math.log(2 * math.pi * sweep.f_hz / modal.w[k]),
              "log_q": math.log(sweep.q / modal.q[k]), "amplitude": 1.0}, sweep.paths))
-        drop, coef = res.linear(res.G * model.closed_term(k))
+        drop, coef = res.linear(res.G * term)
         out["mode_amplitude"].append(_Member(Effect("mode_amplitude", (k,)), drop / unit,
                                              {"amplitude": 1.0 + coef}))
     repeat = sum(c.effect.family == "resonance" for c in chosen)
     sweep = res.resonance(unit, _moved_to(model, base.effects))
     nr, nd = res.z.shape[1:]
-    start = {"f_hz": sweep.f_hz, "q": sweep.q,
-             **{f"b{i}": float(b) for i, b in enumerate(sweep.coefficients)}}
-    out["resonance"] = [_Member(Effect("resonance", (repeat,)), sweep.drop, start, sweep.paths)]
+    out["resonance"] = []
+    if sweep.coefficients is not None:  # None: no trial left outside the moved modes
+        start = {"f_hz": sweep.f_hz, "q": sweep.q,
+                 **{f"b{i}": float(b) for i, b in enumerate(sweep.coefficients)}}
+        out["resonance"].append(_Member(Effect("resonance", (repeat,)), sweep.drop, start,
+                                        sweep.paths))
     read = [i for i in range(nr) if res.data.mask[:, i].any()]
     gains = [i for i in range(nr) if f"g_{i}" in base.names]
     out["cross_coupling"] = []
@@ -685,22 +692,25 @@ def _seen_in(data: FitData, before: PlantFit, after: PlantFit) -> str:
     return data.responses[i] if len(data.excited) == 1 else f"{data.responses[i]}/{data.excited[j]}"
 
 
-def _prune(data: FitData, model: PlantModel, free: list[str], chosen: list[Claim],
-           noise: Noise, unit: float) -> PlantFit:
+def _prune(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+           free: list[str], chosen: list[Claim], noise: Noise, unit: float
+           ) -> tuple[PlantModel, PlantFit]:
     """Each chosen change's p-value given the others; the most redundant leaves while its
-    p-value is at least :data:`ALPHA`. Returns the final fit."""
+    p-value is at least :data:`ALPHA`. Returns the final model (its other loops' feedback
+    made with the changes that stay) and fit."""
     final = chosen[-1].fit
     while len(chosen) > 1:
         without = {}
         for c in chosen:
             rest = [(e, v) for e, v in final.effects if e.key() != c.effect.key()]
+            looped = _looped(data, model, optic, plant, rest)
             try:
-                fit = fit_plant(data, model, final.nuisance, free, rest, noise=noise,
-                                limits=_limits(model, data, rest))
+                fit = fit_plant(data, looped, final.nuisance, free, rest, noise=noise,
+                                limits=_limits(looped, data, rest))
             except FitError:
                 c.p_given_others = None
                 continue
-            without[c.effect.key()] = fit
+            without[c.effect.key()] = looped, fit
             k = final.rank - fit.rank
             lr = max(fit.deviance - final.deviance, 0.0) / unit
             c.p_given_others = min(1.0, _p_value(lr, k, c.paths)) if k > 0 else 1.0
@@ -708,5 +718,5 @@ def _prune(data: FitData, model: PlantModel, free: list[str], chosen: list[Claim
         if (worst.p_given_others or 0.0) < ALPHA:
             break
         chosen.remove(worst)
-        final = without[worst.effect.key()]
-    return final
+        model, final = without[worst.effect.key()]
+    return model, final

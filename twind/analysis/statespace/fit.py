@@ -150,17 +150,6 @@ class PlantFit:
         """Reduced chi-square."""
         return self.chi2 / max(self.nu, 1)
 
-    def value(self, name: str) -> float:
-        """A parameter's value (held ones included: nuisance by name, effects'
-        ``key.param``)."""
-        if name in self.nuisance:
-            return self.nuisance[name]
-        for effect, own in self.effects:
-            key, _, param = name.rpartition(".")
-            if key == effect.key() and param in own:
-                return own[param]
-        raise KeyError(name)
-
     def error(self, name: str) -> float | None:
         """A parameter's sigma, None where the data did not determine it or it was held."""
         if name not in self.names:
@@ -387,7 +376,7 @@ class _Problem:
 
 def _whitened(data: FitData, d: NDArray[np.complex128]) -> NDArray[np.float64]:
     """A change of the modelled measurement as :meth:`FitData.whiten` weighs it."""
-    z = d[data.mask] / data.sigma[data.mask]
+    z = data.whitened_change(d, np.arange(d.shape[0]))
     return np.concatenate([z.real, z.imag])
 
 
@@ -471,18 +460,19 @@ def _result(data: FitData, names: list[str], coords: list[_Coordinate], x: NDArr
     z2 = r[: r.size // 2] ** 2 + r[r.size // 2:] ** 2
     sigma = np.full(len(names), np.nan)
     rank = 0
+    values = np.array([c.value(v) for c, v in zip(coords, x, strict=True)])
+    median = float(np.median(z2) / 2 / math.log(2))  # the residuals' variance, robustly
     if names:
-        values = np.array([c.value(v) for c, v in zip(coords, x, strict=True)])
         width = np.array([c.width(v) for c, v in zip(coords, x, strict=True)])
         scale = np.array([_scale(n, c, v, w, names, values)
                           for n, c, v, w in zip(names, coords, values, width, strict=True)])
         Js = J * scale
         _, sv, vt = np.linalg.svd(Js, full_matrices=False)
-        level = math.sqrt(float(np.median(z2) / 2 / math.log(2)))
+        level = math.sqrt(median)
         weak = sv < level
         rank = int((~weak).sum())
     nu = r.size - rank
-    scale2 = float(np.median(z2) / 2 / math.log(2)) * r.size / max(nu, 1)
+    scale2 = median * r.size / max(nu, 1)
     rho = bin_correlation(r, [data])
     if names and rank:
         keep = vt[~weak]
@@ -493,7 +483,6 @@ def _result(data: FitData, names: list[str], coords: list[_Coordinate], x: NDArr
                 else np.zeros(len(names), bool))
         sd = np.sqrt(np.clip(np.diag(cov_s), 0, None)) * scale * width
         sigma = np.where(lost, np.nan, sd)
-    values = np.array([c.value(v) for c, v in zip(coords, x, strict=True)])
     return PlantFit(names, values, sigma, chi2, nu, math.sqrt(scale2), rho, data.bins,
                     effects, nuisance, r, noise.deviance(r) if noise else math.nan)
 

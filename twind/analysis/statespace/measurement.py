@@ -76,12 +76,16 @@ class PlantSet:
         The plant, the standard error of its real and imaginary parts, and its coherence
         (a closed loop's: the lower of the readback's and OUT's).
     averages : int
+        The fewest of any file.
     channels : dict of str to str
         Each drive's and readback's full channel name.
     loops : dict of str to LoopTF
         The closed-loop columns' own test points.
     sources : tuple of str
         The files read.
+    window : str
+        ``"hann"`` (FFT measurements: each bin averages over the window's kernel) or
+        ``"none"`` (swept sines: each point at its own frequency).
     """
 
     optic: str
@@ -99,13 +103,9 @@ class PlantSet:
 
     @property
     def resolution_hz(self) -> float:
-        """The bin width (Hz)."""
+        """The Hann bins' width (Hz); 0 for a swept sine's points, each its own frequency."""
         f = self.frequency_hz
-        return float(np.median(np.diff(f))) if f.size > 1 else 0.0
-
-    def elements(self) -> list[str]:
-        """``readback/drive`` of each element, row-major."""
-        return [f"{r}/{d}" for r in self.readbacks for d in self.drives]
+        return float(np.median(np.diff(f))) if f.size > 1 and self.window == "hann" else 0.0
 
     def coherent(self, min_coherence: float = MIN_COHERENCE) -> NDArray[np.bool_]:
         """The bins to trust: their coherence averaged over neighbours reaches
@@ -200,13 +200,15 @@ def read_plant(paths: Sequence[str | Path], optic: StateSpaceOptic) -> PlantSet:
     columns: dict[str, dict[str, tuple]] = {}
     loops: dict[str, LoopTF] = {}
     channels: dict[str, str] = {}
-    freq, averages = None, None
+    freq, averages, kinds = None, [], set()
     for path in paths:
         transfers = read_transfers(path)
         drive, by_suffix = _by_suffix(path, transfers, optic)
         f = transfers[0].frequency_hz
+        averages += [t.averages for t in transfers]
+        kinds |= {t.kind for t in transfers}
         if freq is None:
-            freq, averages = f, min(t.averages for t in transfers)
+            freq = f
         elif f.size != freq.size or np.max(np.abs(f - freq)) > 1e-9:
             msg = f"{path}: its frequency bins differ from the other files'"
             raise TFError(msg)
@@ -229,7 +231,8 @@ def read_plant(paths: Sequence[str | Path], optic: StateSpaceOptic) -> PlantSet:
                 H[:, i, j], sigma[:, i, j], coh[:, i, j] = columns[d][r]
     channels.update({r: optic.channel(r) for r in readbacks})
     return PlantSet(optic.name, np.asarray(freq), drives, readbacks, H, sigma, coh,
-                    int(averages), channels, loops, tuple(str(p) for p in paths))
+                    int(min(averages)), channels, loops, tuple(str(p) for p in paths),
+                    "hann" if kinds == {"FFT"} else "none")
 
 
 def _by_suffix(path: str | Path, transfers: list[Transfer], optic: StateSpaceOptic

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind.analysis.identification.model import NARROW_REACH_BINS, hann_kernel
+from twind.analysis.identification.narrow import two_point
 from twind.config.statespace import StateSpaceOptic
 from twind.model.statespace import ModalForm
 
@@ -36,8 +37,7 @@ FAMILIES = ("mode_frequency", "mode_amplitude", "resonance", "cross_coupling",
 changed (0: missing); a mode the model lacks; a readback that also reads another; one
 readback with its own first-order stage."""
 
-_D2 = np.array([-1.0, 1.0]) / math.sqrt(3.0)  # the two-point rule's offsets (bins)
-_W2 = np.array([0.5, 0.5])
+_D2, _W2 = two_point(1.0)  # the two-point rule's offsets (bins) and weights
 _KERNEL_SAMPLES = 8  # a mode narrower than 1/8 bin is widened to it on the kernel's points
 
 
@@ -50,11 +50,16 @@ class Effect:
     family : str
     target : tuple of int
         ``(k,)`` the model's mode k; ``(r, r2)`` readback r also reads readback r2; ``(r,)``
-        readback r's own stage; ``()`` a resonance.
+        readback r's own stage; ``(n,)`` the n-th resonance (from 0).
     """
 
     family: str
     target: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.family not in FAMILIES:
+            msg = f"no family {self.family!r}; expected one of {', '.join(FAMILIES)}"
+            raise ValueError(msg)
 
     def params(self, elements: int = 0) -> list[str]:
         """Its parameters' own names (a resonance has one numerator per element)."""
@@ -73,7 +78,7 @@ class Effect:
         return zero
 
     def key(self) -> str:
-        """A unique name: ``mode_frequency[12]``, ``cross_coupling[3<4]``, ``resonance``."""
+        """A unique name: ``mode_frequency[12]``, ``cross_coupling[3<4]``, ``resonance[0]``."""
         if not self.target:
             return self.family
         sep = "<" if self.family == "cross_coupling" else ","
@@ -134,6 +139,7 @@ class PlantModel:
                  feedback: dict[int, Feedback] | None = None) -> None:
         self.modal, self.f, self.res = modal, np.asarray(f_hz, dtype=float), resolution_hz
         self.loops, self.feedback = loops, feedback or {}
+        self.loops_made_with: tuple = ()  # the mode changes `loops` was made with
         self.s = 2j * np.pi * self.f
         points = self.f[:, None] + resolution_hz * _D2 if resolution_hz > 0 else self.f[:, None]
         weights = _W2 if resolution_hz > 0 else np.ones(1)
@@ -410,15 +416,28 @@ def loop_feedback(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequ
         modal = optic.modal(tuple(loops), rows)
         inner = tuple(rows.index(f"{m}_IN1") for m in loops)
         P = modal.response(np.asarray(f_hz, dtype=float))
-        K = np.stack([optic.loops[m].filters.build().response(f_hz) for m in loops], axis=1)
-        M = np.linalg.solve(np.eye(len(loops)) - K[:, :, None] * P[:, inner],
-                            K[:, :, None] * np.eye(len(loops)))  # (1 - K P_in)^-1 K
+        K = controllers(optic, loops, f_hz)
+        M = closed(P[:, inner], K)
         a = M[:, :, 0] / M[:, :1, 0]
         PR = P[:, : len(readbacks)]
         T = np.einsum("frl,fl->fr", PR, a)
         W = np.einsum("frl,flm->frm", PR - T[:, :, None] * np.eye(len(loops))[0], M)
         out[j] = Feedback(modal, P, K, a, W, inner)
     return out
+
+
+def controllers(optic: StateSpaceOptic, loops: Sequence[str], f_hz: NDArray[np.float64]
+                ) -> NDArray[np.complex128]:
+    """The configured controllers of `loops` at `f_hz`, (nf, loops)."""
+    return np.stack([optic.loops[m].filters.build().response(f_hz) for m in loops], axis=1)
+
+
+def closed(p_in: NDArray[np.complex128], k: NDArray[np.complex128]) -> NDArray[np.complex128]:
+    """``(1 - K P_in)^-1 K``: each loop's OUT per unit of each loop's EXC with every loop
+    closed, from the plant between the loops' drives and their IN1 (``P_in``, (..., loops,
+    loops)) and their controllers (``K``, (..., loops))."""
+    n = k.shape[-1]
+    return np.linalg.solve(np.eye(n) - k[..., :, None] * p_in, k[..., :, None] * np.eye(n))
 
 
 def _closed_columns(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequence[str]
@@ -474,8 +493,7 @@ def other_loops(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequen
         others, K = _unchanged(optic, loops, modal, points)
         P = modal.modes_response(points) + others
         inner = [rows.index(f"{m}_IN1") for m in loops]
-        u = np.linalg.solve(np.eye(len(loops)) - K[:, :, None] * P[:, inner],
-                            K[:, :, None] * np.eye(len(loops))[None, :, :1])[:, :, 0]
+        u = closed(P[:, inner], K)[:, :, 0]
         R = np.einsum("prl,pl->pr", P[:, : len(readbacks)], u)
         out[:, :, j] = _averaged(R, owner, weights, f_hz.size) / \
             _averaged(u[:, :1], owner, weights, f_hz.size) - \
@@ -495,8 +513,8 @@ def _unchanged(optic: StateSpaceOptic, loops: Sequence[str], modal: ModalForm,
     if key not in _UNCHANGED:
         if len(_UNCHANGED) > 8:
             _UNCHANGED.clear()
-        _UNCHANGED[key] = (modal.others(2j * np.pi * points), np.stack(
-            [optic.loops[m].filters.build().response(points) for m in loops], axis=1))
+        _UNCHANGED[key] = (modal.others(2j * np.pi * points),
+                           controllers(optic, loops, points))
     return _UNCHANGED[key]
 
 
@@ -531,7 +549,8 @@ def _kernel_points(f_hz: NDArray[np.float64], res: float, modal: ModalForm
     bins: the two-point rule, the Hann kernel itself within reach of a narrow mode."""
     if res <= 0:
         return f_hz, np.ones(f_hz.size), np.arange(f_hz.size)
-    narrow = np.array([m.f_hz for m in modal.modes if m.f_hz / m.q < 2 * res])
+    f_modes = modal.w / (2 * np.pi)  # as moved (`changed` keeps the modes' own records)
+    narrow = f_modes[f_modes / modal.q < 2 * res]
     near = np.zeros(f_hz.size, dtype=bool)
     for f0 in narrow:
         near |= np.abs(f_hz - f0) < NARROW_REACH_BINS * res

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.narrow import SEARCH_Q
-from twind.analysis.statespace.model import PlantModel
+from twind.analysis.statespace.model import PlantModel, closed
 
 SHIFT = 1.5
 """A model mode is searched for from its frequency over this factor to its frequency times it."""
@@ -157,6 +157,9 @@ class Residuals:
             trials = trials[~np.any([(trials > a) & (trials < b) for a, b in avoid], axis=0)] \
                 if avoid else trials
             path, last = 0.0, None
+            if not trials.size:  # the moved modes cover the band
+                paths.append(path)
+                continue
             for chunk in np.array_split(trials, max(1, trials.size // _CHUNK)):
                 q0, _ = self.model.kernels_many(2 * math.pi * chunk, q)
                 proj = (q0 @ Gz).real  # (trials, elements)
@@ -226,10 +229,7 @@ class _ClosedChange:
 
     def _column(self, fb, P: NDArray, K: NDArray) -> NDArray[np.complex128]:  # noqa: ANN001
         """The closed-loop column of plant `P` (..., bins, rows, loops): ``P_R u / u_d``."""
-        inner = list(fb.inner)
-        n = len(inner)
-        u = np.linalg.solve(np.eye(n) - K[..., :, None] * P[..., inner, :],
-                            K[..., :, None] * np.eye(n)[:, :1])[..., 0]
+        u = closed(P[..., list(fb.inner), :], K)[..., 0]
         return np.einsum("...rl,...l->...r", P[..., : self.z.shape[1], :], u) / u[..., :1]
 
     def delta(self, w: NDArray[np.float64], q: float) -> NDArray[np.complex128]:
