@@ -267,8 +267,8 @@ def test_the_summary_leaves_out_what_the_corpus_did_not_hold(etmx) -> None:  # n
     null = Score(Case("null #1", None, etmx, plant), True, [], math.nan, math.nan, 1.3, 1.3, 2.0,
                  diagnosis_seconds=1.0)
     lines = summary([null])
-    assert ("seconds per case: diagnosis median 1, max 1 (target < 60); with the measurement "
-            "median 2, max 2") in lines
+    assert ("seconds per case: diagnosis median 1 (target <= 15), max 1 (target <= 30); with "
+            "the measurement median 2, max 2") in lines
     assert not any(line.startswith("catalogue effects named") for line in lines)
     assert not any(line.startswith(("modes in no list", "two effects")) for line in lines)
     assert "nulls with an effect claimed: 0/1 (target 0)" in lines

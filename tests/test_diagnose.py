@@ -8,6 +8,7 @@ from __future__ import annotations
 import glob
 import io
 import json
+import math
 from contextlib import redirect_stdout
 from dataclasses import replace
 from pathlib import Path
@@ -18,17 +19,19 @@ from browser import tables
 from conftest import REFERENCE
 from diagnosekit import assert_accounted, assert_sound
 
-from twind.analysis.diagnose import ALPHA, diagnose
+from twind.analysis.diagnose import ALPHA, diagnose, f_profile, separating_measurement
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
 from twind.lab.corpus import FACES, key_z
 from twind.lab.measurement import measure_tfs
+from twind.limits import ServiceLimits
 from twind.model.plant import Plant
 from twind.viz.report import report_page
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 KEYS = {"consistent", "chi2_nu_nominal", "chi2_nu_final", "located", "effects",
-        "unexplained", "nominal_params", "summary", "p_values", "not_fitted"}
+        "unexplained", "nominal_params", "summary", "p_values", "not_fitted",
+        "consistency", "controller", "separations"}
 
 
 @pytest.fixture(scope="module")
@@ -81,6 +84,14 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     assert {best.effect, *best.equivalent} >= {"loop_delay", "actuator_pole"}
     assert len(d.separations) == len(d.effects) - 1  # and what would tell them apart
     rival = d.effects[1]
+    # ... and what that costs: a sine at the EXC limit, its time for 3 sigma, which a
+    # sine of half the amplitude takes four times as long to reach
+    sep = d.separations[(best.effect, rival.effect)]
+    assert sep.amplitude == pytest.approx(30 * 2**0.5) and 0 < sep.seconds < math.inf
+    half = separating_measurement(etmx, best.step_result, rival.result,
+                                  ServiceLimits(exc_peak=sep.amplitude / 2), sep.bin_hz)
+    assert half.seconds == pytest.approx(4 * sep.seconds, rel=1e-9)
+    assert f"{sep.seconds:.3g} s for 3 sigma" in "\n".join(d.lines())
     assert f"{rival.effect} fits nearly as well as {best.effect}" in d.summary()
     delay = next(e for e in d.effects if e.effect == "loop_delay")
     assert delay.to_json()["params"]["extra_s"] == pytest.approx(extra, rel=0.35)
@@ -164,11 +175,12 @@ def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  
     (corpus.attached_body: 3-D kinematics, a new coordinate of the mechanics), ringing in
     PIT/POS: a ``resonance`` anywhere in the band, not a catalogue effect, read as a body
     pulling along the beam at its point, with its mass."""
-    from twind.lab.corpus import attached_body
+    from twind.lab.corpus import attached_body, body_start
 
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     body, truth = attached_body(plant, etmx.sus, 6e-5, 7.0, 30.0, (0.0, 0.02))
-    d = _diagnosed(_measured(etmx, body), etmx)
+    tfs = _measured(etmx, body)
+    d = _diagnosed(tfs, etmx)
     assert [e.effect for e in d.chosen] == ["resonance"] and d.chosen[0].p_value < 1e-6
     out = d.chosen[0].to_json()
     assert out["params"]["f_hz"] == pytest.approx(truth["f_hz"], rel=0.15)
@@ -180,6 +192,10 @@ def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  
     assert any(lo <= truth["f_hz"] <= hi for lo, hi in r["f_hz_ranges"])
     assert sum(hi - lo for lo, hi in r["f_hz_ranges"]) < 0.1 * truth["f_hz"]
     assert "as a body" in "\n".join(d.lines()) and "the data allow f in" in "\n".join(d.lines())
+    # the truth's structure profiled in f: held 5 % off, it fits worse by more than the noise
+    lo, hi = f_profile(tfs, etmx, d, body_start(truth),
+                       factors=(0.9, 0.95, 1.0, 1.05, 1.1))
+    assert lo == hi == pytest.approx(truth["f_hz"])
 
 
 def test_one_readback_with_its_own_stage_is_named_with_its_corners(etmx) -> None:  # noqa: ANN001
@@ -228,10 +244,10 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
                                                                     etmx) -> None:  # noqa: ANN001
     """A drifted optic with a concealed coil imbalance, measured on the twin and saved as
     diaggui files like example_null: from the files alone, the imbalance is named."""
-    from twind.lab.measurement import DRIFT
     from twind.analysis.estimation.diaggui import write_measurement_set
-    from twind.analysis.identification.params import param_value, with_params
     from twind.analysis.estimation.tf import from_diaggui
+    from twind.analysis.identification.params import param_value, with_params
+    from twind.lab.measurement import DRIFT
 
     real = replace(etmx, sus=with_params(etmx.sus, {k: param_value(etmx.sus, k) * v
                                                     for k, v in DRIFT.items()}))

@@ -90,6 +90,8 @@ def test_the_effect_chosen_is_the_claimed_one_of_highest_delta_bic(nulls, concea
 
 def test_the_report_states_the_rates(nulls, concealed) -> None:  # noqa: ANN001
     lines = rates.report(nulls, concealed)
-    assert len(lines) == len(nulls) + len(concealed) + 5
-    assert lines[-5].startswith(f"nulls with an effect claimed: "
+    assert len(lines) == len(nulls) + len(concealed) + 6
+    assert lines[-6].startswith(f"nulls with an effect claimed: "
                                 f"{sum(bool(o.chosen) for o in nulls)}/{N_NULLS}")
+    assert lines[-4].startswith(f"nulls with a controller called different: "
+                                f"{sum(bool(o.controller) for o in nulls)}/{N_NULLS}")

@@ -38,7 +38,9 @@ from scipy import stats
 
 from twind import DOFS, progress
 from twind.analysis.estimation.tf import TFSet
+from twind.analysis.identification import locate as search
 from twind.analysis.identification import narrow
+from twind.analysis.identification.controller import ControllerCheck, check_controller
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.locate import Located, _null_moments, locate
@@ -48,6 +50,7 @@ from twind.analysis.identification.result import FitResult
 from twind.analysis.noise import in1_noise_asd
 from twind.config import OpticConfig
 from twind.errors import TwindError
+from twind.limits import ServiceLimits
 from twind.model.effects import (
     BODY_DOFS,
     CATALOGUE,
@@ -271,10 +274,18 @@ class Diagnosis:
     unexplained : list of Located
         Where the final model still misses.
     separations : dict
-        For each (effect, rival): the excitation, response and frequency that tell them
-        apart best.
+        For each (effect, rival): the measurement that tells them apart and its cost.
     not_fitted : list of NotFitted
         The hypotheses tried that gave no fit to weigh, with the reason.
+    controller : ControllerCheck or None
+        The damping loop's measured controller against the configured one; the plant was
+        read through the measured one.
+    p_band : float
+        The band search's smallest Holm-corrected p-value on the refitted nominal model.
+    bands : int
+        Bands that search tested.
+    hypotheses : int
+        Hypotheses the first step tried (each family one): its Bonferroni factor.
     """
 
     nominal: FitResult
@@ -282,10 +293,19 @@ class Diagnosis:
     effects: list[EffectFit]
     final: FitResult
     unexplained: list[Located]
-    separations: dict[tuple[str, str], tuple[str, str, float]] = field(default_factory=dict)
+    separations: dict[tuple[str, str], Separation] = field(default_factory=dict)
     first_step: list[EffectFit] = field(default_factory=list, repr=False)
     """Every hypothesis fitted at the first step (its search's paths among them)."""
     not_fitted: list[NotFitted] = field(default_factory=list)
+    controller: ControllerCheck | None = None
+    p_band: float = 1.0
+    bands: int = 0
+    hypotheses: int = 0
+
+    def read_through(self, cfg: OpticConfig) -> OpticConfig:
+        """`cfg` with the controllers measured, as the plant was read (`cfg` itself when
+        they were not checked)."""
+        return self.controller.config if self.controller else cfg
 
     @property
     def p_values(self) -> dict[str, float]:
@@ -310,8 +330,29 @@ class Diagnosis:
         chi2 = f"chi2/nu {self.nominal.chi2_nu:.3f} -> {self.final.chi2_nu:.3f}"
         rest = "; ".join(f"{x.element} near {math.sqrt(x.band_hz[0] * x.band_hz[1]):.3g} Hz"
                          for x in self.unexplained[:3])
+        return self._controller_said() + self._plant_summary(names, chi2, rest)
+
+    def _controller_said(self) -> str:
+        """The controllers that differ, as the summary opens with them."""
+        if self.controller is None or self.controller.same:
+            return ""
+        said = ", ".join(f"{c.dof}: {c.short()}" for c in self.controller.corrections)
+        return (f"the damping filters differ from the configuration ({said}); read through "
+                "the measured ones: ")
+
+    def consistency(self) -> str:
+        """What "consistent" was tested against: both searches, levels and p-values."""
+        n = self.hypotheses
+        p_effect = min(self.p_values.values(), default=1.0)
+        return (f"no band located (smallest Holm-corrected p {self.p_band:.2g} over "
+                f"{self.bands} bands, level {search.ALPHA:g}) and no effect claimed "
+                f"(smallest p {p_effect:.2g} over {n} hypotheses, Bonferroni, level "
+                f"{ALPHA:g}); chi2/nu {self.nominal.chi2_nu:.3f} over {self.nominal.bins} "
+                f"bins (coherence >= {self.nominal.min_coherence:g})")
+
+    def _plant_summary(self, names: str, chi2: str, rest: str) -> str:
         if self.consistent:
-            return f"consistent with the nominal model (chi2/nu {self.nominal.chi2_nu:.3f})"
+            return f"consistent with the nominal model: {self.consistency()}"
         if not self.chosen:
             return f"no hypothesis explains the misfit; it lies in {rest}"
         rivals = "".join(f"; {r.effect} fits nearly as well as {r.rival_of}: these data "
@@ -333,6 +374,17 @@ class Diagnosis:
         nominal = {n: {"value": p["value"], "sigma": p["sigma"]}
                    for n, p in self.nominal.to_json()["params"].items()}
         return {"consistent": self.consistent,
+                "consistency": {
+                    "bands": {"test": "residual power band by band, Holm over the bands",
+                              "alpha": search.ALPHA, "p_value": self.p_band,
+                              "tested": self.bands},
+                    "effects": {"test": "likelihood ratio of each hypothesis, Bonferroni "
+                                        "over the hypotheses", "alpha": ALPHA,
+                                "p_value": min(self.p_values.values(), default=1.0),
+                                "tested": self.hypotheses},
+                    "bins": self.nominal.bins,
+                    "min_coherence": self.nominal.min_coherence},
+                "controller": None if self.controller is None else self.controller.to_json(),
                 "chi2_nu_nominal": self.nominal.chi2_nu,
                 "chi2_nu_final": self.final.chi2_nu,
                 "located": [x.to_json() for x in self.located],
@@ -340,14 +392,16 @@ class Diagnosis:
                 "unexplained": [{"element": x.element, "band_hz": list(x.band_hz)}
                                 for x in self.unexplained],
                 "p_values": self.p_values,
+                "separations": [m.to_json(a, b) for (a, b), m in self.separations.items()],
                 "not_fitted": [x.to_json() for x in self.not_fitted],
                 "nominal_params": nominal, "summary": self.summary()}
 
     def lines(self) -> list[str]:
         """A summary for a person."""
-        out = [self.summary(),
+        out = [self.summary(), *(self.controller.lines() if self.controller else []),
                f"{self.nominal.optic}: nominal model refitted, chi2/nu "
-               f"{self.nominal.chi2_nu:.3f}: "
+               f"{self.nominal.chi2_nu:.3f} over {self.nominal.bins} bins (coherence >= "
+               f"{self.nominal.min_coherence:g}): "
                + ("consistent with the data" if self.consistent else
                   f"misses in {len(self.located)} band(s)")]
         out += [x.line() for x in self.located[:8]]
@@ -367,10 +421,7 @@ class Diagnosis:
                                                 if e.equivalent else ""))
             if "reading" in entry_json:
                 out.append("    " + _reading_line(entry_json["reading"]))
-        for (a, b), (dof, response, f) in self.separations.items():
-            out.append(f"  to tell {a} from {b}: excite {dof} around {f:.3g} Hz and measure "
-                       f"{response}/{dof} (where their predictions differ most against "
-                       "the noise)")
+        out += [f"  {m.line(a, b)}" for (a, b), m in self.separations.items()]
         if not self.consistent and not self.effects:
             out.append("  no hypothesis explains it")
         shown = {e.effect for e in self.effects}
@@ -392,8 +443,8 @@ MIN_COHERENCE = 0.0
 
 def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
              params: Sequence[str] = FIT_PARAMS,
-             min_coherence: float = MIN_COHERENCE, max_effects: int | None = None
-             ) -> Diagnosis:
+             min_coherence: float = MIN_COHERENCE, max_effects: int | None = None,
+             controller: bool = True) -> Diagnosis:
     """Diagnose measured TFs of `cfg`'s optic against its nominal model.
 
     Forward selection: every hypothesis (:data:`~twind.model.effects.CATALOGUE`, the
@@ -418,29 +469,38 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
         whose errors are the noise's.
     max_effects : int, optional
         Effects chosen at most (default :data:`MAX_EFFECTS`).
+    controller : bool
+        Check each DOF's measured controller (OUT/IN2) against `cfg`'s first
+        (:func:`~twind.analysis.identification.controller.check_controller`) and read the
+        plant through the measured one.
 
     Returns
     -------
     Diagnosis
     """
+    check = check_controller(tfs, cfg) if controller else None
+    cfg = check.config if check else cfg
     nominal = fit(tfs, cfg, params, min_coherence)
-    located = locate(tfs, cfg, nominal)
+    tests = search.searched(tfs, cfg, nominal)
+    located = search.significant(tests)
+    checked = {"controller": check, "p_band": search.smallest_corrected(tests),
+               "bands": len(tests), "hypotheses": len(_candidates([]))}
     unit = _unit(nominal, tfs)
     chosen, rivals, first_step, not_fitted = _select(
         tfs, cfg, params, nominal, unit, MAX_EFFECTS if max_effects is None else max_effects)
     if not chosen:
         return Diagnosis(nominal, located, [], nominal, located, first_step=first_step,
-                         not_fitted=not_fitted)
+                         not_fitted=not_fitted, **checked)
     final = _prune(tfs, cfg, params, chosen, unit)
     rivals = [r for r in rivals if any(c.effect == r.rival_of for c in chosen)]
     unexplained = locate(tfs, cfg, final)
     for c in chosen:
         c.step_result, c.result, c.partial = c.result, final, bool(unexplained)
-    separations = {(r.rival_of, r.effect): separating_measurement(cfg, _alone(chosen, r),
-                                                                   r.result)
-                   for r in rivals}
+    bin_hz = float(np.median(np.diff(_sets(tfs)[0].frequency_hz)))
+    separations = {(r.rival_of, r.effect): separating_measurement(
+        cfg, _alone(chosen, r), r.result, bin_hz=bin_hz) for r in rivals}
     return Diagnosis(nominal, located, chosen + rivals, final, unexplained, separations,
-                     first_step, not_fitted)
+                     first_step, not_fitted, **checked)
 
 
 def _select(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
@@ -534,10 +594,73 @@ def _alone(chosen: list[EffectFit], rival: EffectFit) -> FitResult:
     return next(c for c in chosen if c.effect == rival.rival_of).step_result
 
 
-def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
-                           ) -> tuple[str, str, float]:
-    """What to measure next to tell two fitted hypotheses apart: the excitation where their
-    closed loops differ most relative to the IN1 noise.
+SEPARATION_SIGMA = 3.0
+"""How far apart, in standard errors, a separating measurement puts two rivals."""
+MAX_SECONDS = 86400.0
+"""Longer than this, a loop measurement is not a way to tell two rivals apart."""
+
+
+@dataclass(frozen=True)
+class Separation:
+    """The measurement that tells two fitted hypotheses apart, and its cost.
+
+    Attributes
+    ----------
+    excite, measure : str
+        The DOF to excite and the response to read.
+    frequency_hz : float
+        Where their closed loops differ most against the IN1 noise.
+    amplitude : float
+        The sine's amplitude (EXC units), the most the EXC limits allow.
+    seconds : float
+        How long to measure for :data:`SEPARATION_SIGMA` standard errors between their
+        predictions (inf where they do not differ).
+    bin_hz : float
+        The measurement's bin width, for the averages it makes.
+    """
+
+    excite: str
+    measure: str
+    frequency_hz: float
+    amplitude: float
+    seconds: float
+    bin_hz: float
+
+    @property
+    def separable(self) -> bool:
+        """Within :data:`MAX_SECONDS` of loop measurement."""
+        return self.seconds <= MAX_SECONDS
+
+    def line(self, a: str, b: str) -> str:
+        """The measurement in words."""
+        where = (f"excite {self.excite} with a sine of {self.amplitude:.3g} at "
+                 f"{self.frequency_hz:.3g} Hz and measure {self.measure}/{self.excite}")
+        if not self.separable:
+            return (f"to tell {a} from {b}: not separable by loop measurements within the EXC "
+                    f"limits ({where}: {SEPARATION_SIGMA:g} sigma would take "
+                    f"{self.seconds:.2g} s); measure what differs directly (a ringdown, "
+                    "twind freeswing, or the OSEMs without excitation)")
+        averages = math.ceil(self.seconds * self.bin_hz) if self.bin_hz > 0 else None
+        return (f"to tell {a} from {b}: {where}, {self.seconds:.3g} s for "
+                f"{SEPARATION_SIGMA:g} sigma" + (f" ({averages} averages at {self.bin_hz:g} Hz)"
+                                                 if averages else ""))
+
+    def to_json(self, a: str, b: str) -> dict:
+        """One entry of ``separations`` in ``twind diagnose --json``."""
+        return {"effect": a, "rival": b, "excite": self.excite, "measure": self.measure,
+                "frequency_hz": self.frequency_hz, "amplitude": self.amplitude,
+                "seconds": self.seconds, "separable": self.separable}
+
+
+def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult,
+                           limits: ServiceLimits | None = None, bin_hz: float = 0.0
+                           ) -> Separation:
+    """What to measure next to tell two fitted hypotheses apart: a sine where their closed
+    loops differ most relative to the IN1 noise, as large as the EXC limits allow, for as
+    long as :data:`SEPARATION_SIGMA` standard errors between their predictions take.
+
+    A sine of amplitude A demodulated over T seconds has an error of ``n / sqrt(T)`` in
+    each quadrature, for IN1 noise of ASD ``n``; the predictions differ by ``|dT| A``.
 
     Parameters
     ----------
@@ -545,21 +668,25 @@ def separating_measurement(cfg: OpticConfig, a: FitResult, b: FitResult
         The optic (its noise sets the scale).
     a, b : FitResult
         The two fits, each with its effect.
+    limits : ServiceLimits, optional
+        The EXC limits (peak and RMS of a test point's excitation); default the twin's.
+    bin_hz : float
+        The bin width the averages are counted in.
 
     Returns
     -------
-    excite : str
-        The DOF to excite.
-    measure : str
-        The response to measure.
-    frequency_hz : float
+    Separation
     """
     f = np.logspace(-1, 2, 400)
     noise = in1_noise_asd(cfg, f)  # [f, response]
     ta, tb = (ClosedLoopModel(cfg, f, 0.0, r.effect)(r.as_dict()) for r in (a, b))
     contrast = np.abs(ta - tb) / np.maximum(noise[:, :, None], 1e-300)
     k, i, j = np.unravel_index(np.argmax(contrast), contrast.shape)
-    return DOFS[j], DOFS[i], float(f[k])
+    limits = limits or ServiceLimits()
+    amplitude = min(limits.exc_peak, limits.exc_rms * math.sqrt(2))
+    per_root_s = float(contrast[k, i, j]) * amplitude
+    seconds = (SEPARATION_SIGMA / per_root_s) ** 2 if per_root_s > 0 else math.inf
+    return Separation(DOFS[j], DOFS[i], float(f[k]), amplitude, seconds, bin_hz)
 
 
 def _try_family(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
@@ -667,7 +794,7 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
     if k <= 0:
         return NotFitted(effect, len(chosen) + 1, "it adds no direction the data determine "
                          f"(rank {result.rank}, {reference.rank} without it)")
-    lr = max(reference.chi2 - result.chi2, 0.0) / unit
+    lr = likelihood_ratio(reference, result, k, tfs)
     n = 2 * reference.bins
     p = _p_value(lr, k, paths, _searched(result, combo, effect))
     return EffectFit(effect, result, lr, k, min(1.0, p * tried),
@@ -712,18 +839,77 @@ def evidence(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosi
     nominal = diagnosis.nominal
     first = next((c for c in diagnosis.first_step if c.effect == effect), None)
     paths = first.searched if first else []
-    cfg, free = _refitted(cfg, nominal)
+    cfg, free = _refitted(diagnosis.read_through(cfg), nominal)
     try:
         result = fit(tfs, cfg, free, nominal.min_coherence, effect=effect, effect_start=start,
                      unfitted=_unseen(tfs, effect))
     except FitError:
         return 1.0, 0.0
     k = result.rank - nominal.rank
-    lr = max(nominal.chi2 - result.chi2, 0.0) / _unit(nominal, tfs)
+    lr = likelihood_ratio(nominal, result, k, tfs)
     if k <= 0:
         return 1.0, lr
     p = _p_value(lr, k, paths, _searched(result, effect, effect))
     return min(1.0, p * max(len(diagnosis.first_step), 1)), lr
+
+
+def explained(tfs: TFSet | Sequence[TFSet], diagnosis: Diagnosis) -> float:
+    """The final model's likelihood ratio over the refitted nominal, in the nulls' units
+    (:func:`evidence`'s): how much of the misfit the chosen effects explain."""
+    nominal, final = diagnosis.nominal, diagnosis.final
+    return likelihood_ratio(nominal, final, final.rank - nominal.rank, tfs)
+
+
+PROFILE_FACTORS = (0.7, 0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2, 1.3)
+"""Where a ``resonance``'s frequency is held, relative to its start, to profile it."""
+
+
+def f_profile(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, diagnosis: Diagnosis,
+              start: dict[str, float], factors: Sequence[float] = PROFILE_FACTORS
+              ) -> tuple[float, float]:
+    """The range of a ``resonance``'s frequency the data allow at 95 % (one parameter's
+    chi^2 rise of 3.84, in what noise takes from a smooth direction) from fits started at `start` with its
+    frequency held at each of `factors` times ``start["f_hz"]``, the other parameters
+    refitted: whether a structure's frequency is fixed by the data at all. For a benchmark
+    that knows the truth; the range reaches a grid end when the data do not bound it there.
+
+    Parameters
+    ----------
+    tfs : TFSet or sequence of TFSet
+        The measurements diagnosed.
+    cfg : OpticConfig
+        The optic (the fits start at `diagnosis`'s refitted nominal parameters).
+    diagnosis : Diagnosis
+        The diagnosis of `tfs` (its nominal fit, and the controller it was read through).
+    start : dict of str to float
+        The ``resonance``'s parameters the fits start from (the truth, for a benchmark).
+    factors : sequence of float
+        Where f is held, relative to ``start["f_hz"]``, ascending.
+
+    Returns
+    -------
+    (float, float)
+        Lowest and highest f (Hz) allowed; (nan, nan) when no fit succeeds.
+    """
+    nominal = diagnosis.nominal
+    cfg, free = _refitted(diagnosis.read_through(cfg), nominal)
+    mu, _ = _null_moments(_averages(tfs))  # a frequency's shift is a smooth direction
+    unit = nominal.noise_scale**2 * mu * (1 + 2 * sum(nominal.bin_correlation))
+    f_name = param_name("resonance", "resonance", "f_hz")
+    chi2 = {}
+    for x in factors:
+        try:
+            r = fit(tfs, cfg, free, nominal.min_coherence, effect="resonance",
+                    effect_start=start, unfitted=_unseen(tfs, "resonance"),
+                    held={f_name: start["f_hz"] * x})
+        except FitError:
+            continue
+        chi2[x] = r.chi2 / unit
+    if not chi2:
+        return math.nan, math.nan
+    best = min(chi2.values())
+    inside = [x for x, c in chi2.items() if c - best <= stats.chi2.ppf(0.95, 1)]
+    return start["f_hz"] * min(inside), start["f_hz"] * max(inside)
 
 
 def _refitted(cfg: OpticConfig, result: FitResult, params: Sequence[str] = FIT_PARAMS
@@ -810,11 +996,45 @@ def _given_others(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequen
             continue
         fits[c.effect] = without
         k = final.rank - without.rank
-        lr = max(without.chi2 - final.chi2, 0.0) / unit
+        lr = likelihood_ratio(without, final, k, tfs)
         c.p_given_others = (min(1.0, _p_value(lr, k, c.searched,
                                               _searched(final, final.effect, c.effect)))
                             if k > 0 else 1.0)
     return fits
+
+
+def likelihood_ratio(reference: FitResult, result: FitResult, k: int,
+                     tfs: TFSet | Sequence[TFSet]) -> float:
+    """The drop in chi^2 from `reference` to `result` (which adds `k` directions) over
+    what pure noise takes from each of them: one residual's variance (the reference's
+    robust scale, F tails of coherence-based errors) times their share of ``tr(P R)``
+    (:attr:`~twind.analysis.identification.result.FitResult.noise_rank`), which the bins'
+    correlation makes larger for smooth directions than for ragged ones. On Welch nulls its
+    mean is near ``k``: a chi^2 reference with ``k`` degrees of freedom is then near exact,
+    not conservative. LPM estimates keep :func:`_unit`, which is conservative.
+
+    Parameters
+    ----------
+    reference, result : FitResult
+        The fits without and with the hypothesis.
+    k : int
+        Directions the hypothesis adds (ranks' difference), at least 1.
+    tfs : TFSet or sequence of TFSet
+        The measurements (their averages set the F tails).
+
+    Returns
+    -------
+    float
+    """
+    drop = max(reference.chi2 - result.chi2, 0.0)
+    if any(t.window == "lpm" for t in _sets(tfs)):
+        # the LPM's errors, correlated over its windows, keep the conservative unit: with
+        # this one its nulls claimed 4 in 16 (docs/limits.md)
+        return drop / _unit(reference, tfs)
+    mu, _ = _null_moments(_averages(tfs))
+    taken = result.noise_rank - reference.noise_rank
+    share = taken / k if k > 0 and math.isfinite(taken) and taken > 0.1 * k else 1.0
+    return drop / (reference.noise_scale**2 * mu * share)
 
 
 def _unit(nominal: FitResult, tfs: TFSet | Sequence[TFSet]) -> float:

@@ -363,8 +363,10 @@ def _bench(p: argparse.ArgumentParser) -> None:
                         "pull: calibration of twind fit's sigmas; information: D-optimal "
                         "excitation against white noise on the twin; diagnose: twind "
                         "diagnose on the proof corpus (--route, --per-effect, --nulls); "
-                        "rates: twind diagnose's claims on many nulls and finds at the "
-                        "corpus' concealment (--nulls, default 20, --per-effect, --effects); "
+                        "rates: twind diagnose's claims, located bands and p-values on many "
+                        "nulls at each setting (--nulls per setting, default 20, "
+                        "--settings), and finds at the corpus' concealment (--per-effect, "
+                        "--effects); "
                         "freeswing: twind freeswing on random drifted optics; statespace: "
                         "twind on KAGRA's state-space optics (--optic, default SRM,PRM): "
                         "nulls and moved modes measured open and closed loop (--nulls, "
@@ -402,9 +404,14 @@ def _bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bw", type=float, help="pull: Welch resolution (Hz, default 0.02; "
                    "the LPM's record is as long as 10 averages of it); diagnose: the "
                    "corpus measurement's (default 0.01 for XML, example_null's; 0.05 for "
-                   "MCAP); rates: the nulls' (default 0.1)")
-    p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
-                   help="pull, and rates' nulls: TF estimator")
+                   "MCAP); rates: one setting's nulls, case by case")
+    p.add_argument("--estimator", choices=["welch", "lpm"], default=None,
+                   help="pull: TF estimator (default welch); rates: the nulls' (with --bw, "
+                        "one setting case by case instead of the table of settings)")
+    p.add_argument("--settings", help="rates: comma-separated settings of the table, as it "
+                                      "names them (default all eight: bins of 0.01, 0.02, "
+                                      "0.05 and 0.1 Hz, 5 and 20 averages, half the "
+                                      "excitation, LPM)")
     p.add_argument("--workers", type=int, default=1,
                    help="pull: realisations measured and fitted side by side")
     p.add_argument("--no-marginal", action="store_true",

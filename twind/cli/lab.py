@@ -9,10 +9,27 @@ from twind.config import CONFIG_DIR, load_config, optic_kinds
 from twind.errors import TwindError
 from twind.lab import plant_bench
 from twind.lab.calibration import information_benchmark, pull_test
-from twind.lab.corpus import AVERAGES, BEYOND, EFFECTS, EXCITED, MADE, RMS, run_corpus, run_demo
+from twind.lab.corpus import (
+    AVERAGES,
+    BEYOND,
+    EFFECTS,
+    EXCITED,
+    MADE,
+    RMS,
+    run_corpus,
+    run_demo,
+)
 from twind.lab.engine_speed import run_benchmarks
 from twind.lab.freeswing_bench import benchmark
-from twind.lab.rates import NEAR_LIMIT, concealed, nulls, report
+from twind.lab.rates import (
+    NEAR_LIMIT,
+    SETTINGS,
+    at_settings,
+    concealed,
+    nulls,
+    report,
+    settings_report,
+)
 from twind.lab.soak import soak
 from twind.lab.tf_speed import run_tf_benchmark
 
@@ -57,7 +74,7 @@ def _bench_pull(args: argparse.Namespace) -> int:
     """Monte-Carlo pull test of ``twind fit`` on the twin (>= 100 realisations)."""
     cfg = _optic(args)
     report = pull_test(cfg, n=args.realisations or 100, bw=args.bw or 0.02,
-                       estimator=args.estimator, workers=args.workers)
+                       estimator=args.estimator or "welch", workers=args.workers)
     print("\n".join(report.lines()))
     return 0
 
@@ -99,16 +116,27 @@ def _bench_diagnose(args: argparse.Namespace) -> int:
 
 
 def _bench_rates(args: argparse.Namespace) -> int:
-    """twind diagnose's rates: claims and p-values on many nulls, finds at the concealment."""
+    """twind diagnose's rates: claims, bands and p-values on many nulls at each setting (or
+    at the one --bw and --estimator give, case by case), finds at the concealment."""
 
     cfg = _optic(args, args.optic)
     effects = _effects(args, list(NEAR_LIMIT))
-    measurement = {"bw": args.bw} if args.bw else {}
-    null_set = nulls(cfg, 20 if args.nulls is None else args.nulls, estimator=args.estimator,
-                     **measurement)
     per_effect = 3 if args.per_effect is None else args.per_effect
+    if args.bw or args.estimator:
+        measurement = {"bw": args.bw} if args.bw else {}
+        null_set = nulls(cfg, 20 if args.nulls is None else args.nulls,
+                         estimator=args.estimator or "welch", **measurement)
+        effect_set = concealed(cfg, per_effect, effects) if per_effect else []
+        print("\n".join(report(null_set, effect_set)))
+        return 0
+    names = args.settings.split(",") if args.settings else list(SETTINGS)
+    unknown = [n for n in names if n not in SETTINGS]
+    if unknown:
+        msg = f"--settings: unknown {', '.join(unknown)}; known: {', '.join(SETTINGS)}"
+        raise TwindError(msg)
+    by_setting = at_settings(cfg, 20 if args.nulls is None else args.nulls, names)
     effect_set = concealed(cfg, per_effect, effects) if per_effect else []
-    print("\n".join(report(null_set, effect_set)))
+    print("\n".join(settings_report(by_setting, effect_set)))
     return 0
 
 

@@ -14,6 +14,7 @@ from twind.analysis.diagnose import diagnose
 from twind.analysis.estimation.diaggui import read_transfers
 from twind.analysis.estimation.tf import TFError, from_diaggui, from_session
 from twind.analysis.identification.candidates import compare
+from twind.analysis.identification.controller import check_controller
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.freeswing import analyse, ringdown
 from twind.analysis.identification.modes import fit_modes, read_mode_table
@@ -172,10 +173,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
         return statespace.fit(args, optic)
     truth = read_truth(args.truth) if args.truth else None  # a bad file fails before the fit
     tfs = _measured_tfs(args)
-    cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
+    check = check_controller(tfs, load_config(args.config, tfs.optic).select(tfs.optic)[0])
+    cfg = check.config  # the plant is read through the controller measured
     band = tuple(args.band) if args.band else None
     result = fit(tfs, cfg, args.params or FIT_PARAMS, args.min_coherence, band)
-    show(result, args.json)
+    if args.json:
+        strictjson.dump({**result.to_json(), "controller": check.to_json()}, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join([*check.lines(), *result.lines()]))
     if truth:
         print(f"(fitted - truth) / sigma: {result.pulls(truth)}",
               file=sys.stderr if args.json else sys.stdout)
@@ -274,6 +280,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
     result = diagnose(tfs, cfg)
     show(result, args.json)
+    cfg = result.read_through(cfg)
     if args.output:
         print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
     if args.push:

@@ -13,8 +13,9 @@ p-values are smaller than uniform.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -26,7 +27,7 @@ from twind.config import OpticConfig
 from twind.lab.corpus import EXCITED, Case, make_cases, reference_data, score
 from twind.lab.measurement import measure_tfs
 from twind.lab.workers import side_by_side
-
+from twind.model.effects import CATALOGUE
 
 PROMISED = 0.01
 """The rate docs/diagnose.md promises for a claim, and for a located band, on a null."""
@@ -35,6 +36,11 @@ NULLS = {"bw": 0.1, "averages": 10, "rms": 3.0}
 the same statistics at half the cost)."""
 CONCEALED = {"bw": 0.05, "averages": 10, "rms": 3.0}
 """The concealed effects' measurement: the corpus' MCAP route."""
+SETTINGS = {"0.01 Hz": {"bw": 0.01}, "0.02 Hz": {"bw": 0.02}, "0.05 Hz": {},
+            "0.1 Hz": {"bw": 0.1}, "5 averages": {"averages": 5},
+            "20 averages": {"averages": 20}, "half the excitation": {"rms": 1.5},
+            "LPM": {"estimator": "lpm"}}
+"""The settings the rates are measured at, each a change of :data:`CONCEALED` alone."""
 NEAR_LIMIT = ("osem_imbalance", "wire_asymmetry")
 """Effects at the corpus' concealment checked by default: the corpus' hardest key, and one
 parameter that delta BIC favours over an imbalance's two."""
@@ -63,6 +69,13 @@ class Outcome:
         Every hypothesis of the first step and its p-value.
     not_fitted : tuple of str
         Hypotheses of the first step that gave no fit to weigh.
+    controller : tuple of str
+        DOFs whose measured controller was called different from the configuration's.
+    lr : dict of str to (float, int)
+        Each first-step hypothesis's likelihood ratio (in the nulls' units) and the
+        directions it adds.
+    tried : int
+        Hypotheses of the first step (the Bonferroni factor).
     """
 
     name: str
@@ -73,6 +86,9 @@ class Outcome:
     located: int
     p_values: dict[str, float]
     not_fitted: tuple[str, ...]
+    controller: tuple[str, ...] = ()
+    lr: dict[str, tuple[float, int]] = field(default_factory=dict)
+    tried: int = 1
 
     @property
     def p_min(self) -> float:
@@ -105,7 +121,10 @@ def outcome(cfg: OpticConfig, measurement: dict, job: tuple[Case, int]) -> Outco
     best = max(claimed, key=lambda e: e.delta_bic).effect if claimed else None
     return Outcome(case.name, case.effect, score(case, d, 0.0).named,
                    tuple(e.effect for e in d.chosen), best, len(d.located), dict(d.p_values),
-                   tuple(x.effect for x in d.not_fitted if x.step == 1))
+                   tuple(x.effect for x in d.not_fitted if x.step == 1),
+                   tuple(dict.fromkeys(x.dof for x in d.controller.differences)),
+                   {e.effect: (e.lr, e.k) for e in d.first_step
+                    if e.effect in CATALOGUE and not e.searched}, d.hypotheses)
 
 
 def outcomes(cfg: OpticConfig, cases: Sequence[Case], seed: int, workers: int = 2,
@@ -261,6 +280,9 @@ def report(null_set: Sequence[Outcome], effect_set: Sequence[Outcome]) -> list[s
                 f"(at most {rate_bound(n, PROMISED)} at the promised {PROMISED})",
                 f"nulls with a band located: {sum(o.located > 0 for o in null_set)}/{n} "
                 f"(at most {rate_bound(n, PROMISED)})",
+                f"nulls with a controller called different: "
+                f"{sum(bool(o.controller) for o in null_set)}/{n} "
+                f"(at most {rate_bound(n, PROMISED)})",
                 f"nulls' smallest p-values: {sum(o.p_min >= 1 for o in null_set)}/{n} at 1; "
                 f"KS p that they are smaller than uniform "
                 f"{p_values_too_small([o.p_min for o in null_set]):.2g} (fails below 1e-3)"]
@@ -272,3 +294,122 @@ def report(null_set: Sequence[Outcome], effect_set: Sequence[Outcome]) -> list[s
     out.append("first choice the claimed effect of highest delta BIC: "
                + ("every case" if not ranked else f"not in {', '.join(o.name for o in ranked)}"))
     return out
+
+
+def at_settings(cfg: OpticConfig, n: int, names: Sequence[str] = tuple(SETTINGS),
+                seed: int = 500, workers: int = 2) -> dict[str, list[Outcome]]:
+    """The same `n` drifted nulls measured and diagnosed at each of `names`' settings.
+
+    Parameters
+    ----------
+    cfg : OpticConfig
+        The nominal optic.
+    n : int
+        Nulls per setting.
+    names : sequence of str
+        Keys of :data:`SETTINGS`.
+    seed : int
+        Seed of the drifts (the measurements use ``seed + 100 + k`` at every setting).
+    workers : int
+        Processes side by side.
+
+    Returns
+    -------
+    dict of str to list of Outcome
+    """
+    cases = make_cases(cfg, None, per_effect=0, nulls=n, seed=seed)
+    out = {}
+    for name in names:
+        progress.note(f"setting {name}")
+        out[name] = outcomes(cfg, cases, seed + 100, workers, **{**CONCEALED, **SETTINGS[name]})
+    return out
+
+
+def upper_bound(k: int, n: int, level: float = 0.95) -> float:
+    """One-sided Clopper-Pearson upper bound on a rate seen `k` times in `n`.
+
+    Examples
+    --------
+    >>> round(upper_bound(0, 299), 4)
+    0.01
+    """
+    return float(stats.beta.ppf(level, k + 1, n - k)) if k < n else 1.0
+
+
+def calibration(null_set: Sequence[Outcome]) -> dict[str, float]:
+    """Each catalogue hypothesis's mean likelihood ratio per direction on `null_set`: 1 when
+    its chi^2 reference is exact, below 1 when it asks for more evidence than it needs."""
+    ratios: dict[str, list[float]] = {}
+    for o in null_set:
+        for e, (lr, k) in o.lr.items():
+            ratios.setdefault(e, []).append(lr / k)
+    return {e: float(np.mean(r)) for e, r in ratios.items()}
+
+
+def raw_p_values(null_set: Sequence[Outcome]) -> list[float]:
+    """The catalogue hypotheses' p-values before the Bonferroni factor, pooled: uniform
+    when their reference distribution is exact."""
+    return [float(stats.chi2.sf(lr, k)) for o in null_set for lr, k in o.lr.values()]
+
+
+def claimed_calibrated(o: Outcome, scale: dict[str, float]) -> bool:
+    """Whether the hidden effect of `o` would be claimed at the first step with each
+    catalogue hypothesis's likelihood ratio divided by its nulls' mean per direction."""
+    lr, k = o.lr.get(o.effect or "", (0.0, 1))
+    s = scale.get(o.effect or "", 1.0)
+    return min(1.0, float(stats.chi2.sf(lr / s, k)) * o.tried) < ALPHA
+
+
+def settings_report(by_setting: dict[str, list[Outcome]],
+                    effect_set: Sequence[Outcome] = ()) -> list[str]:
+    """A line per setting: nulls claimed and located with their 95 % bounds, how far the
+    p-values are from uniform and the hypotheses' calibration; then the finds at the
+    corpus' concealment as the p-values stand and calibrated on the nulls of the base
+    setting.
+
+    Parameters
+    ----------
+    by_setting : dict of str to list of Outcome
+        From :func:`at_settings`.
+    effect_set : sequence of Outcome
+        From :func:`concealed` (measured at the base setting, :data:`CONCEALED`).
+
+    Returns
+    -------
+    list of str
+    """
+    out = [f"{'setting':20s} {'claimed':>8s} {'95% bound':>9s} {'located':>8s} "
+           f"{'95% bound':>9s} {'p_min 1':>7s} {'raw p mean':>10s} {'KS D':>5s} "
+           f"{'LR/k':>5s} {'ctrl':>5s}"]
+    for name, nulls_ in by_setting.items():
+        n = len(nulls_)
+        claimed = sum(bool(o.chosen) for o in nulls_)
+        located = sum(o.located > 0 for o in nulls_)
+        raw = raw_p_values(nulls_)
+        ks = stats.kstest(raw, "uniform").statistic if raw else math.nan
+        lr_k = [lr / k for o in nulls_ for lr, k in o.lr.values()]
+        out.append(f"{name:20s} {f'{claimed}/{n}':>8s} {upper_bound(claimed, n):9.1%} "
+                   f"{f'{located}/{n}':>8s} {upper_bound(located, n):9.1%} "
+                   f"{sum(o.p_min >= 1 for o in nulls_):7d} {np.mean(raw):10.2f} {ks:5.2f} "
+                   f"{np.mean(lr_k):5.2f} {sum(bool(o.controller) for o in nulls_):5d}")
+    n_max = max((len(v) for v in by_setting.values()), default=0)
+    out.append(f"(promised: claimed and located at most {PROMISED:.0%} each; "
+               f"a 95 % bound of {PROMISED:.0%} needs {_needed(PROMISED)} nulls with none, "
+               f"here {n_max}; raw p mean 0.50 and LR/k 1.00 when the references are exact)")
+    base = by_setting.get("0.05 Hz")
+    if base:
+        scale = calibration(base)
+        out.append("catalogue hypotheses' LR/k on the 0.05 Hz nulls: "
+                   + ", ".join(f"{e} {v:.2f}" for e, v in sorted(scale.items())))
+        if effect_set:
+            now = sum(o.p_values.get(o.effect or "", 1.0) < ALPHA for o in effect_set)
+            cal = sum(claimed_calibrated(o, scale) for o in effect_set)
+            out.append(f"hidden effects at the corpus' concealment claimed at the first step: "
+                       f"{now}/{len(effect_set)} as the p-values stand, {cal}/{len(effect_set)}"
+                       f" with each hypothesis's LR scaled by its nulls' LR/k")
+    return out
+
+
+def _needed(rate: float, level: float = 0.95) -> int:
+    """Nulls with no claim a one-sided bound of `rate` at `level` needs."""
+    return math.ceil(math.log(1 - level) / math.log(1 - rate))

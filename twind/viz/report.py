@@ -53,8 +53,14 @@ def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
     parts = [f"<h1>twind diagnose: {optic}</h1>",
              f'<p class="verdict" id="verdict">{html.escape(d.summary())}</p>',
              f"<p>chi2/nu {d.nominal.chi2_nu:.3f} with the nominal model refitted, "
-             f"{d.final.chi2_nu:.3f} with the final one ({d.final.bins} bins).</p>",
-             "<h2>Nominal parameters, refitted</h2>", _nominal(d),
+             f"{d.final.chi2_nu:.3f} with the final one ({d.final.bins} bins, coherence "
+             f"&gt;= {d.final.min_coherence:g}).</p>"]
+    if d.controller is not None:
+        parts += ["<h2>The damping controller, measured (OUT/IN2)</h2>",
+                  '<ul id="controller">' + "".join(f"<li>{html.escape(line.strip())}</li>"
+                                                   for line in d.controller.lines())
+                  + "</ul>"]
+    parts += ["<h2>Nominal parameters, refitted</h2>", _nominal(d),
              "<h2>Hypotheses</h2>", _hypotheses(d)]
     if d.separations:
         parts += ["<h2>Rivals and the measurement that separates them</h2>", _separations(d)]
@@ -143,10 +149,12 @@ def _hypotheses(d: Diagnosis) -> str:
 
 
 def _separations(d: Diagnosis) -> str:
-    rows = [(a, b, dof, f"{response}/{dof}", f"{f:.3g}")
-            for (a, b), (dof, response, f) in d.separations.items()]
-    return table("separations", ("effect", "rival", "excite", "measure", "around (Hz)"),
-                  rows)
+    rows = [(a, b, m.excite, f"{m.measure}/{m.excite}", f"{m.frequency_hz:.3g}",
+             f"{m.amplitude:.3g}", f"{m.seconds:.3g}" if m.separable else
+             f"{m.seconds:.2g}: not by loop measurements")
+            for (a, b), m in d.separations.items()]
+    return table("separations", ("effect", "rival", "excite", "measure", "around (Hz)",
+                                 "sine amplitude", "seconds for 3 sigma"), rows)
 
 
 def bands(table_id: str, located: Sequence[Located], empty: str) -> str:

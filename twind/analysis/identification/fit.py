@@ -69,8 +69,8 @@ _STEP = 1e-4  # log-parameter step of the finite-difference Jacobian
 def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = FIT_PARAMS,
         min_coherence: float = MIN_COHERENCE, band: tuple[float, float] | None = None,
         effect: str | None = None, effect_start: Mapping[str, float] | None = None,
-        whole: Sequence[tuple[float, float]] = (), unfitted: Sequence[str] = ()
-        ) -> FitResult:
+        whole: Sequence[tuple[float, float]] = (), unfitted: Sequence[str] = (),
+        held: Mapping[str, float] | None = None) -> FitResult:
     """Fit `params` of `cfg`'s optic to the measured transfer functions `tfs`.
 
     Parameters
@@ -96,6 +96,8 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
         Bands (Hz) fitted bin by bin whatever their coherence (:meth:`FitData.from_tfset`).
     unfitted : sequence of str
         Effect parameters held at zero (a coupling to a DOF the measurement does not excite).
+    held : mapping of str to float, optional
+        Effect parameters held at these values (a frequency being profiled).
 
     Returns
     -------
@@ -104,7 +106,8 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
     names = check_names(params)
     if effect is not None:
         try:
-            names += [n for n in effect_params(effect) if n not in unfitted]
+            names += [n for n in effect_params(effect)
+                      if n not in unfitted and n not in (held or {})]
         except EffectError as e:
             raise FitError(str(e)) from None
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
@@ -116,7 +119,7 @@ def fit(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str] = 
 
     def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
         progress.tick()
-        values = dict(zip(names, coords.values(x), strict=True))
+        values = {**(held or {}), **dict(zip(names, coords.values(x), strict=True))}
         try:
             # a trial step far out overflows the loop's matrices: rejected below, not warned
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -272,7 +275,8 @@ def _result(optic: str, coords: _Coords, x: NDArray, r: NDArray, J: NDArray, nul
     if null.shape[1]:
         proj = np.eye(len(names)) - null @ null.T
         A_pinv = proj @ A_pinv @ proj
-    cov = scale2 * A_pinv @ sandwich(J, rho, datas) @ A_pinv
+    correlated = sandwich(J, rho, datas)
+    cov = scale2 * A_pinv @ correlated @ A_pinv
     lost = np.any(np.abs(null) > NULL_COMPONENT, axis=1) if null.size else np.zeros(len(names), bool)
     values = coords.values(x)
     sigma = coords.sigma(x, np.diag(cov))
@@ -283,4 +287,5 @@ def _result(optic: str, coords: _Coords, x: NDArray, r: NDArray, J: NDArray, nul
     cov[:, lost] = np.nan
     return FitResult(optic, names, values, sigma, cov, unident, determined, chi2, nu,
                      math.sqrt(scale2), rho, sum(d.bins for d in datas), coords.start, effect,
-                     null=null, determined_covariance=full)
+                     null=null, determined_covariance=full,
+                     noise_rank=float(np.trace(A_pinv @ correlated)))

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy import stats
 
 from twind.analysis.estimation.tf import TFSet
@@ -69,6 +70,11 @@ def locate(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult,
     -------
     list of Located
     """
+    return significant(searched(tfs, cfg, result), alpha)
+
+
+def searched(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult) -> list:
+    """Every band :func:`locate` tests, with its uncorrected p-value (:func:`band_tests`)."""
     sets = [tfs] if isinstance(tfs, TFSet) else list(tfs)
     inflation = 1.0 + 2.0 * sum(r * r for r in result.bin_correlation)
     scale2 = result.noise_scale**2
@@ -80,7 +86,7 @@ def locate(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, result: FitResult,
         z = np.zeros(data.H.shape, dtype=complex)
         z[data.mask] = (data.H - pred)[data.mask] / data.sigma[data.mask]
         tests += band_tests(data, z, scale2, inflation)
-    return significant(tests, alpha)
+    return tests
 
 
 def significant(tests: list, alpha: float = ALPHA) -> list[Located]:
@@ -132,9 +138,7 @@ def band_tests(data: FitData, z: np.ndarray, scale2: float, inflation: float) ->
     used = f[data.mask.any(axis=(1, 2))]
     if used.size == 0:
         return []
-    lo, hi = math.log10(used.min()), math.log10(used.max())
-    edges = 10 ** np.arange(math.floor(lo * BANDS_PER_DECADE) / BANDS_PER_DECADE,
-                            hi + 1.0 / BANDS_PER_DECADE, 1.0 / BANDS_PER_DECADE)
+    edges = band_edges(float(used.min()), float(used.max()))
     out = []
     for i, r in enumerate(data.responses):
         for j, e in enumerate(data.excited):
@@ -150,6 +154,21 @@ def band_tests(data: FitData, z: np.ndarray, scale2: float, inflation: float) ->
                 p = float(stats.chi2.sf(power / scale, dof))
                 out.append((f"{r}/{e}", (float(a), float(b)), p, power / (n * mu)))
     return out
+
+
+def smallest_corrected(tests: list) -> float:
+    """The smallest Holm-corrected p-value of `tests` (1 when there are none): how near
+    the search came to locating a band."""
+    return min(1.0, min((t[2] for t in tests), default=1.0) * max(len(tests), 1))
+
+
+def band_edges(f_min: float, f_max: float, per_decade: int = BANDS_PER_DECADE
+               ) -> NDArray[np.float64]:
+    """Edges of the bands searched, `per_decade` to a decade on the decades' own grid (1,
+    2.15, 4.64, 10 ...), from below `f_min` to above `f_max` (Hz)."""
+    lo, hi = math.log10(f_min), math.log10(f_max)
+    return 10 ** np.arange(math.floor(lo * per_decade) / per_decade, hi + 1.0 / per_decade,
+                           1.0 / per_decade)
 
 
 def _holm(p: np.ndarray) -> np.ndarray:

@@ -63,6 +63,10 @@ class FitResult:
     null: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     determined_covariance: NDArray[np.float64] = field(
         default_factory=lambda: np.zeros((0, 0)), repr=False)
+    noise_rank: float = math.nan
+    """What the fitted directions take from pure noise, in one residual's variance:
+    ``tr(P R)`` for the projection P onto them and the bins' correlation R. Independent
+    bins make it :attr:`rank`; correlated ones weigh smooth directions more."""
 
     @property
     def bic(self) -> float:
@@ -118,7 +122,7 @@ class FitResult:
                 "unidentifiable": self.unidentifiable,
                 "determined": self.determined, "chi2_nu": self.chi2_nu, "nu": self.nu,
                 "noise_scale": self.noise_scale, "bin_correlation": self.bin_correlation,
-                "bins": self.bins}
+                "bins": self.bins, "min_coherence": self.min_coherence}
 
     def pulls(self, truth: Mapping[str, float]) -> str:
         """``name (fitted - truth) / sigma`` of the identified parameters `truth` gives."""
@@ -128,7 +132,8 @@ class FitResult:
 
     def lines(self) -> list[str]:
         """A human-readable table."""
-        out = [f"{self.optic}: {self.bins} bins, chi2/nu = {self.chi2_nu:.3f} "
+        out = [f"{self.optic}: {self.bins} bins (coherence >= {self.min_coherence:g}), "
+               f"chi2/nu = {self.chi2_nu:.3f} "
                f"(noise scale {self.noise_scale:.2f}, bin correlation "
                f"{', '.join(f'{c:+.2f}' for c in self.bin_correlation)})"]
         for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal, strict=True):
