@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from twind.analysis.diagnose import diagnose
-from twind.analysis.identification.controller import check_controller
+from twind.analysis.identification.controller import (
+    Ratio,
+    band_tests,
+    check_controller,
+    correct,
+    corrected_module,
+)
 from twind.config import OpticConfig, load_config
 from twind.lab.measurement import measure_tfs
 from twind.loop.filtermodule import Stage
@@ -86,3 +92,17 @@ def test_a_gain_and_a_stage_switched_off_are_told_apart(etmx: OpticConfig) -> No
     assert by_dof["POS"].kind == "modules" and by_dof["POS"].on == (1, 3)
     assert by_dof["POS"].gain == pytest.approx(1.0, rel=0.01)
     assert check.config.damping["POS"].on == (1, 3)
+
+
+def test_a_flipped_sign_is_read_as_a_gain_of_minus_one(etmx: OpticConfig) -> None:
+    """A ratio of -1 within the noise (phases near +-pi, on either branch): a difference,
+    and a gain of -1, not a cancelled phase."""
+    rng = np.random.default_rng(0)
+    f = np.linspace(1.0, 20.0, 400)
+    noise = rng.normal(0, 0.01, f.size) + 1j * rng.normal(0, 0.01, f.size)
+    ratio = Ratio("PIT", f, np.log(-np.exp(noise)), np.full(f.size, 0.01), 0.0)
+    assert min(p for *_, p in band_tests(ratio)) < 1e-10
+    c = correct(ratio, etmx.damping["PIT"], etmx.rate_hz, 1e-3)
+    assert c.kind == "gain" and c.gain == pytest.approx(-1.0, rel=0.01) and c.explained
+    assert corrected_module(etmx.damping["PIT"], c).gain == pytest.approx(
+        -etmx.damping["PIT"].gain, rel=0.01)

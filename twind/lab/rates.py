@@ -391,7 +391,9 @@ def settings_report(by_setting: dict[str, list[Outcome]],
         out.append(f"{name:20s} {f'{claimed}/{n}':>8s} {upper_bound(claimed, n):9.1%} "
                    f"{f'{located}/{n}':>8s} {upper_bound(located, n):9.1%} "
                    f"{sum(o.p_min >= 1 for o in nulls_):7d} {np.mean(raw):10.2f} {ks:5.2f} "
-                   f"{np.mean(lr_k):5.2f} {sum(bool(o.controller) for o in nulls_):5d}")
+                   f"{np.mean(lr_k):5.2f} {sum(bool(o.controller) for o in nulls_):5d}"
+                   + "".join(f"  {o.name}: {', '.join(o.chosen)} (p {o.p_min:.2g})"
+                             for o in nulls_ if o.chosen))
     n_max = max((len(v) for v in by_setting.values()), default=0)
     out.append(f"(promised: claimed and located at most {PROMISED:.0%} each; "
                f"a 95 % bound of {PROMISED:.0%} needs {_needed(PROMISED)} nulls with none, "

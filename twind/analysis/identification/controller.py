@@ -33,7 +33,7 @@ from twind.analysis.estimation.tf import TFSet
 from twind.config import OpticConfig
 from twind.analysis.identification.locate import band_edges
 from twind.config.reader import ModuleConfig
-from twind.loop.filtermodule import N_STAGES, Stage
+from twind.loop.filtermodule import Stage
 
 ALPHA = 0.01
 """Family-wise false-alarm probability of calling a controller different (every band of
@@ -149,6 +149,9 @@ class Correction:
     peak_hz: float = math.nan
     peak_db: float = math.nan
     peak_deg: float = math.nan
+    applied: bool = True
+    """False when the configured bank has no room for it: the plant is read through the
+    configured module."""
 
     def short(self) -> str:
         """The correction in a few words."""
@@ -164,13 +167,16 @@ class Correction:
                 "stage": f"a stage the configuration lacks, {' '.join(self.designs)}, gain "
                          f"{self.gain:.4g} times the configured"}[self.kind]
         rest = "" if self.explained else "; beyond it the difference is not modelled"
+        if not self.applied:
+            rest += "; the bank has no room for it, so the configured module is kept"
         return f"{self.dof}: {text} (chi2/nu {self.chi2_nu:.2f}){rest}"
 
     def to_json(self) -> dict:
         """One entry of ``controller.corrections``."""
         return {"dof": self.dof, "kind": self.kind, "gain": self.gain, "on": list(self.on),
                 "designs": list(self.designs), "chi2_nu": self.chi2_nu,
-                "explained": self.explained, "peak_hz": self.peak_hz,
+                "explained": self.explained, "applied": self.applied,
+                "peak_hz": self.peak_hz,
                 "peak_db": self.peak_db, "peak_deg": self.peak_deg}
 
 
@@ -220,7 +226,8 @@ class ControllerCheck:
                     f"{c.peak_db:+.2f} dB, {c.peak_deg:+.1f} deg at {c.peak_hz:.3g} Hz "
                     f"({band.significance:.1f} sigma in {band.band_hz[0]:.3g}-"
                     f"{band.band_hz[1]:.3g} Hz)",
-                    f"  measured: {c.line()}; the plant is read through it"]
+                    f"  measured: {c.line()}"
+                    + ("; the plant is read through it" if c.applied else "")]
         return out
 
     def to_json(self) -> dict:
@@ -339,17 +346,24 @@ def band_tests(ratio: Ratio, residual: NDArray[np.complex128] | None = None
     out = []
     for a, b in itertools.pairwise(edges):
         k = (f >= a) & (f < b)
-        n = int(k.sum())
-        if n < MIN_BINS:
+        if int(k.sum()) < MIN_BINS:
             continue
-        wk, dk = w[k], d[k]
+        wk, dk = w[k], _on_branch(d[k], w[k])
+        n = float(np.sum(wk)) ** 2 / float(np.sum(wk**2))  # Kish: unequal weights count less
         mean = complex(np.sum(wk * dk) / np.sum(wk))
         spread = float(np.sum(wk**2 * np.abs(dk - mean) ** 2)) / float(np.sum(wk)) ** 2
-        var = spread * n / (n - 1) * inflation  # of the mean, both components together
+        var = spread * n / max(n - inflation, 1.0) * inflation  # of the mean, both components
         dof = max(2.0 * (n / inflation - 1.0), 2.0)
         p = float(stats.f.sf(abs(mean) ** 2 / max(var, 1e-300), 2, dof))
         out.append(((float(a), float(b)), mean, p))
     return out
+
+
+def _on_branch(d: NDArray[np.complex128], w: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """`d` with each phase moved by whole turns to within half a turn of their circular
+    mean: a flipped sign (a phase near +-pi) must not average to zero."""
+    centre = float(np.angle(np.sum(w * np.exp(1j * d.imag))))
+    return d - 2j * math.pi * np.round((d.imag - centre) / (2 * math.pi))
 
 
 def check_controller(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
@@ -379,8 +393,11 @@ def check_controller(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     corrections = [correct(ratios[d], cfg.damping[d], cfg.rate_hz, alpha / max(m, 1))
                    for d in dict.fromkeys(x.dof for x in differences)]
     damping = dict(cfg.damping)
-    for c in corrections:
-        damping[c.dof] = corrected_module(cfg.damping[c.dof], c)
+    for i, c in enumerate(corrections):
+        try:
+            damping[c.dof] = corrected_module(cfg.damping[c.dof], c)
+        except ValueError:
+            corrections[i] = replace(c, applied=False)
     return ControllerCheck(list(ratios), differences, corrections,
                            replace(cfg, damping=damping), ratios)
 
@@ -413,18 +430,21 @@ def correct(ratio: Ratio, module: ModuleConfig, rate_hz: float, alpha_band: floa
 
 
 def corrected_module(module: ModuleConfig, c: Correction) -> ModuleConfig:
-    """`module` changed as `c` measured it."""
+    """`module` changed as `c` measured it: its gain, the FMs on, and each stage it lacks
+    in a free slot (a full bank's last switched-on stage takes it as a further factor)."""
     stages, on = list(module.stages), list(c.on)
     for design in c.designs:
-        slot = next((i for i, s in enumerate(stages) if s is None), None)
-        if slot is None:
-            stages.append(None)
-            slot = len(stages) - 1
-        if slot >= N_STAGES:  # a full bank: the measured stage folds into the last
-            slot = N_STAGES - 1
-            design = f"{stages[slot].design or ''}{design}" if stages[slot] else design
-        stages[slot] = Stage("measured", design=design)
-        on.append(slot + 1)
+        free = [i for i, s in enumerate(stages) if s is None]
+        if free:
+            stages[free[0]] = Stage("measured", design=design)
+            on.append(free[0] + 1)
+            continue
+        last = max(on) - 1 if on else None
+        if last is None or stages[last].design is None:
+            msg = (f"{c.dof}: the bank has no free slot for the measured stage {design} "
+                   "and no switched-on design to add it to")
+            raise ValueError(msg)
+        stages[last] = Stage(stages[last].name, design=f"{stages[last].design}{design}")
     return replace(module, gain=module.gain * c.gain, stages=tuple(stages),
                    on=tuple(sorted(set(on))))
 

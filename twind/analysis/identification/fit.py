@@ -275,8 +275,7 @@ def _result(optic: str, coords: _Coords, x: NDArray, r: NDArray, J: NDArray, nul
     if null.shape[1]:
         proj = np.eye(len(names)) - null @ null.T
         A_pinv = proj @ A_pinv @ proj
-    correlated = sandwich(J, rho, datas)
-    cov = scale2 * A_pinv @ correlated @ A_pinv
+    cov = scale2 * A_pinv @ sandwich(J, rho, datas) @ A_pinv
     lost = np.any(np.abs(null) > NULL_COMPONENT, axis=1) if null.size else np.zeros(len(names), bool)
     values = coords.values(x)
     sigma = coords.sigma(x, np.diag(cov))
@@ -287,5 +286,4 @@ def _result(optic: str, coords: _Coords, x: NDArray, r: NDArray, J: NDArray, nul
     cov[:, lost] = np.nan
     return FitResult(optic, names, values, sigma, cov, unident, determined, chi2, nu,
                      math.sqrt(scale2), rho, sum(d.bins for d in datas), coords.start, effect,
-                     null=null, determined_covariance=full,
-                     noise_rank=float(np.trace(A_pinv @ correlated)))
+                     null=null, determined_covariance=full)

@@ -63,10 +63,6 @@ class FitResult:
     null: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     determined_covariance: NDArray[np.float64] = field(
         default_factory=lambda: np.zeros((0, 0)), repr=False)
-    noise_rank: float = math.nan
-    """What the fitted directions take from pure noise, in one residual's variance:
-    ``tr(P R)`` for the projection P onto them and the bins' correlation R. Independent
-    bins make it :attr:`rank`; correlated ones weigh smooth directions more."""
 
     @property
     def bic(self) -> float:
