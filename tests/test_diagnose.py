@@ -19,7 +19,8 @@ from browser import tables
 from conftest import REFERENCE
 from diagnosekit import assert_accounted, assert_sound
 
-from twind.analysis.diagnose import ALPHA, diagnose, f_profile, separating_measurement
+from twind.analysis.diagnose import ALPHA, diagnose, f_profile
+from twind.analysis.separation import separating_measurement
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
 from twind.lab.corpus import FACES, key_z
