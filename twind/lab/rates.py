@@ -8,7 +8,9 @@ smaller than uniform. One case cannot show a rate. :func:`outcomes` diagnoses co
 (:func:`~twind.lab.corpus.make_cases`: drifted nulls, concealed effects) side by side in
 processes, each measured by the twin's engine; :func:`rate_bound` says how many of a set
 may claim before a promised rate is wrong, :func:`p_values_too_small` whether their
-p-values are smaller than uniform.
+p-values are smaller than uniform. :func:`at_settings` measures the same nulls at each of
+:data:`SETTINGS` and :func:`settings_report` tabulates them with bounds from the counts
+(:func:`upper_bound`) and the catalogue's calibration (:func:`calibration`).
 """
 
 from __future__ import annotations
