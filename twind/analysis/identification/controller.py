@@ -11,10 +11,10 @@ bank's other modules switched on or off, or a stage of its own), and the configu
 given the measured controller for the rest of the analysis.
 
 The test: the log of the ratio ``c = K_measured / K_configured`` (its real part the gain in
-nepers, its imaginary part the phase), averaged band by band (the bands the residuals are searched in)
-with inverse-variance weights; each band's mean against its own scatter (a t-test of two
-components, the bins' correlation paid for), Bonferroni over every band of every DOF at
-:data:`ALPHA`. The method: docs/diagnose.md, "The controller".
+nepers, its imaginary part the phase), averaged with inverse-variance weights over the
+bands the residuals are searched in; each band's mean against its own scatter (an F test of
+two components, unequal weights and the bins' correlation paid for), Bonferroni over every
+band of every DOF at :data:`ALPHA`. The method: docs/diagnose.md, "The controller".
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from scipy import optimize, signal, stats
 from twind import DOFS
 from twind.analysis.estimation.tf import TFSet
 from twind.config import OpticConfig
-from twind.analysis.identification.locate import band_edges
+from twind.analysis.identification.locate import band_edges, gaussian_sigma
 from twind.config.reader import ModuleConfig
 from twind.loop.filtermodule import Stage
 
@@ -386,8 +386,8 @@ def check_controller(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
     ratios = {d: r for d in DOFS if (r := measured_ratio(tfs, cfg, d)) is not None}
     tests = {d: band_tests(r) for d, r in ratios.items()}
     m = sum(len(t) for t in tests.values())
-    differences = [Difference(d, band, 20 * mean.real / math.log(10),
-                              math.degrees(mean.imag), _sigma(p * m), min(1.0, p * m))
+    differences = [Difference(d, band, 20 * mean.real / math.log(10), math.degrees(mean.imag),
+                              gaussian_sigma(p * m), min(1.0, p * m))
                    for d, t in tests.items() for band, mean, p in t if p * m < alpha]
     differences.sort(key=lambda x: -x.significance)
     corrections = [correct(ratios[d], cfg.damping[d], cfg.rate_hz, alpha / max(m, 1))
@@ -400,10 +400,6 @@ def check_controller(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
             corrections[i] = replace(c, applied=False)
     return ControllerCheck(list(ratios), differences, corrections,
                            replace(cfg, damping=damping), ratios)
-
-
-def _sigma(p: float) -> float:
-    return float(stats.norm.isf(min(max(p, 1e-300), 1.0) / 2))
 
 
 def correct(ratio: Ratio, module: ModuleConfig, rate_hz: float, alpha_band: float

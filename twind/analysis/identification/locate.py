@@ -96,7 +96,7 @@ def significant(tests: list, alpha: float = ALPHA) -> list[Located]:
         return []
     p = np.array([tt[2] for tt in tests])
     corrected = _holm(p)
-    out = [Located(el, band, _sigma_of(pc), float(pc), excess)
+    out = [Located(el, band, gaussian_sigma(pc), float(pc), excess)
            for (el, band, _, excess), pc in zip(tests, corrected, strict=True) if pc < alpha]
     return sorted(out, key=lambda x: -x.significance)
 
@@ -183,6 +183,6 @@ def _holm(p: np.ndarray) -> np.ndarray:
     return adjusted
 
 
-def _sigma_of(p: float) -> float:
+def gaussian_sigma(p: float) -> float:
     """Two-sided Gaussian-equivalent significance of a p-value."""
     return float(stats.norm.isf(max(p, 1e-300) / 2))
