@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from twind.config import NOMINAL_ETMX, load_config, load_optic
@@ -59,6 +60,8 @@ BAD = [
     ('on = [1, 2, 3]', 'on = [1, 2, 4]', "damping.on", "FM4 is switched on but holds no filter"),
     ('POS = 500', 'POS = "500"', "suspension.Q.POS", "positive number"),
     ('[optic]', '[optic', "-", "not valid TOML"),
+    ('loop_delay = "', 'input_matrix = [[0.25, 0.25, 0.25, 0.25]]\nloop_delay = "', "cds.input_matrix",
+     "expected 4 rows of 5 finite numbers"),
 ]
 
 
@@ -89,3 +92,15 @@ def test_cli_reports_bad_config_without_traceback(tmp_path: Path) -> None:
 def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="file not found"):
         load_config(tmp_path / "nothing.toml")
+
+
+def test_an_input_matrix_set_in_the_front_end_is_the_plants(tmp_path: Path) -> None:
+    rows = [[0.25] * 4 + [0.0], [13.0, 13.0, -13.0, -13.0, 0.0],
+            [13.0, -13.0, 13.0, -13.0, 0.0], [0.0] * 4 + [1.0]]
+    path = _edited(tmp_path, 'loop_delay = "', f"input_matrix = {rows}\nloop_delay = \"")
+    cfg = load_optic(path)
+    assert np.array_equal(cfg.cds_input_matrix(), rows)
+    assert np.allclose(cfg.loop().plant.input_matrix, 1e6 * np.array(rows))
+    nominal = load_optic(NOMINAL_ETMX)
+    assert nominal.input_matrix is None
+    assert nominal.cds_input_matrix()[1, 0] == pytest.approx(1 / (4 * 0.019))

@@ -32,7 +32,7 @@ from twind.viz.report import report_page
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))
 KEYS = {"consistent", "chi2_nu_nominal", "chi2_nu_final", "located", "effects",
         "unexplained", "nominal_params", "summary", "p_values", "not_fitted",
-        "consistency", "controller", "separations"}
+        "consistency", "controller", "separations", "input_matrix"}
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +59,7 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
     obj = json.loads(out.getvalue())
     assert set(obj) == KEYS
     assert obj["consistent"] and obj["effects"] == [] and obj["located"] == []
+    assert not obj["input_matrix"]["checked"]  # diaggui XML holds no OSEM readings
     assert obj["nominal_params"]["Q_SIDE"]["sigma"] is None
     assert_accounted(obj["p_values"], obj["not_fitted"])
     assert {p.name for p in (tmp_path / "report").iterdir()} == {

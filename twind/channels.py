@@ -17,6 +17,9 @@ UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
 DOF_CHANNEL = re.compile(
     r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
 """A damping test point's name, parsed into ``ifo``, ``optic``, ``dof`` and ``point``."""
+OSEM_CHANNEL = re.compile(
+    rf"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_(?P<osem>{'|'.join(OSEMS)})SEN_OUT$")
+"""An OSEM reading's name (:func:`osem_channel`), parsed into ``ifo``, ``optic`` and ``osem``."""
 
 
 POINT_NAME = re.compile(r"^(?P<ifo>[A-Za-z0-9]+):(?P<system>[A-Za-z0-9]+)-(?P<optic>[A-Za-z0-9]+)_"

@@ -43,6 +43,7 @@ from twind.analysis.identification import narrow
 from twind.analysis.identification.controller import ControllerCheck, check_controller
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.fit import fit
+from twind.analysis.identification.inmatrix import InputMatrixCheck
 from twind.analysis.identification.locate import Located, _null_moments, locate
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.params import FIT_PARAMS, FitError, with_params
@@ -279,6 +280,9 @@ class Diagnosis:
     controller : ControllerCheck or None
         The damping loop's measured controller against the configured one; the plant was
         read through the measured one.
+    input_matrix : InputMatrixCheck or None
+        The input matrix the recorded IN1 and OSEM readings imply against the configured
+        one; the plant was read through the measured one.
     p_band : float
         The band search's smallest Holm-corrected p-value on the refitted nominal model.
     bands : int
@@ -297,14 +301,17 @@ class Diagnosis:
     """Every hypothesis fitted at the first step (its search's paths among them)."""
     not_fitted: list[NotFitted] = field(default_factory=list)
     controller: ControllerCheck | None = None
+    input_matrix: InputMatrixCheck | None = None
     p_band: float = 1.0
     bands: int = 0
     hypotheses: int = 0
 
     def read_through(self, cfg: OpticConfig) -> OpticConfig:
-        """`cfg` with the controllers measured, as the plant was read (`cfg` itself when
-        they were not checked)."""
-        return self.controller.config if self.controller else cfg
+        """`cfg` with the input matrix and the controllers measured, as the plant was read
+        (`cfg` itself when they were not checked)."""
+        if self.controller:
+            return self.controller.config
+        return self.input_matrix.config(cfg) if self.input_matrix else cfg
 
     @property
     def p_values(self) -> dict[str, float]:
@@ -332,12 +339,17 @@ class Diagnosis:
         return self._controller_said() + self._plant_summary(names, chi2, rest)
 
     def _controller_said(self) -> str:
-        """The controllers that differ, as the summary opens with them."""
+        """The input matrix rows and controllers that differ, as the summary opens with
+        them."""
+        said = ""
+        if self.input_matrix is not None and not self.input_matrix.same:
+            said = (f"the input matrix differs from the configuration in "
+                    f"{', '.join(self.input_matrix.rows)}; read through the measured one: ")
         if self.controller is None or self.controller.same:
-            return ""
-        said = ", ".join(f"{c.dof}: {c.short()}" for c in self.controller.corrections)
-        return (f"the damping filters differ from the configuration ({said}); read through "
-                "the measured ones: ")
+            return said
+        filters = ", ".join(f"{c.dof}: {c.short()}" for c in self.controller.corrections)
+        return (f"{said}the damping filters differ from the configuration ({filters}); read "
+                "through the measured ones: ")
 
     def consistency(self) -> str:
         """What "consistent" was tested against: both searches, levels and p-values."""
@@ -384,6 +396,8 @@ class Diagnosis:
                     "bins": self.nominal.bins,
                     "min_coherence": self.nominal.min_coherence},
                 "controller": None if self.controller is None else self.controller.to_json(),
+                "input_matrix": (None if self.input_matrix is None
+                                 else self.input_matrix.to_json()),
                 "chi2_nu_nominal": self.nominal.chi2_nu,
                 "chi2_nu_final": self.final.chi2_nu,
                 "located": [x.to_json() for x in self.located],
@@ -397,7 +411,8 @@ class Diagnosis:
 
     def lines(self) -> list[str]:
         """A summary for a person."""
-        out = [self.summary(), *(self.controller.lines() if self.controller else []),
+        out = [self.summary(), *(self.input_matrix.lines() if self.input_matrix else []),
+               *(self.controller.lines() if self.controller else []),
                f"{self.nominal.optic}: nominal model refitted, chi2/nu "
                f"{self.nominal.chi2_nu:.3f} over {self.nominal.bins} bins (coherence >= "
                f"{self.nominal.min_coherence:g}): "
@@ -443,7 +458,8 @@ MIN_COHERENCE = 0.0
 def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
              params: Sequence[str] = FIT_PARAMS,
              min_coherence: float = MIN_COHERENCE, max_effects: int | None = None,
-             controller: bool = True) -> Diagnosis:
+             controller: bool = True, input_matrix: InputMatrixCheck | None = None
+             ) -> Diagnosis:
     """Diagnose measured TFs of `cfg`'s optic against its nominal model.
 
     Forward selection: every hypothesis (:data:`~twind.model.effects.CATALOGUE`, the
@@ -472,17 +488,23 @@ def diagnose(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig,
         Check each DOF's measured controller (OUT/IN2) against `cfg`'s first
         (:func:`~twind.analysis.identification.controller.check_controller`) and read the
         plant through the measured one.
+    input_matrix : InputMatrixCheck, optional
+        The input matrix measured from the recording
+        (:func:`~twind.analysis.identification.inmatrix.recorded_input_matrix`); the plant
+        is read through it (and through the controller measured after it).
 
     Returns
     -------
     Diagnosis
     """
+    cfg = input_matrix.config(cfg) if input_matrix else cfg
     check = check_controller(tfs, cfg) if controller else None
     cfg = check.config if check else cfg
     nominal = fit(tfs, cfg, params, min_coherence)
     tests = search.searched(tfs, cfg, nominal)
     located = search.significant(tests)
-    checked = {"controller": check, "p_band": search.smallest_corrected(tests),
+    checked = {"controller": check, "input_matrix": input_matrix,
+               "p_band": search.smallest_corrected(tests),
                "bands": len(tests), "hypotheses": len(_candidates([]))}
     unit = _unit(nominal, tfs)
     chosen, rivals, first_step, not_fitted = _select(

@@ -17,6 +17,7 @@ from twind.analysis.identification.candidates import compare
 from twind.analysis.identification.controller import check_controller
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.freeswing import analyse, ringdown
+from twind.analysis.identification.inmatrix import InputMatrixCheck, recorded_input_matrix
 from twind.analysis.identification.modes import fit_modes, read_mode_table
 from twind.analysis.identification.params import FIT_PARAMS, read_truth
 from twind.bus.session import zenoh_config
@@ -25,7 +26,7 @@ from twind.cli import plant as statespace
 from twind.cli.options import show
 from twind.cli.twin import client
 from twind.client import TwinClient
-from twind.config import MEASURED_MODES, load_config
+from twind.config import MEASURED_MODES, OpticConfig, load_config
 from twind.errors import TwindError
 from twind.recording.frames import FORMATS, parse_map
 from twind.recording.reader import as_array, getdata
@@ -64,6 +65,15 @@ def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
     msg = (f"inputs must be all diaggui .xml, all .mcap, or all HDF5 (.h5, .hdf5) or GWF "
            f"(.gwf), got {sorted(kinds)}")
     raise TwindError(msg)
+
+
+def _input_matrix(args: argparse.Namespace, cfg: OpticConfig) -> InputMatrixCheck:
+    """The input matrix of ``args.inputs`` (a recording's IN1 and OSEM readings) checked
+    against `cfg`'s."""
+    if all(Path(p).suffix.lower() == ".xml" for p in args.inputs):
+        return InputMatrixCheck(cfg.cds_input_matrix(),
+                                why="diaggui XML holds no OSEM readings")
+    return recorded_input_matrix(args.inputs, cfg, parse_map(args.map))
 
 
 def _check_band(args: argparse.Namespace) -> None:
@@ -173,15 +183,18 @@ def cmd_fit(args: argparse.Namespace) -> int:
         return statespace.fit(args, optic)
     truth = read_truth(args.truth) if args.truth else None  # a bad file fails before the fit
     tfs = _measured_tfs(args)
-    check = check_controller(tfs, load_config(args.config, tfs.optic).select(tfs.optic)[0])
-    cfg = check.config  # the plant is read through the controller measured
+    configured = load_config(args.config, tfs.optic).select(tfs.optic)[0]
+    matrix = _input_matrix(args, configured)
+    check = check_controller(tfs, matrix.config(configured))
+    cfg = check.config  # the plant is read through the input matrix and controller measured
     band = tuple(args.band) if args.band else None
     result = fit(tfs, cfg, args.params or FIT_PARAMS, args.min_coherence, band)
     if args.json:
-        strictjson.dump({**result.to_json(), "controller": check.to_json()}, sys.stdout)
+        strictjson.dump({**result.to_json(), "controller": check.to_json(),
+                         "input_matrix": matrix.to_json()}, sys.stdout)
         sys.stdout.write("\n")
     else:
-        print("\n".join([*check.lines(), *result.lines()]))
+        print("\n".join([*matrix.lines(), *check.lines(), *result.lines()]))
     if truth:
         print(f"(fitted - truth) / sigma: {result.pulls(truth)}",
               file=sys.stderr if args.json else sys.stdout)
@@ -278,7 +291,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     if args.band:
         tfs = tfs.band(*args.band)
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
-    result = diagnose(tfs, cfg)
+    result = diagnose(tfs, cfg, input_matrix=_input_matrix(args, cfg))
     show(result, args.json)
     cfg = result.read_through(cfg)
     if args.output:

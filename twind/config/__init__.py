@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from twind import DOFS
 from twind.channels import C1, Convention
@@ -22,6 +23,7 @@ from twind.config.reader import (
     Reader,
     boolean,
     fm_numbers,
+    matrix,
     non_negative_quantity,
     positive,
     positive_int,
@@ -38,6 +40,7 @@ from twind.loop.filtermodule import N_STAGES, Stage
 from twind.loop.foton_file import read_filter_file
 from twind.model.analytical import analytical_mechanics
 from twind.model.geometric import WireGeometry, geometric_mechanics
+from twind.model.matrices import CALIBRATION, input_matrix
 from twind.model.params import ALL_DOFS, SOSParams
 from twind.model.plant import Plant
 from twind.simulation.discretize import closed_loop_matrices, closed_loop_modes, delay_samples
@@ -62,6 +65,10 @@ SUSPENSION_KEYS = {
 OSEM_KEYS = {"lever": ("osem_lever_m", "length"), "coil": ("coil_N_per_ct", "actuation"),
              "side_coil": ("side_coil_N_per_ct", "actuation")}
 CDS_KEYS = {"rate": ("sample_rate_hz", "frequency"), "loop_delay": ("loop_delay_s", "time")}
+INPUT_MATRIX = "input_matrix"
+"""``[cds]`` key of the input matrix as set in the front end: rows POS, PIT, YAW, SIDE (um, urad,
+urad, um) per OSEM reading UL, UR, LL, LR, SIDE (um); default: the OSEM geometry's
+(docs/model.md)."""
 NOISE_KEYS = {"osem": ("osem_m", "length ASD"), "osem_corner": ("osem_corner_hz", "frequency"),
               "sp_x": ("sp_x_m", "length ASD"), "sp_y": ("sp_y_m", "length ASD"),
               "sp_phi": ("sp_phi_rad", "angle ASD"), "floor": ("floor_hz", "frequency")}
@@ -80,6 +87,7 @@ class OpticConfig:
     noise: NoiseSpec = field(default_factory=NoiseSpec)
     model: str = "analytical"
     source: str = "<defaults>"
+    input_matrix: tuple[tuple[float, ...], ...] | None = None  # [cds] input_matrix, if set
 
     kind = "sos"
 
@@ -95,10 +103,24 @@ class OpticConfig:
 
         return analytical_mechanics(self.sus)
 
+    def plant(self, sus: SOSParams | None = None) -> Plant:
+        """The optic's plant (with other suspension parameters `sus`, if given) behind its
+        configured input matrix."""
+        cfg = self if sus is None else replace(self, sus=sus)
+        plant = Plant.from_params(cfg.sus, cfg.mechanics())
+        if self.input_matrix is None:
+            return plant
+        return replace(plant, input_matrix=CALIBRATION * np.array(self.input_matrix))
+
+    def cds_input_matrix(self) -> NDArray[np.float64]:
+        """The input matrix as the front end holds it: DOF (um, urad) per OSEM um, (4, 5)."""
+        if self.input_matrix is not None:
+            return np.array(self.input_matrix)
+        return input_matrix(self.sus.osem_lever_m) / CALIBRATION
+
     def loop(self) -> DampingLoop:
         """The optic's damping loop, with fresh filter modules."""
-        plant = Plant.from_params(self.sus, self.mechanics())
-        return DampingLoop(self.name, plant, {d: self.damping[d].build() for d in DOFS})
+        return DampingLoop(self.name, self.plant(), {d: self.damping[d].build() for d in DOFS})
 
     @functools.cached_property
     def closed_loop_modes(self) -> list[tuple[float, float]]:
@@ -141,7 +163,8 @@ def _read_sus(r: Reader, name: str) -> SOSParams:
     sus, osem, cds = r.sub("suspension"), r.sub("osem"), r.sub("cds")
     values: dict[str, Any] = {"name": name}
     for reader, keys in ((sus, SUSPENSION_KEYS), (osem, OSEM_KEYS), (cds, CDS_KEYS)):
-        reader.only([*keys, "Q"] if reader is sus else list(keys))
+        reader.only([*keys, "Q"] if reader is sus else [*keys, INPUT_MATRIX] if reader is cds
+                    else list(keys))
         for key, (attr, dim) in keys.items():
             values[attr] = reader.get(key, quantity(dim))
     q = sus.sub("Q")
@@ -265,7 +288,8 @@ def load_optic(path: str | Path) -> OpticConfig | StateSpaceOptic:
     r.only(["optic", "suspension", "osem", "cds", "damping", "noise"])
     sus = _read_sus(r, name)
     cfg = OpticConfig(name=name, sus=sus, damping=_read_damping(r, name, sus.sample_rate_hz),
-                      noise=_read_noise(r), model=model, source=source)
+                      noise=_read_noise(r), model=model, source=source,
+                      input_matrix=r.sub("cds").get(INPUT_MATRIX, matrix(4, 5), None))
     check_stable(cfg)
     return cfg
 

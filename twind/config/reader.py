@@ -3,6 +3,7 @@ converted with their units, and a damping filter module as written."""
 
 from __future__ import annotations
 
+import math
 import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -140,6 +141,21 @@ def fm_numbers(v: Any) -> tuple[int, ...]:
         raise ValueError(msg)
     return tuple(v)
 
+
+
+def matrix(rows: int, columns: int) -> Callable[[Any], tuple[tuple[float, ...], ...]]:
+    """A converter of a list of `rows` lists of `columns` finite plain numbers."""
+    def convert(v: Any) -> tuple[tuple[float, ...], ...]:
+        ok = (isinstance(v, list) and len(v) == rows
+              and all(isinstance(r, list) and len(r) == columns for r in v)
+              and all(isinstance(x, int | float) and not isinstance(x, bool)
+                      and math.isfinite(x) for r in v for x in r))
+        if not ok:
+            msg = f"expected {rows} rows of {columns} finite numbers, got {v!r}"
+            raise ValueError(msg)
+        return tuple(tuple(float(x) for x in r) for r in v)
+
+    return convert
 
 
 def positive_int(v: Any) -> int:

@@ -474,7 +474,7 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
     present : float
         Its change summed over the bins (chi^2 units).
     """
-    base = Plant.from_params(real.sus, real.mechanics())
+    base = real.plant()
     model = ClosedLoopModel.of(real, reference)
     rows, cols = _indices(reference)
 
@@ -574,7 +574,7 @@ def make_cases(cfg: OpticConfig, reference: FitData | None, per_effect: int = 3,
     for k in range(nulls):
         real = drifted(cfg, rng)
         cases.append(Case(f"null #{k + 1}", None, real,
-                          Plant.from_params(real.sus, real.mechanics())))
+                          real.plant()))
     for effect in effects:
         for k in range(per_effect):
             real = drifted(cfg, rng)
@@ -586,7 +586,7 @@ def make_cases(cfg: OpticConfig, reference: FitData | None, per_effect: int = 3,
             if len(parts) == 1:
                 plant, truth, largest, present = hid[0]
             else:  # each concealed alone, then both put into one plant
-                plant = Plant.from_params(real.sus, real.mechanics())
+                plant = real.plant()
                 for e, size, (direction, shape) in zip(parts, sizes, draws, strict=True):
                     plant = hidden(plant, e, size, direction, real.sus, shape)[0]
                 truth = {e: h[1] for e, h in zip(parts, hid, strict=True)}

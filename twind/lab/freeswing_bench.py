@@ -4,6 +4,7 @@ drifted optics with OSEM imbalances, against each optic's own eigenmodes."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 
@@ -48,7 +49,7 @@ def benchmark(optic: OpticConfig, n: int = 8, duration_s: float = 1000.0, seed: 
             wire_length_m=optic.sus.wire_length_m * rng.uniform(0.96, 1.04),
             b_m=optic.sus.b_m * rng.uniform(0.8, 1.2), R1_m=optic.sus.R1_m * rng.uniform(0.9, 1.1),
             Q={d: float(rng.uniform(250, 800)) for d in DOFS})
-        real = OpticConfig(optic.name, sus, optic.damping, optic.noise, optic.model, optic.source)
+        real = replace(optic, sus=sus)
         imbalance = {f"gain_{o}": float(rng.uniform(-0.1, 0.1)) for o in OSEMS[:4]}
         plant = with_effect(real.loop().plant, sus, "osem_imbalance", imbalance)
         sen, rate = ringdown(real, duration_s, seed=seed + k, plant=plant)

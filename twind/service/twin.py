@@ -510,7 +510,7 @@ class TwinService:
             applied = self._effects.get(cfg.name)
             if effect is not None:
                 applied = (effect["id"], dict(effect.get("values") or {})) if effect["id"] else None
-            new = OpticConfig(cfg.name, sus, cfg.damping, cfg.noise, cfg.model, cfg.source)
+            new = replace(cfg, sus=sus)
             loop = new.loop()
             if applied:
                 loop.plant = with_effect(loop.plant, sus, *applied)

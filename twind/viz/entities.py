@@ -14,11 +14,11 @@ from collections.abc import Iterable
 
 import rerun.blueprint as rrb
 
-from twind import DOFS, OSEMS
+from twind import DOFS
+from twind.channels import OSEM_CHANNEL
 
 _OPTIC = r"^(?P<ifo>[^:]+):SUS-(?P<optic>[A-Z0-9]+)_"
 _DOF = re.compile(rf"{_OPTIC}SUS(?P<dof>{'|'.join(DOFS)})_(?P<point>[A-Z0-9]+)$")
-_OSEM = re.compile(rf"{_OPTIC}(?P<osem>{'|'.join(OSEMS)})SEN_OUT$")
 
 
 def parse_dof_channel(channel: str) -> tuple[str, str, str, str] | None:
@@ -31,7 +31,7 @@ def entity_path(channel: str) -> str:
     """The Rerun entity path of a channel."""
     if m := _DOF.match(channel):
         return f"sus/{m['optic']}/{m['dof']}/{m['point']}"
-    if m := _OSEM.match(channel):
+    if m := OSEM_CHANNEL.match(channel):
         return f"sus/{m['optic']}/OSEM/{m['osem']}"
     return "channels/" + re.sub(r"[^A-Za-z0-9_\-]", "_", channel)
 

@@ -55,11 +55,12 @@ def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
              f"<p>chi2/nu {d.nominal.chi2_nu:.3f} with the nominal model refitted, "
              f"{d.final.chi2_nu:.3f} with the final one ({d.final.bins} bins, coherence "
              f"&gt;= {d.final.min_coherence:g}).</p>"]
+    if d.input_matrix is not None:
+        parts += ["<h2>The input matrix, measured (IN1 against the OSEM readings)</h2>",
+                  _listed("input_matrix", d.input_matrix.lines())]
     if d.controller is not None:
         parts += ["<h2>The damping controller, measured (OUT/IN2)</h2>",
-                  '<ul id="controller">' + "".join(f"<li>{html.escape(line.strip())}</li>"
-                                                   for line in d.controller.lines())
-                  + "</ul>"]
+                  _listed("controller", d.controller.lines())]
     parts += ["<h2>Nominal parameters, refitted</h2>", _nominal(d),
              "<h2>Hypotheses</h2>", _hypotheses(d)]
     if d.separations:
@@ -106,6 +107,12 @@ def table(table_id: str, header: Sequence[str], rows: Sequence[Sequence[str]],
 def number(x: float | None, digits: int = 4) -> str:
     """`x` to `digits` significant digits; a dash where it is undetermined."""
     return "—" if x is None or not math.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _listed(key: str, lines: list[str]) -> str:
+    """`lines` as an HTML list with id `key`."""
+    return (f'<ul id="{key}">' + "".join(f"<li>{html.escape(line.strip())}</li>" for line in lines)
+            + "</ul>")
 
 
 def _nominal(d: Diagnosis) -> str:

@@ -48,6 +48,11 @@ DYNAMIC_RANGE = 1e-6
 """Bins where the configured controller is smaller than this fraction of its largest are
 not used: there OUT holds the arithmetic's rounding (a recorded float32 test point keeps
 about seven digits), not a filter anyone designs."""
+COHERENCE_AGREE = 0.9
+"""Bins where OUT's coherence with EXC is below this fraction of IN2's are not used: where
+OUT is IN2 through a filter, the two coherences are equal, estimate by estimate, whatever the
+filter; where OUT's is lower, OUT holds what no filter of IN2 makes (the arithmetic's own
+noise where the filter has rolled off by many decades, a limiter)."""
 MIN_BINS = 4
 """Bins a band needs to be tested."""
 
@@ -263,7 +268,8 @@ def measured_ratio(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, dof: str) -> 
         with np.errstate(divide="ignore", invalid="ignore"):
             srel2 = ((t.sigma("OUT")[:, i, :] / np.abs(out)) ** 2
                      + (t.sigma("IN2")[:, i, :] / np.abs(in2)) ** 2)
-            w = np.where(np.isfinite(srel2) & (srel2 > 0), 1.0 / srel2, 0.0)
+            linear = t.coherence["OUT"][:, i, :] >= COHERENCE_AGREE * t.coherence["IN2"][:, i, :]
+            w = np.where(np.isfinite(srel2) & (srel2 > 0) & linear, 1.0 / srel2, 0.0)
             ratio = np.sum(w * np.nan_to_num(out / in2), axis=1) / np.sum(w, axis=1)
             srel = 1.0 / np.sqrt(np.sum(w, axis=1))
         keep = np.flatnonzero((srel < MAX_SREL) & np.isfinite(ratio) & (ratio != 0)

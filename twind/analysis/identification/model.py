@@ -6,7 +6,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -118,7 +118,7 @@ class ClosedLoopModel:
     def __call__(self, values: Mapping[str, float]) -> NDArray[np.complex128]:
         """``IN1/EXC``, shape (len(f), 4, 4); `values` may hold the effect's parameters."""
         sus = self.sus(values)
-        plant = Plant.from_params(sus, replace(self.cfg, sus=sus).mechanics())
+        plant = self.cfg.plant(sus)
         if self.effect:
             plant = with_effect(plant, sus, self.effect,
                                 {k: v for k, v in values.items() if k not in FIT_PARAMS})

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -233,8 +233,7 @@ def with_params(optic: OpticConfig, params: dict[str, float]) -> OpticConfig:
     -------
     OpticConfig
     """
-    return OpticConfig(optic.name, optic.sus.updated(**params), optic.damping, optic.noise,
-                       optic.model, optic.source)
+    return replace(optic, sus=optic.sus.updated(**params))
 
 
 def read_mode_table(path: str | Path) -> dict[str, dict[str, float]]:

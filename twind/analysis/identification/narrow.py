@@ -28,7 +28,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -150,7 +150,7 @@ def _plant(cfg: OpticConfig, values: Mapping[str, float], effect: str | None
            ) -> tuple[SOSParams, Plant]:
     """The suspension and the plant of the model at `values` (with `effect`)."""
     sus = with_params(cfg.sus, {k: v for k, v in values.items() if k in FIT_PARAMS})
-    plant = Plant.from_params(sus, replace(cfg, sus=sus).mechanics())
+    plant = cfg.plant(sus)
     if effect:
         plant = with_effect(plant, sus, effect,
                             {k: v for k, v in values.items() if k not in FIT_PARAMS})
