@@ -23,6 +23,7 @@ from twind.analysis.diagnose import ALPHA, diagnose, f_profile
 from twind.analysis.separation import separating_measurement
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
+from twind.errors import MeasurementWarning
 from twind.lab.corpus import FACES, key_z
 from twind.lab.measurement import measure_tfs
 from twind.limits import ServiceLimits
@@ -75,6 +76,12 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
     entities = {c.entity_path for c in RrdReader(tmp_path / "report" / "diagnosis.rrd").stream()}
     assert "/diagnose/POS_POS/measured_db" in entities
     assert "/diagnose/YAW_YAW/nominal_residual_sigma" in entities
+
+
+def test_few_averages_are_warned_of(etmx) -> None:  # noqa: ANN001
+    tfs = measure_tfs(etmx, bw=0.1, averages=5, rms=3.0, seed=3)
+    with pytest.warns(MeasurementWarning, match="5 averages: below 10"):
+        diagnose(tfs, etmx, max_effects=0)
 
 
 def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:  # noqa: ANN001
