@@ -209,6 +209,26 @@ def test_results_written_as_hdf5_and_csv(tmp_path: Path) -> None:
         tfs.write(tmp_path / "tf.csv")
 
 
+def test_results_written_for_matlab(tmp_path: Path) -> None:
+    import scipy.io
+
+    tfs = from_diaggui(NULL).band(0.5, 2.0)
+    assert main(["tf", *NULL, "--band", "0.5", "2", "-o", str(tmp_path / "tf.mat")]) == 0
+    m = scipy.io.loadmat(tmp_path / "tf.mat")
+    assert m["IN1_per_EXC"].shape == (len(tfs.frequency_hz), 4, 3)
+    np.testing.assert_array_equal(m["IN2_per_EXC"], tfs.tf["IN2"])
+    np.testing.assert_array_equal(m["frequency_hz"].ravel(), tfs.frequency_hz)
+    P, _ = tfs.plant()
+    np.testing.assert_allclose(m["plant"], P)
+    g2 = tfs.coherence["IN1"]
+    np.testing.assert_allclose(m["SNR_IN1"], g2 / (1 - g2))
+    assert [str(c[0]) for c in m["EXC_channels"].ravel()] == [
+        "C1:SUS-ETMX_SUSPOS_EXC", "C1:SUS-ETMX_SUSPIT_EXC", "C1:SUS-ETMX_SUSYAW_EXC"]
+    assert str(m["OUT_channels"].ravel()[3][0]) == "C1:SUS-ETMX_SUSSIDE_OUT"
+    with pytest.raises(TFError, match="exists"):
+        tfs.write(tmp_path / "tf.mat")
+
+
 def test_bad_inputs_are_named(tmp_path: Path) -> None:
     bad = tmp_path / "bad.xml"
     bad.write_text("<not diaggui/>")

@@ -219,7 +219,8 @@ def _tf(p: argparse.ArgumentParser) -> None:
     input_arguments(p)
     p.add_argument("--config", help="the optic's configuration: needed for a state-space "
                                     "model's (another site's) channel names")
-    p.add_argument("-o", "--output", help=".h5/.hdf5 or .csv results, or a .png Bode matrix")
+    p.add_argument("-o", "--output",
+                   help=".h5/.hdf5, .csv or .mat (MATLAB) results, or a .png Bode matrix")
 
 
 def _fit(p: argparse.ArgumentParser) -> None:

@@ -16,17 +16,18 @@ import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import dttxml
 import h5py
 import numpy as np
+import scipy.io
 from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
-from twind.channels import DOF_CHANNEL
+from twind.channels import DOF_CHANNEL, dof_channel
 from twind.analysis.estimation.demodulation import AVERAGES, DemodulationError, demodulate
 from twind.analysis.estimation.excitations import (SHORTEST_S, Stretch, at_one_rate, every,
                                                    longest, with_exc)
@@ -116,6 +117,7 @@ class TFSet:
     # (the LPM's; Welch's are taken as independent)
     in1_correlation: NDArray[np.complex128] | None = None
     found: tuple[str, ...] = ()  # the excitations found in the data (no injection events)
+    ifo: str = "C1"  # the interferometer prefix of the channels measured
 
     def sigma(self, point: str) -> NDArray[np.float64]:
         """Standard error of the real and of the imaginary part of each element of
@@ -203,15 +205,15 @@ class TFSet:
             msg = (f"no measured frequency in {lo:g}-{hi:g} Hz; the measurement covers "
                    f"{self.frequency_hz.min():g}-{self.frequency_hz.max():g} Hz")
             raise TFError(msg)
-        return TFSet(self.optic, self.frequency_hz[keep], self.excited, self.responses,
-                     {k: v[keep] for k, v in self.tf.items()},
-                     {k: v[keep] for k, v in self.coherence.items()}, self.averages,
-                     self.window,
-                     {k: v[keep] for k, v in self.exc_psd.items()} if self.exc_psd else None,
-                     {k: v[keep] for k, v in self.error.items()} if self.error else None,
-                     Kernel(self.kernel.offsets_hz, self.kernel.weights[keep])
-                     if self.kernel else None,
-                     None if self.in1_correlation is None else self.in1_correlation[keep])
+        return replace(
+            self, frequency_hz=self.frequency_hz[keep],
+            tf={k: v[keep] for k, v in self.tf.items()},
+            coherence={k: v[keep] for k, v in self.coherence.items()},
+            exc_psd={k: v[keep] for k, v in self.exc_psd.items()} if self.exc_psd else None,
+            error={k: v[keep] for k, v in self.error.items()} if self.error else None,
+            kernel=Kernel(self.kernel.offsets_hz, self.kernel.weights[keep])
+            if self.kernel else None,
+            in1_correlation=None if self.in1_correlation is None else self.in1_correlation[keep])
 
     def write(self, path: str | Path) -> Path:
         """Write the transfer functions, their coherence, errors and the plant.
@@ -219,8 +221,9 @@ class TFSet:
         Parameters
         ----------
         path : path
-            ``.h5``/``.hdf5`` (one complex dataset per test point) or ``.csv`` (one row per
-            frequency, columns named like ``IN1_POS_per_PIT_re``).
+            ``.h5``/``.hdf5`` (one complex dataset per test point), ``.csv`` (one row per
+            frequency, columns named like ``IN1_POS_per_PIT_re``) or ``.mat`` (MATLAB:
+            :meth:`write_mat`).
 
         Returns
         -------
@@ -262,8 +265,41 @@ class TFSet:
             np.savetxt(path, np.column_stack(cols), delimiter=",", header=",".join(names),
                        comments="")
             return path
-        msg = f"{path}: write .h5, .hdf5 or .csv (or .png for a plot)"
+        if path.suffix.lower() == ".mat":
+            return self.write_mat(path)
+        msg = f"{path}: write .h5, .hdf5, .csv or .mat (or .png for a plot)"
         raise TFError(msg)
+
+    def write_mat(self, path: Path) -> Path:
+        """A MATLAB file (``scipy.io.loadmat`` reads it too): 3-D arrays indexed
+        ``[frequency, response, excited]``, ``IN1_per_EXC``, ``IN2_per_EXC``,
+        ``OUT_per_EXC`` (complex), their ``coherence_*``, ``SNR_*`` (``g2 / (1 - g2)``,
+        dttxml's and the seed's) and ``sigma_*``; ``plant`` and ``plant_sigma``
+        (``[frequency, excited, excited]``); ``frequency_hz``; the channels as cell arrays
+        (``EXC_channels`` by column, ``IN1_channels``... by row); ``optic``, ``excited``,
+        ``responses``, ``averages``.
+        """
+        P, Ps = self.plant()
+
+        def channels(dofs: list[str], point: str) -> NDArray:
+            return np.array([dof_channel(self.ifo, self.optic, d, point) for d in dofs],
+                            dtype=object)
+
+        data = {"frequency_hz": self.frequency_hz, "optic": self.optic,
+                "excited": np.array(self.excited, dtype=object),
+                "responses": np.array(self.responses, dtype=object),
+                "averages": self.averages, "EXC_channels": channels(self.excited, "EXC"),
+                "plant": P, "plant_sigma": Ps}
+        for p in POINTS:
+            g2 = self.coherence[p]
+            with np.errstate(divide="ignore"):
+                data[f"SNR_{p}"] = g2 / (1 - g2)
+            data.update({f"{p}_per_EXC": self.tf[p], f"coherence_{p}": g2,
+                         f"sigma_{p}": self.sigma(p), f"{p}_channels": channels(
+                             self.responses, p)})
+        with path.open("xb") as f:
+            scipy.io.savemat(f, data, do_compression=True)
+        return path
 
     def to_json(self) -> dict:
         """The ``twind tf --json`` object."""
@@ -301,7 +337,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
         If a file is not readable diaggui XML, has no single excitation, or the files
         disagree on the optic or the frequencies.
     """
-    columns, freq, optic, averages = {}, None, None, None
+    columns, freq, optic, averages, ifo = {}, None, None, None, "C1"
     for path in paths:
         try:
             acc = dttxml.DiagAccess(str(path))
@@ -318,7 +354,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                    "(`twind tf` shows any measurement's transfer functions)")
             raise TFError(msg)
         m = DOF_CHANNEL.match(exc[0])
-        optic = optic or m["optic"]
+        optic, ifo = optic or m["optic"], m["ifo"]
         if m["optic"] != optic:
             msg = f"{path}: excites {m['optic']}, the other files {optic}"
             raise TFError(msg)
@@ -337,7 +373,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                     raise TFError(msg)
                 column[(dof, point)] = (h, g2)
         columns[m["dof"]] = column
-    return assemble(optic, freq, columns, averages)
+    return assemble(optic, freq, columns, averages, ifo)
 
 
 def _warn_unusable(path: str | Path, name: str, exc: str, h: NDArray, g2: NDArray) -> None:
@@ -376,7 +412,8 @@ def xml_transfer(acc, numerator: str, denominator: str):  # noqa: ANN001, ANN201
             np.asarray(x.coh, dtype=float), int(x.averages))
 
 
-def assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
+def assemble(optic: str, freq: NDArray, columns: dict, averages: int, ifo: str = "C1"
+             ) -> TFSet:
     """A TFSet from ``columns[excited][(response, point)] = (tf, coherence)``, or
     ``(tf, coherence, sigma)`` from an estimator with its own errors.
 
@@ -391,6 +428,8 @@ def assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
         ``IN2`` or ``OUT``.
     averages : int
         Averages of the estimates.
+    ifo : str
+        The interferometer prefix of the channels.
 
     Returns
     -------
@@ -424,7 +463,8 @@ def assemble(optic: str, freq: NDArray, columns: dict, averages: int) -> TFSet:
         coh = dict(zip(POINTS, pool.map(matrix, POINTS, [1] * len(POINTS)), strict=True))
     own = len(next(iter(columns[excited[0]].values()))) == 3
     err = {p: matrix(p, 2) for p in POINTS} if own else None
-    return TFSet(optic, np.asarray(freq), excited, responses, tf, coh, averages, error=err)
+    return TFSet(optic, np.asarray(freq), excited, responses, tf, coh, averages, error=err,
+                 ifo=ifo)
 
 
 # ------------------------------------------------------------------------------ MCAP sessions
@@ -533,7 +573,7 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         nperseg = _nperseg(rate, bw, plan, settle_s)
         freq, h, g2, averages = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
         columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(plan.keys)}
-    tfs = assemble(key[1], freq, columns, averages)
+    tfs = assemble(key[1], freq, columns, averages, key[0])
     tfs.window, tfs.found = window, notes
     return with_lpm(tfs, estimates) if estimates else tfs
 
@@ -732,7 +772,7 @@ def _demodulated(channels: Mapping[str, Channel], extents: Mapping[str, Extent],
         for f, (hf, gf) in by_f.items():
             h[:, np.searchsorted(freq, f)], g2[:, np.searchsorted(freq, f)] = hf, gf
         columns[dof] = {k: (h[i], g2[i]) for i, k in enumerate(keys[dof])}
-    tfs = assemble(next(iter(sines))[1], freq, columns, AVERAGES)
+    tfs = assemble(next(iter(sines))[1], freq, columns, AVERAGES, next(iter(sines))[0])
     tfs.window, tfs.found = "sine", notes
     return tfs
 
@@ -770,7 +810,7 @@ def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str
         _, freq, h, g2, averages = results[key]
         keys = _Plan.of(key, start, end, extents, settle_s).keys
         columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
-    tfs = assemble(key[1], freq, columns, averages)
+    tfs = assemble(key[1], freq, columns, averages, key[0])
     tfs.window = window
     return tfs
 
