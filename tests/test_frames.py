@@ -103,6 +103,34 @@ def test_an_exc_not_recorded_is_in2_less_in1(recorded, capsys) -> None:  # noqa:
     assert coherent.sum() > 50 and np.max(z) < 0.2
 
 
+def test_files_with_their_own_channels_are_read_as_what_they_are(recorded, tmp_path: Path,
+                                                                  capsys) -> None:  # noqa: ANN001
+    """A data-system export of three measurements, a file each, each file with only its own
+    excitation's EXC and the last second of each cut out: the TFs of the MCAP route (but
+    for the last segment of each excitation)."""
+    events = [e for e in read_session(recorded["events"]).events if e.get("event") == "start"]
+    starts = sorted(float(e["start_gps"]) for e in events)
+    ends = [*starts[1:], None]
+    paths = []
+    for k, (a, b) in enumerate(zip(starts, ends, strict=True)):
+        own = [n for n in recorded["written"] if "_EXC_" not in n
+               or n.startswith(f"C2:SUS-ETMX_SUS{('POS', 'PIT', 'YAW')[k]}_EXC")]
+        piece = TimeSeriesDict({n: recorded["written"][n].crop(a, b and b - 1) for n in own})
+        paths.append(tmp_path / f"m{k}.h5")
+        piece.write(str(paths[-1]))
+    truth = _tf_json(str(recorded["events"]))
+    got = _tf_json(*map(str, paths), "--map", "C2:=C1:")
+    assert got["excited"] == truth["excited"] == ["POS", "PIT", "YAW"]
+    h = np.array(got["IN1_per_EXC"]["re"]) + 1j * np.array(got["IN1_per_EXC"]["im"])
+    h0 = np.array(truth["IN1_per_EXC"]["re"]) + 1j * np.array(truth["IN1_per_EXC"]["im"])
+    coherent = np.array(truth["coherence_IN1"]) > 0.5
+    z = np.abs(h - h0)[coherent] / np.array(truth["sigma_IN1"])[coherent]
+    assert coherent.sum() > 50 and np.median(z) < 0.2, np.median(z)
+    one = from_session([paths[0]], bw=BW, mapping=MAP)
+    with pytest.raises(TFError, match="POS is excited in both a.h5 and b.h5"):
+        tf.merged([one, one], ["a.h5", "b.h5"])
+
+
 def test_a_session_without_events_finds_the_segments_the_engine_used(
         recorded, etmx, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
     rate = etmx.sus.sample_rate_hz

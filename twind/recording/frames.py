@@ -130,6 +130,21 @@ def read_frames(paths: Sequence[str | Path], channels: Callable[[str], bool] | N
                    True, [])
 
 
+def same_channels(paths: Sequence[str | Path]) -> bool:
+    """Whether every file holds the same channels: pieces of one recording (read together
+    by :func:`read_frames`), not measurements exported one file each.
+
+    Raises
+    ------
+    RecordingError
+        If a file is missing or not readable in its format, or the files mix formats.
+    """
+    files = [Path(p) for p in paths]
+    fmt = _one_format(files)
+    first = set(_names(files[0], fmt))
+    return all(set(_names(f, fmt)) == first for f in files[1:])
+
+
 def _one_format(files: list[Path]) -> str:
     """The format of `files`, refused when they mix or are missing."""
     missing = [str(f) for f in files if not f.is_file()]

@@ -35,7 +35,7 @@ from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tf, welch_tfs
 from twind.errors import MeasurementWarning, TwindError
 from twind.recording.fastread import event_count, read_channels, stream_channels
-from twind.recording.frames import is_frames, read_frames
+from twind.recording.frames import is_frames, read_frames, same_channels
 from twind.recording.session import Channel
 
 __all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
@@ -541,6 +541,11 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     """
     check_estimator(estimator)
     frames = any(is_frames(p) for p in paths)
+    if frames and len(paths) > 1 and not same_channels(paths):
+        # measurements exported one file each, each with its own excitation's channels
+        return merged([from_session([p], bw, overlap, optic, window, settle_s, highpass_hz,
+                                    estimator, max_hz, mapping, exc_times) for p in paths],
+                      [str(p) for p in paths])
     # a session without events is read whole once, not streamed first to no end
     if (not (highpass_hz or frames or exc_times) and estimator == "welch"
             and event_count(paths) != 0):
@@ -775,6 +780,54 @@ def _demodulated(channels: Mapping[str, Channel], extents: Mapping[str, Extent],
     tfs = assemble(next(iter(sines))[1], freq, columns, AVERAGES, next(iter(sines))[0])
     tfs.window, tfs.found = "sine", notes
     return tfs
+
+
+def merged(sets: Sequence[TFSet], names: Sequence[str]) -> TFSet:
+    """The columns of measurements made one after another (files of their own) as one set.
+
+    Parameters
+    ----------
+    sets : sequence of TFSet
+        Of one optic, on the same frequencies, each excitation in one of them.
+    names : sequence of str
+        Where each came from, for the errors.
+
+    Returns
+    -------
+    TFSet
+        Its averages the fewest of any.
+
+    Raises
+    ------
+    TFError
+        If the optics or frequencies differ, or a DOF was excited in two of them.
+    """
+    first = sets[0]
+    for t, name in zip(sets[1:], names[1:], strict=True):
+        if t.optic != first.optic:
+            msg = f"{name} measures {t.optic}, {names[0]} {first.optic}"
+            raise TFError(msg)
+        if t.frequency_hz.shape != first.frequency_hz.shape or np.max(
+                np.abs(t.frequency_hz - first.frequency_hz)) > 1e-9:
+            msg = f"{name}: its frequency bins differ from {names[0]}'s (another rate or --bw?)"
+            raise TFError(msg)
+    columns, where = {}, {}
+    for t, name in zip(sets, names, strict=True):
+        for j, e in enumerate(t.excited):
+            if e in where:
+                msg = f"{e} is excited in both {where[e]} and {name}"
+                raise TFError(msg)
+            where[e] = name
+            columns[e] = {(r, p): (t.tf[p][:, i, j], t.coherence[p][:, i, j],
+                                   *((t.error[p][:, i, j],) if t.error else ()))
+                          for i, r in enumerate(t.responses) for p in POINTS}
+    out = assemble(first.optic, first.frequency_hz, columns, min(t.averages for t in sets),
+                   first.ifo)
+    rho = None  # the LPM's IN1 error correlation, where every set has the same responses
+    if all(t.in1_correlation is not None and t.responses == out.responses for t in sets):
+        rho = np.concatenate([t.in1_correlation for t in sets], axis=-1)
+    return replace(out, window=first.window, kernel=first.kernel, in1_correlation=rho,
+                   found=tuple(x for t in sets for x in t.found))
 
 
 def _exc_keys(channels: Mapping[str, Channel]) -> list[tuple[str, str, str]]:

@@ -190,19 +190,20 @@ def recorded_input_matrix(paths: Sequence[str | Path], cfg: OpticConfig,
     Returns
     -------
     InputMatrixCheck
-        Not checked (with why) when a channel is missing, the rates differ, or the span
-        has a gap.
+        Not checked (with why) when a channel is missing, the rates differ, the span has
+        too few samples, or the files cannot be read (as the transfer functions' reading
+        will then say).
     """
     configured = cfg.cds_input_matrix()
     wanted = _wanted(cfg.name)
-    if any(is_frames(p) for p in paths):
-        channels = {n: (c.t0, c.rate, c.samples)
-                    for n, c in read_frames(paths, wanted, mapping).channels.items()}
-    else:
-        span = _FirstSpan()
-        stream_channels(list(paths), wanted, span)
-        channels = span.channels()
     try:
+        if any(is_frames(p) for p in paths):  # the first file: its span is enough
+            channels = {n: (c.t0, c.rate, c.samples)
+                        for n, c in read_frames(paths[:1], wanted, mapping).channels.items()}
+        else:
+            span = _FirstSpan()
+            stream_channels(list(paths), wanted, span)
+            channels = span.channels()
         in1, sen, rate = _aligned(channels, cfg.name)
     except RecordingError as err:
         return InputMatrixCheck(configured, why=str(err))
