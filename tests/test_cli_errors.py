@@ -97,16 +97,27 @@ def test_version_and_help_for_every_option(capsys) -> None:  # noqa: ANN001
     assert capsys.readouterr().out.strip() == f"twind {__version__}"
 
     def silent(parser: argparse.ArgumentParser, path: str) -> list[str]:
+        """Options without help, or whose help hides a default (a number or a word)."""
         out = []
         for action in parser._actions:  # argparse has no public walk over subcommands
             if isinstance(action, argparse._SubParsersAction):
                 for name, sub in action.choices.items():
                     out += silent(sub, f"{path} {name}")
-            elif not action.help:
-                out.append(f"{path} {'/'.join(action.option_strings) or action.dest}")
+                continue
+            name = f"{path} {'/'.join(action.option_strings) or action.dest}"
+            default = action.default
+            shown = parser.formatter_class(path)._get_help_string(action) or ""
+            if not action.help or (isinstance(default, int | float | str)
+                                   and not isinstance(default, bool)
+                                   and default is not argparse.SUPPRESS
+                                   and "default" not in shown):
+                out.append(name)
         return out
 
     assert silent(build_parser(), "twind") == []
+    with pytest.raises(SystemExit):
+        main(["tf", "--help"])
+    assert "Welch resolution (Hz) (default: 0.01)" in capsys.readouterr().out
 
 
 def test_bench_offers_the_suites_it_runs() -> None:
@@ -115,3 +126,19 @@ def test_bench_offers_the_suites_it_runs() -> None:
     from twind.cli.lab import SUITES
 
     assert tuple(SUITES) == BENCH_SUITES and set(BENCH_PROGRESS) < set(SUITES)
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    (["tf", "x.mcap", "--bw", "0"], "argument --bw: must be a positive number, got '0'"),
+    (["tf", "x.mcap", "--bw", "-1"], "argument --bw: must be a positive number, got '-1'"),
+    (["tf", "x.mcap", "--overlap", "1"], "argument --overlap: must be below 1"),
+    (["fit", "x.xml", "--min-coherence", "1.5"], "argument --min-coherence: must be a number "
+                                                 "from 0 to 1"),
+    (["serve", "--speed", "0"], "argument --speed: must be a positive number"),
+    (["bench", "--suite", "rates", "--nulls", "-2"], "argument --nulls: must be a whole number"),
+])
+def test_a_number_out_of_range_is_refused_naming_the_option(argv, says, capsys) -> None:  # noqa: ANN001
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    assert says in capsys.readouterr().err

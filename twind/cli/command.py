@@ -40,7 +40,7 @@ class Command:
 
     def add_to(self, sub: argparse._SubParsersAction) -> None:
         """Add this command (and its subcommands) to the subparsers `sub`."""
-        parser = sub.add_parser(self.name, help=self.help)
+        parser = sub.add_parser(self.name, help=self.help, formatter_class=DefaultsShown)
         if self.subcommands:
             inner = parser.add_subparsers(dest=f"{self.name}_command", required=True)
             for command in self.subcommands:
@@ -53,6 +53,19 @@ class Command:
         """Run the command on its parsed arguments."""
         module, function = self.run.split(":")
         return getattr(importlib.import_module(module), function)(args)
+
+
+class DefaultsShown(argparse.HelpFormatter):
+    """Help that ends each option's text with its default, where it has one to say (not
+    None, a flag's or an empty list) and the text does not give it already."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (default is None or isinstance(default, bool) or default == []
+                or default is argparse.SUPPRESS or "default" in text):
+            return text
+        return f"{text} (default: %(default)s)"
 
 
 def counting(unit: str) -> Callable[[argparse.Namespace], str]:

@@ -10,8 +10,12 @@ from twind.cli.options import (
     CONFIG_HELP,
     SEED_HELP,
     bus_arguments,
+    count,
+    fraction,
     frequency,
     input_arguments,
+    positive,
+    positive_int,
     seed,
 )
 
@@ -38,7 +42,7 @@ def _response(p: argparse.ArgumentParser) -> None:
                    help="lowest frequency, Hz (default 0.05)")
     p.add_argument("--fmax", type=frequency, default=50.0,
                    help="highest frequency, Hz (default 50)")
-    p.add_argument("--n", type=int, default=201,
+    p.add_argument("--n", type=positive_int, default=201,
                    help="frequencies, log-spaced from --fmin to --fmax (default 201)")
     p.add_argument("--freqs", help="comma-separated frequencies (Hz) instead of a log grid")
     p.add_argument("--json", action="store_true", help="print golden_tf.json layout")
@@ -58,9 +62,9 @@ def _simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--optics", help="comma-separated names, or 'all' (default: the file's "
                                     "only optic, else ETMX)")
-    p.add_argument("--duration", type=float, required=True, help="simulated seconds")
+    p.add_argument("--duration", type=positive, required=True, help="simulated seconds")
     p.add_argument("--seed", type=seed, default=0, help=SEED_HELP)
-    p.add_argument("--block", type=float, default=1.0, help="seconds per engine block")
+    p.add_argument("--block", type=positive, default=1.0, help="seconds per engine block")
     p.add_argument("--record", help="MCAP file to record every block to")
     p.add_argument("--max-hz", type=frequency, default=None,
                    help="a state-space optic: drop its modes above this (static part kept; "
@@ -80,10 +84,10 @@ def _serve(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record-zenoh-config", metavar="FILE.json5",
                    help="the recorder's Zenoh configuration (behind an ACL router: "
                         "deploy/acl/recorder.json5)")
-    p.add_argument("--speed", type=float, default=1.0, help="twin seconds per wall second")
-    p.add_argument("--block", type=float, default=1 / 16, help="seconds per block")
+    p.add_argument("--speed", type=positive, default=1.0, help="twin seconds per wall second")
+    p.add_argument("--block", type=positive, default=1 / 16, help="seconds per block")
     p.add_argument("--seed", type=seed, default=0, help=SEED_HELP)
-    p.add_argument("--duration", type=float, help="stop after this many twin seconds")
+    p.add_argument("--duration", type=positive, help="stop after this many twin seconds")
 
 
 def _inject(p: argparse.ArgumentParser) -> None:
@@ -93,9 +97,9 @@ def _inject(p: argparse.ArgumentParser) -> None:
                    help="the waveform (a stream's samples come from --file)")
     p.add_argument("--freq", type=float, help="Hz (sweep, multisine: lowest)")
     p.add_argument("--f-stop", type=float, help="Hz: sweep end, multisine highest")
-    p.add_argument("--n-tones", type=int, help="multisine tones")
+    p.add_argument("--n-tones", type=positive_int, help="multisine tones")
     p.add_argument("--amp", type=float, help="peak amplitude (noise: RMS)")
-    p.add_argument("--duration", type=float, help="seconds (inf: until stopped)")
+    p.add_argument("--duration", type=positive, help="seconds (inf: until stopped)")
     p.add_argument("--ramp", type=float, help="taper seconds at start and end")
     p.add_argument("--start", type=float, help="GPS start (default: next block)")
     p.add_argument("--shape", help="noise: foton design shaping white noise")
@@ -131,9 +135,9 @@ def _record(p: argparse.ArgumentParser) -> None:
                    help="Zenoh endpoint to listen on (repeatable)")
     p.add_argument("--mode", choices=("peer", "client"), default="peer",
                    help="Zenoh mode (default peer)")
-    p.add_argument("--rotate-mb", type=float, metavar="N",
+    p.add_argument("--rotate-mb", type=positive, metavar="N",
                    help="start a new file every N MB (1 MB = 10^6 bytes)")
-    p.add_argument("--rotate-s", type=float, metavar="S",
+    p.add_argument("--rotate-s", type=positive, metavar="S",
                    help="start a new file every S seconds of data (GPS)")
     p.add_argument("--ifo", default="C1", help="interferometer of the events and status "
                                                "keys (default C1)")
@@ -191,8 +195,8 @@ def _view(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ifo", default="C1", help="the twin's interferometer prefix (default C1)")
     p.add_argument("--channels", help="comma-separated shell patterns, e.g. 'C1:SUS-ETMX_*' "
                                       "(default: every channel)")
-    p.add_argument("--rate", type=float, default=64.0, help="plotted rate in Hz (default 64)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: Ctrl-C)")
+    p.add_argument("--rate", type=positive, default=64.0, help="plotted rate in Hz (default 64)")
+    p.add_argument("--duration", type=positive, help="stop after this many seconds (default: Ctrl-C)")
     sink = p.add_mutually_exclusive_group()
     sink.add_argument("--viewer", metavar="URL",
                       help="send to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
@@ -209,7 +213,7 @@ def _rrd(p: argparse.ArgumentParser) -> None:
     p.add_argument("mcap", help="a session recorded by 'twind simulate --record' or 'twind record'")
     p.add_argument("-o", "--output", help="the .rrd to write (default: the MCAP's name, .rrd)")
     p.add_argument("--channels", help="comma-separated shell patterns (default: every channel)")
-    p.add_argument("--rate", type=float, default=256.0, help="plotted rate in Hz (default 256)")
+    p.add_argument("--rate", type=positive, default=256.0, help="plotted rate in Hz (default 256)")
     p.add_argument("--no-bode", action="store_true",
                    help="skip the IN1/EXC and IN2/EXC transfer functions of excited DOFs")
 
@@ -229,7 +233,7 @@ def _fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="twin config (TOML) holding the optic's nominal model")
     p.add_argument("--params", nargs="+", metavar="NAME",
                    help="parameters to fit (default: all nine of docs/model.md)")
-    p.add_argument("--min-coherence", type=float, default=0.5,
+    p.add_argument("--min-coherence", type=fraction, default=0.5,
                    help="IN1/EXC bins less coherent (averaged over neighbours) are unused")
     p.add_argument("-o", "--output", help=".png: measured, nominal and fitted Bode matrix")
     p.add_argument("--truth", metavar="JSON",
@@ -270,7 +274,7 @@ def _freeswing(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float,
                    help="seconds of ringdown: made on the twin (default 1000), or read from "
                         "a recording (default: to its end)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed of the twin's ringdown")
+    p.add_argument("--seed", type=seed, default=0, help="noise seed of the twin's ringdown")
     p.add_argument("--json", action="store_true", help="the numbers as JSON")
     p.add_argument("-o", "--output", help="PNG: OSEM spectra with the modes, and both "
                                           "input matrices")
@@ -288,26 +292,26 @@ def _excite(p: argparse.ArgumentParser) -> None:
                         "(each measured on its own); default POS")
     p.add_argument("--band", type=float, nargs=2, metavar=("LO", "HI"), required=True,
                    help="frequency band (Hz) that must be coherent")
-    p.add_argument("--coherence", type=float, default=0.7,
+    p.add_argument("--coherence", type=fraction, default=0.7,
                    help="coherence to reach in every bin of the band (default 0.7)")
-    p.add_argument("--averages", type=int, default=10,
+    p.add_argument("--averages", type=positive_int, default=10,
                    help="non-overlapping averages of the measurement (default 10)")
-    p.add_argument("--bw", type=float, default=0.01,
+    p.add_argument("--bw", type=positive, default=0.01,
                    help="frequency resolution of the measurement, Hz (default 0.01)")
-    p.add_argument("--confidence", type=float, default=0.95,
+    p.add_argument("--confidence", type=fraction, default=0.95,
                    help="probability that a bin's estimate reaches the coherence "
                         "(sets the margin for the estimator's scatter; default 0.95)")
     p.add_argument("--all-responses", action="store_true",
                    help="make the IN1 of every --dof coherent with each excitation, "
                         "not only the excited DOF's own")
-    p.add_argument("--rms", type=float, help="RMS limit at EXC (default: the twin's)")
-    p.add_argument("--peak", type=float, help="peak limit at EXC (default: the twin's)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the noise request")
+    p.add_argument("--rms", type=positive, help="RMS limit at EXC (default: the twin's)")
+    p.add_argument("--peak", type=positive, help="peak limit at EXC (default: the twin's)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the noise request")
     p.add_argument("--params", nargs="+", metavar="NAME",
                    help="information: parameters to inform (default: all nine)")
-    p.add_argument("--duration", type=float, default=110.0,
+    p.add_argument("--duration", type=positive, default=110.0,
                    help="information: seconds of measurement per DOF")
-    p.add_argument("--period", type=float, default=20.0,
+    p.add_argument("--period", type=positive, default=20.0,
                    help="information: multisine period (s); measure with bw = 1/period")
     p.add_argument("--json", action="store_true", help="print the design as JSON")
     p.add_argument("-o", "--output", metavar="FILE.png",
@@ -328,18 +332,18 @@ def _campaign(p: argparse.ArgumentParser) -> None:
                    help="excited DOF, repeatable (default POS, PIT, YAW)")
     p.add_argument("--band", type=float, nargs=2, default=(0.1, 10.0), metavar=("LO", "HI"),
                    help="band of the multisines, Hz (default 0.1 10)")
-    p.add_argument("--rms", type=float, default=10.0, help="RMS at each EXC")
-    p.add_argument("--period", type=float, default=20.0, help="multisine period (s)")
-    p.add_argument("--averages", type=int, default=5, help="periods per DOF per round")
+    p.add_argument("--rms", type=positive, default=10.0, help="RMS at each EXC")
+    p.add_argument("--period", type=positive, default=20.0, help="multisine period (s)")
+    p.add_argument("--averages", type=positive_int, default=5, help="periods per DOF per round")
     p.add_argument("--params", nargs="+", metavar="NAME",
                    help="parameters to identify (default: the nine twind fit fits)")
-    p.add_argument("--target", type=float, default=0.01,
+    p.add_argument("--target", type=positive, default=0.01,
                    help="relative sigma to reach on every identifiable parameter")
-    p.add_argument("--max-rounds", type=int, default=8,
+    p.add_argument("--max-rounds", type=positive_int, default=8,
                    help="rounds at most, if the target is not reached (default 8)")
-    p.add_argument("--drift", type=float, default=1.0,
+    p.add_argument("--drift", type=positive, default=1.0,
                    help="in-process twin: scale of the built-in drift of the 'real' optic")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=seed, default=0,
                    help="in-process twin: seed of its noise (default 0)")
     p.add_argument("--workdir", help="running twin: where the rounds' MCAP files go")
     p.add_argument("--json", action="store_true", help="the result as JSON")
@@ -379,16 +383,16 @@ def _bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workdir", help="tf: directory for the session file; statespace: for "
                                      "the diaggui files (default a temporary one)")
     p.add_argument("--keep", action="store_true", help="tf: keep the session file")
-    p.add_argument("--realisations", type=int, default=None,
+    p.add_argument("--realisations", type=positive_int, default=None,
                    help="pull: noise realisations (default 100); freeswing: optics (8)")
     p.add_argument("--route", choices=["xml", "mcap", "both"], default="xml",
                    help="diagnose: the corpus as diaggui XML sets or MCAP sessions")
     p.add_argument("--optic",
                    help="diagnose, rates: the optic of --config whose drifts make the "
                         "corpus (default ETMX); statespace: comma-separated optics")
-    p.add_argument("--per-effect", type=int, default=None,
+    p.add_argument("--per-effect", type=count, default=None,
                    help="diagnose, rates: cases per effect (default 3)")
-    p.add_argument("--nulls", type=int, default=None,
+    p.add_argument("--nulls", type=count, default=None,
                    help="diagnose: drift-only cases (default 3); rates: nulls (default 20)")
     p.add_argument("--effects", help="diagnose, rates: comma-separated kinds to hide: catalogue "
                                      "effects, resonance (a body on the face), "
@@ -396,13 +400,13 @@ def _bench(p: argparse.ArgumentParser) -> None:
                                      "(diagnose's default the catalogue's six, those three "
                                      "kinds and three pairs; rates' osem_imbalance,"
                                      "wire_asymmetry)")
-    p.add_argument("--averages", type=int,
+    p.add_argument("--averages", type=positive_int,
                    help="diagnose: averages of the corpus measurement (default 10)")
-    p.add_argument("--rms", type=float,
+    p.add_argument("--rms", type=positive,
                    help="diagnose: RMS of its excitation (counts; default 3)")
     p.add_argument("--excite", help="diagnose: comma-separated DOFs excited in turn "
                                     "(default POS,PIT,YAW; add SIDE for side_coupling)")
-    p.add_argument("--bw", type=float, help="pull: Welch resolution (Hz, default 0.02; "
+    p.add_argument("--bw", type=positive, help="pull: Welch resolution (Hz, default 0.02; "
                    "the LPM's record is as long as 10 averages of it); diagnose: the "
                    "corpus measurement's (default 0.01 for XML, example_null's; 0.05 for "
                    "MCAP); rates: one setting's nulls, case by case")
@@ -413,7 +417,7 @@ def _bench(p: argparse.ArgumentParser) -> None:
                                       "names them (default all eight: bins of 0.01, 0.02, "
                                       "0.05 and 0.1 Hz, 5 and 20 averages, half the "
                                       "excitation, LPM)")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=positive_int, default=1,
                    help="pull: realisations measured and fitted side by side")
     p.add_argument("--no-marginal", action="store_true",
                    help="skip the 200 s - 20 s marginal speed of 'twind simulate'")
@@ -421,16 +425,16 @@ def _bench(p: argparse.ArgumentParser) -> None:
 
 def _soak(p: argparse.ArgumentParser) -> None:
     """Arguments of ``twind soak``."""
-    p.add_argument("--duration", type=float, default=3600.0, help="seconds of serving")
+    p.add_argument("--duration", type=positive, default=3600.0, help="seconds of serving")
     p.add_argument("--optics", default="all", help="comma-separated names, or 'all'")
-    p.add_argument("--hostile", type=int, default=1000, help="malformed requests to send")
+    p.add_argument("--hostile", type=count, default=1000, help="malformed requests to send")
     p.add_argument("--port", type=int, default=17461,
                    help="loopback port the soak's twin listens on (default 17461)")
     p.add_argument("--config", help="twin config (TOML); default the shipped one with its "
                                     "watchdogs at 20 um, so that one drive trips one")
-    p.add_argument("--load", type=int, default=0, metavar="N",
+    p.add_argument("--load", type=count, default=0, metavar="N",
                    help="N busy processes share the cores with the twin (2: both cores)")
-    p.add_argument("--suspend", type=float, default=6.0, metavar="S",
+    p.add_argument("--suspend", type=positive, default=6.0, metavar="S",
                    help="seconds a second subscriber is suspended (SIGSTOP) at the end")
 
 

@@ -25,6 +25,63 @@ def frequency(text: str) -> float:
     return value
 
 
+def positive(text: str) -> float:
+    """A positive finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        msg = f"must be a positive number, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def positive_int(text: str) -> int:
+    """A whole number of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        msg = f"must be a whole number of at least 1, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def count(text: str) -> int:
+    """A whole number, zero or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        msg = f"must be a whole number, zero or more, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def fraction(text: str) -> float:
+    """A number from 0 to 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 <= value <= 1:
+        msg = f"must be a number from 0 to 1, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
+def overlap(text: str) -> float:
+    """A Welch overlap: from 0 up to, not including, 1."""
+    value = fraction(text)
+    if value == 1:
+        msg = "must be below 1 (segments that overlap wholly never advance)"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def seed(text: str) -> int:
     """A seed argument: a non-negative integer."""
     value = int(text)
@@ -39,7 +96,7 @@ def bus_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--ifo", help="the twin's interferometer prefix (default C1; inject: the "
                                  "channel's)")
-    p.add_argument("--timeout", type=float, default=5.0,
+    p.add_argument("--timeout", type=positive, default=5.0,
                    help="seconds to wait for the twin's reply (default 5)")
     p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
 
@@ -63,8 +120,8 @@ def input_arguments(p: argparse.ArgumentParser) -> None:
     HDF5 files or GWF frames, and how to read them."""
     p.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF), MCAP "
                    "sessions, or gwpy HDF5 files or GWF frames")
-    p.add_argument("--bw", type=float, default=0.01, help="time series: Welch resolution (Hz)")
-    p.add_argument("--overlap", type=float, default=0.5, help="time series: Welch overlap")
+    p.add_argument("--bw", type=positive, default=0.01, help="time series: Welch resolution (Hz)")
+    p.add_argument("--overlap", type=overlap, default=0.5, help="time series: Welch overlap")
     p.add_argument("--optic", help="time series: the optic, when several were excited")
     p.add_argument("--estimator", choices=["welch", "lpm"], default="welch",
                    help="time series: Welch (diaggui's) or Pintelon-Schoukens' local "
