@@ -129,16 +129,37 @@ def test_bench_offers_the_suites_it_runs() -> None:
 
 
 @pytest.mark.parametrize(("argv", "says"), [
-    (["tf", "x.mcap", "--bw", "0"], "argument --bw: must be a positive number, got '0'"),
-    (["tf", "x.mcap", "--bw", "-1"], "argument --bw: must be a positive number, got '-1'"),
-    (["tf", "x.mcap", "--overlap", "1"], "argument --overlap: must be below 1"),
-    (["fit", "x.xml", "--min-coherence", "1.5"], "argument --min-coherence: must be a number "
+    (["tf", "{null}", "--bw", "0"], "argument --bw: must be a positive number, got '0'"),
+    (["tf", "{null}", "--bw", "-1"], "argument --bw: must be a positive number, got '-1'"),
+    (["tf", "{null}", "--overlap", "1"], "argument --overlap: must be below 1"),
+    (["fit", "{null}", "--min-coherence", "1.5"], "argument --min-coherence: must be a number "
                                                  "from 0 to 1"),
     (["serve", "--speed", "0"], "argument --speed: must be a positive number"),
     (["bench", "--suite", "rates", "--nulls", "-2"], "argument --nulls: must be a whole number"),
 ])
 def test_a_number_out_of_range_is_refused_naming_the_option(argv, says, capsys) -> None:  # noqa: ANN001
+    null = str(next((REFERENCE / "example_null").glob("*.xml")))
     with pytest.raises(SystemExit) as exit_:
-        main(argv)
+        main([a.format(null=null) for a in argv])
     assert exit_.value.code == 2
     assert says in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    (["tf", "missing.xml"], "argument inputs: no such input: missing.xml"),
+    (["diagnose", "missing.mcap"], "argument inputs: no such input: missing.mcap"),
+    (["tf", "{null}", "-o", "x.pdf"], "x.pdf: give a .h5, .hdf5, .csv, .mat or .png file"),
+    (["fit", "{null}", "-o", "x.jpeg"], "x.jpeg: give a .png, .pdf or .svg file"),
+])
+def test_inputs_and_outputs_are_checked_before_any_work(argv, says) -> None:  # noqa: ANN001
+    """Refused by the parser, before the analysis is imported (it takes seconds)."""
+    import subprocess
+    import sys
+
+    null = str(next((REFERENCE / "example_null").glob("*.xml")))
+    code = ("import sys\nfrom twind.cli import main\ntry:\n    main(sys.argv[1:])\n"
+            "except SystemExit as e:\n    print(e.code, 'twind.analysis' in sys.modules)\n")
+    run = subprocess.run([sys.executable, "-c", code, *(a.format(null=null) for a in argv)],
+                         capture_output=True, text=True, check=True)
+    assert run.stdout.split() == ["2", "False"]
+    assert says in run.stderr

@@ -17,7 +17,10 @@ from twind.cli import main
 def _run(args: list[str]) -> tuple[int, str, str]:
     out, err = io.StringIO(), io.StringIO()
     with redirect_stdout(out), redirect_stderr(err):
-        code = main(args)
+        try:
+            code = main(args)
+        except SystemExit as refused:  # by the parser
+            code = refused.code
     return code, out.getvalue(), err.getvalue()
 
 
@@ -56,7 +59,7 @@ def test_simulate_records_every_block(tmp_path: Path) -> None:
 
 def test_simulate_rejects_bad_arguments() -> None:
     code, _, err = _run(["simulate", "--duration", "-1"])
-    assert code == 2 and "--duration must be positive" in err
+    assert code == 2 and "argument --duration: must be a positive number" in err
     code, _, err = _run(["simulate", "--duration", "1", "--optics", "ETMZ"])
     assert code == 2 and "unknown optic" in err
 
@@ -65,7 +68,7 @@ def test_simulate_rejects_inputs_that_would_hang_or_crash(tmp_path: Path) -> Non
     for args, message in [
         (["--duration", "1e-6"], "at least one sample"),
         (["--duration", "1", "--block", "1e-5"], "at least one sample"),
-        (["--duration", "1", "--block", "0"], "--block must be positive"),
+        (["--duration", "1", "--block", "0"], "argument --block: must be a positive number"),
         (["--duration", "1", "--optics", "ETMX,ETMX"], "named twice"),
         (["--duration", "1", "--record", str(tmp_path / "no" / "dir.mcap")], "No such file"),
     ]:

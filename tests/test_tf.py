@@ -517,3 +517,11 @@ def test_noise_over_few_averages_is_not_taken_for_a_driven_band() -> None:
                     coherence={k: g2 for k in tfs.coherence})
     assert (g2[1000:] >= 0.5).any()
     assert noisy.coherent_band() == (f[100], f[999])
+
+
+def test_an_excitation_too_short_for_the_resolution_says_which_would_do(tmp_path: Path) -> None:
+    cfg = load_config(None, "ETMX").optics["ETMX"]
+    path = record_excited_session(cfg, tmp_path / "short.mcap", {"POS": 1.0}, seconds=12)
+    with pytest.raises(TFError, match=r"less than 1/bw = 100 s \(--bw, default 0\.01 Hz\); "
+                                      r"--bw 0\.1 needs 10 s"):
+        from_session([path], bw=0.01)

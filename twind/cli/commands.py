@@ -8,12 +8,15 @@ from twind import DOFS
 from twind.cli.command import Command, counting
 from twind.cli.options import (
     CONFIG_HELP,
+    FIGURES,
     SEED_HELP,
+    TF_RESULTS,
     bus_arguments,
     count,
     fraction,
     frequency,
     input_arguments,
+    new_file,
     positive,
     positive_int,
     seed,
@@ -223,7 +226,7 @@ def _tf(p: argparse.ArgumentParser) -> None:
     input_arguments(p)
     p.add_argument("--config", help="the optic's configuration: needed for a state-space "
                                     "model's (another site's) channel names")
-    p.add_argument("-o", "--output",
+    p.add_argument("-o", "--output", type=new_file(*TF_RESULTS),
                    help=".h5/.hdf5, .csv or .mat (MATLAB) results, or a .png Bode matrix")
 
 
@@ -235,7 +238,8 @@ def _fit(p: argparse.ArgumentParser) -> None:
                    help="parameters to fit (default: all nine of docs/model.md)")
     p.add_argument("--min-coherence", type=fraction, default=0.5,
                    help="IN1/EXC bins less coherent (averaged over neighbours) are unused")
-    p.add_argument("-o", "--output", help=".png: measured, nominal and fitted Bode matrix")
+    p.add_argument("-o", "--output", type=new_file(*FIGURES),
+                   help=".png (.pdf, .svg): measured, nominal and fitted Bode matrix")
     p.add_argument("--truth", metavar="JSON",
                    help="a simulated optic's truth.json: also print (fitted - truth)/sigma")
 
@@ -276,8 +280,8 @@ def _freeswing(p: argparse.ArgumentParser) -> None:
                         "a recording (default: to its end)")
     p.add_argument("--seed", type=seed, default=0, help="noise seed of the twin's ringdown")
     p.add_argument("--json", action="store_true", help="the numbers as JSON")
-    p.add_argument("-o", "--output", help="PNG: OSEM spectra with the modes, and both "
-                                          "input matrices")
+    p.add_argument("-o", "--output", type=new_file(*FIGURES),
+                   help="PNG (PDF, SVG): OSEM spectra with the modes, and both input matrices")
     bus_arguments(p)
 
 
@@ -314,7 +318,7 @@ def _excite(p: argparse.ArgumentParser) -> None:
     p.add_argument("--period", type=positive, default=20.0,
                    help="information: multisine period (s); measure with bw = 1/period")
     p.add_argument("--json", action="store_true", help="print the design as JSON")
-    p.add_argument("-o", "--output", metavar="FILE.png",
+    p.add_argument("-o", "--output", metavar="FILE.png", type=new_file(*FIGURES),
                    help="plot of the required and designed ASD and the coherence")
 
 
@@ -347,7 +351,8 @@ def _campaign(p: argparse.ArgumentParser) -> None:
                    help="in-process twin: seed of its noise (default 0)")
     p.add_argument("--workdir", help="running twin: where the rounds' MCAP files go")
     p.add_argument("--json", action="store_true", help="the result as JSON")
-    p.add_argument("-o", "--output", help=".png: relative sigma per round")
+    p.add_argument("-o", "--output", type=new_file(*FIGURES),
+                   help=".png (.pdf, .svg): relative sigma per round")
 
 
 def _demo(p: argparse.ArgumentParser) -> None:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Callable
+from pathlib import Path
 
 from twind import strictjson
 
@@ -82,6 +84,36 @@ def overlap(text: str) -> float:
     return value
 
 
+FIGURES = (".png", ".pdf", ".svg")
+"""The figure formats twind writes."""
+TF_RESULTS = (".h5", ".hdf5", ".csv", ".mat", ".png")
+"""What ``twind tf -o`` writes: the numbers, or a Bode matrix."""
+
+
+def new_file(*suffixes: str) -> Callable[[str], str]:
+    """An output argument: a file of one of `suffixes` that does not exist yet (twind never
+    overwrites a result), checked before any work."""
+    def output(text: str) -> str:
+        path = Path(text)
+        if path.suffix.lower() not in suffixes:
+            msg = f"{text}: give a {', '.join(suffixes[:-1])} or {suffixes[-1]} file"
+            raise argparse.ArgumentTypeError(msg)
+        if path.exists():
+            msg = f"{text} exists; twind does not overwrite results"
+            raise argparse.ArgumentTypeError(msg)
+        return text
+
+    return output
+
+
+def existing(text: str) -> str:
+    """An input argument: a file that is there."""
+    if not Path(text).exists():
+        msg = f"no such input: {text}"
+        raise argparse.ArgumentTypeError(msg)
+    return text
+
+
 def seed(text: str) -> int:
     """A seed argument: a non-negative integer."""
     value = int(text)
@@ -118,7 +150,7 @@ def exc_span(text: str) -> tuple[str, float, float]:
 def input_arguments(p: argparse.ArgumentParser) -> None:
     """Measured transfer functions: diaggui XML files, MCAP sessions, or the data system's
     HDF5 files or GWF frames, and how to read them."""
-    p.add_argument("inputs", nargs="+", help="diaggui XML files (one per excited DOF), MCAP "
+    p.add_argument("inputs", nargs="+", type=existing, help="diaggui XML files (one per excited DOF), MCAP "
                    "sessions, or gwpy HDF5 files or GWF frames")
     p.add_argument("--bw", type=positive, default=0.01, help="time series: Welch resolution (Hz)")
     p.add_argument("--overlap", type=overlap, default=0.5, help="time series: Welch overlap")

@@ -500,7 +500,8 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     ----------
     paths : sequence of path
         MCAP files of one session (see :func:`twind.recording.session.session_files`), or
-        HDF5 files or GWF frames (:func:`twind.recording.frames.read_frames`).
+        HDF5 files or GWF frames (:func:`twind.recording.frames.read_frames`): pieces of
+        one recording, or measurements a file each, each with its own channels (:func:`merged`).
     bw : float
         Resolution (Hz): segments of ``round(rate / bw)`` samples.
     overlap : float
@@ -541,18 +542,14 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
     """
     check_estimator(estimator)
     frames = any(is_frames(p) for p in paths)
-    if frames and len(paths) > 1 and not same_channels(paths):
-        # measurements exported one file each, each with its own excitation's channels
-        return merged([from_session([p], bw, overlap, optic, window, settle_s, highpass_hz,
-                                    estimator, max_hz, mapping, exc_times) for p in paths],
-                      [str(p) for p in paths])
+    if frames and len(paths) > 1 and not same_channels(paths):  # a measurement a file
+        each = (bw, overlap, optic, window, settle_s, highpass_hz, estimator, max_hz, mapping)
+        return merged([from_session([p], *each, exc_times) for p in paths], list(map(str, paths)))
     # a session without events is read whole once, not streamed first to no end
     if (not (highpass_hz or frames or exc_times) and estimator == "welch"
             and event_count(paths) != 0):
-        tfs = _streamed(paths, bw, overlap, optic, window, settle_s)
-        if tfs is not None:
+        if (tfs := _streamed(paths, bw, overlap, optic, window, settle_s)) is not None:
             return tfs
-
     session = (read_frames(paths, _test_point(optic), mapping) if frames
                else read_channels(list(paths), _test_point(optic)))
     channels = with_exc(at_one_rate(session.channels))
@@ -695,13 +692,20 @@ class _Plan:
                        max(self.n - self.skip, 0))
 
 
+NICE_BW = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+"""Resolutions suggested when an excitation is too short for the one asked (Hz)."""
+
+
 def _nperseg(rate: float, bw: float, plan: _Plan, settle_s: float) -> int:
     """Samples per segment; refused if the excitation holds fewer."""
     nperseg = int(round(rate / bw))
     if plan.n - plan.skip < nperseg:
         dof = DOF_CHANNEL.match(plan.names[0])["dof"]
-        msg = (f"the {dof} excitation holds {max(plan.n - plan.skip, 0) / rate:.1f} s of "
-               f"recorded data after {settle_s:g} s of settling, less than 1/bw = {1 / bw:g} s")
+        held = max(plan.n - plan.skip, 0) / rate
+        coarser = next((f"; --bw {b:g} needs {1 / b:g} s" for b in NICE_BW
+                        if held and b > bw and 1 / b <= held), "")
+        msg = (f"the {dof} excitation holds {held:.1f} s of recorded data after {settle_s:g} s "
+               f"of settling, less than 1/bw = {1 / bw:g} s (--bw, default 0.01 Hz){coarser}")
         raise TFError(msg)
     return nperseg
 
