@@ -102,7 +102,7 @@ def _inject(p: argparse.ArgumentParser) -> None:
     p.add_argument("--f-stop", type=float, help="Hz: sweep end, multisine highest")
     p.add_argument("--n-tones", type=positive_int, help="multisine tones")
     p.add_argument("--amp", type=float, help="peak amplitude (noise: RMS)")
-    p.add_argument("--duration", type=positive, help="seconds (inf: until stopped)")
+    p.add_argument("--duration", type=float, help="seconds (inf: until stopped)")
     p.add_argument("--ramp", type=float, help="taper seconds at start and end")
     p.add_argument("--start", type=float, help="GPS start (default: next block)")
     p.add_argument("--shape", help="noise: foton design shaping white noise")
