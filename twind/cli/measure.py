@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twind import OSEMS, strictjson
+from twind import OSEMS, __version__, strictjson
 from twind.analysis.diagnose import diagnose
 from twind.analysis.estimation.diaggui import read_transfers
 from twind.analysis.estimation.tf import TFError, from_diaggui, from_session
@@ -146,11 +146,18 @@ def _plot_tfs(tfs, path: Path) -> tuple[Path, Path]:  # noqa: ANN001 - TFSet
     closed = Measured(tfs.tf["IN1"][keep], tfs.sigma("IN1")[keep], driven[keep])
     plant = Measured(P[keep], sigma[keep], np.broadcast_to(own[keep, None, None], P[keep].shape))
     done = bode_matrix(f[keep], path, tfs.responses, tfs.excited, measured={"IN1/EXC": closed},
-                       title=f"{tfs.optic}: measured IN1/EXC ({tfs.averages} averages)")
+                       title=f"{tfs.optic}: measured IN1/EXC ({_estimate(tfs)})")
     other = bode_matrix(f[keep], path.with_name(f"{path.stem}_plant{path.suffix}"),
                         tfs.excited, tfs.excited, measured={"plant IN1/OUT": plant}, per="ct",
-                        title=f"{tfs.optic}: the plant (IN1/EXC)(OUT/EXC)^-1")
+                        title=f"{tfs.optic}: the plant (IN1/EXC)(OUT/EXC)^-1 ({_estimate(tfs)})")
     return done, other
+
+
+def _estimate(tfs) -> str:  # noqa: ANN001 - TFSet
+    """How `tfs` was estimated, and by which twind, for a figure's title."""
+    df = float(np.median(np.diff(tfs.frequency_hz))) if tfs.frequency_hz.size > 1 else 0.0
+    how = ("LPM" if tfs.window == "lpm" else f"Welch, {tfs.averages} averages")
+    return f"{how}, {df:.3g} Hz bins; twind {__version__}"
 
 
 def _show_transfers(args: argparse.Namespace, why: str) -> int:

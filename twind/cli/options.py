@@ -39,6 +39,18 @@ def positive(text: str) -> float:
     return value
 
 
+def non_negative(text: str) -> float:
+    """A finite number, zero or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        msg = f"must be a number, zero or more, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
+
+
 def positive_int(text: str) -> int:
     """A whole number of at least 1."""
     try:
@@ -131,6 +143,9 @@ def bus_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout", type=positive, default=5.0,
                    help="seconds to wait for the twin's reply (default 5)")
     p.add_argument("--zenoh-config", help="a Zenoh JSON5 configuration (TLS, access control)")
+    p.add_argument("--wait", type=non_negative, default=0.0, metavar="S",
+                   help="seconds to wait for a twin that is still starting to answer (0: ask "
+                        "once)")
 
 
 def exc_span(text: str) -> tuple[str, float, float]:

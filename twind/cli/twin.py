@@ -39,10 +39,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def client(args: argparse.Namespace, channel: str = "") -> TwinClient:
     """A client of the twin the command's bus arguments name; its interferometer is
-    ``--ifo``, else `channel`'s prefix (``K1`` of ``K1:VIS-SRM_TM_TEST_P_EXC``), else C1."""
+    ``--ifo``, else `channel`'s prefix (``K1`` of ``K1:VIS-SRM_TM_TEST_P_EXC``), else C1;
+    with ``--wait``, once the twin answers."""
     ifo = args.ifo or (channel.partition(":")[0] if ":" in channel else "C1")
-    return TwinClient(connect=args.connect or [DEFAULT_ENDPOINT], ifo=ifo,
-                      timeout=args.timeout, config_file=args.zenoh_config)
+    connect = args.connect or [DEFAULT_ENDPOINT]
+    if not args.wait:
+        return TwinClient(connect=connect, ifo=ifo, timeout=args.timeout,
+                          config_file=args.zenoh_config)
+    twin = TwinClient.wait(connect, timeout=args.wait, ifo=ifo, config_file=args.zenoh_config)
+    twin.timeout = args.timeout
+    return twin
 
 
 def cmd_inject(args: argparse.Namespace) -> int:

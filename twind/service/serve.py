@@ -74,7 +74,8 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
             print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
                   f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "
                   f"{service.gps0:.3f}, on {' '.join(endpoints) or 'the configured endpoints'}"
-                  f", {priority}; Ctrl-C stops", flush=True)
+                  f", {priority}; ready for clients (twind status --wait S waits for this); "
+                  "Ctrl-C stops", flush=True)
             reporter = threading.Thread(target=_report, args=(service, stop), daemon=True)
             reporter.start()
             try:

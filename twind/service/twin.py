@@ -134,6 +134,7 @@ class TwinService:
         self._ids = (f"exc-{tag}-{i}" for i in itertools.count(1))
         self._ended: set[str] = set()
         self._started = self._t0 = time.monotonic()
+        self._end: int | None = None  # the sample the service stops at, when it is to stop
         self._session = session
         # Zenoh drops samples under congestion by default; a twin whose recordings have gaps is
         # worse than one that waits a moment for a slow subscriber
@@ -198,6 +199,8 @@ class TwinService:
             Set (from another thread or a signal handler) to end the service.
         """
         stop = stop or threading.Event()
+        if duration is not None:
+            self._end = self.engine.samples + int(round(duration * self.rate))
         t0 = self._t0 = time.monotonic()
         for k in itertools.count():
             if duration is not None and k * self.block_s >= duration - 1e-9:
@@ -385,7 +388,7 @@ class TwinService:
                     reason = (f"start GPS {req.start_gps} has passed; the next sample is at "
                               f"{self.gps0 + next_sample / self.rate}")
                     return {"ok": False, "accepted": False, "reason": reason}
-            crowded = self._crowded(optic, dof, start - next_sample)
+            crowded = self._crowded(optic, dof, start - next_sample) or self._past_end(req, start)
             if crowded:
                 return {"ok": False, "accepted": False, "reason": f"{req.channel}: {crowded}"}
             act = Active(next(self._ids), req, optic, dof, start, make_waveform(req, self.rate),
@@ -396,6 +399,17 @@ class TwinService:
             self._publish_event("start", act)  # under the lock: before any "end" of it
         return {"ok": True, "accepted": True, "id": act.id,
                 "start_gps": self.gps0 + start / self.rate}
+
+    def _past_end(self, req: ExcitationRequest, start: int) -> str:
+        """Why an excitation from sample `start` cannot run whole before the service stops
+        ("" if it can, or runs until stopped)."""
+        if self._end is None or math.isinf(req.duration):
+            return ""
+        if start + req.duration * self.rate <= self._end:
+            return ""
+        return (f"it would run to GPS {self.gps0 + start / self.rate + req.duration:.3f}, past "
+                f"the end of this service at GPS {self.gps0 + self._end / self.rate:.3f} "
+                "(serve --duration)")
 
     def _crowded(self, optic: int, dof: int, ahead: int) -> str:
         """Why one more excitation, `ahead` samples from now, is too many ("" if not);
