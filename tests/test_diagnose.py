@@ -20,6 +20,7 @@ from conftest import REFERENCE
 from diagnosekit import assert_accounted, assert_sound
 
 from twind.analysis.diagnose import ALPHA, diagnose, f_profile
+from twind.analysis.identification.params import param_label
 from twind.analysis.separation import separating_measurement
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
@@ -68,8 +69,16 @@ def test_example_null_is_consistent(tmp_path: Path) -> None:
     assert main(["diagnose", *NULL, "-o", str(tmp_path / "report")]) == 2  # never overwrites
     page = tables((tmp_path / "report" / "index.html").read_text())
     assert page["verdict"][0][0].startswith("consistent with the nominal model")
-    assert [row[0] for row in page["nominal"][1:]] == list(obj["nominal_params"])
-    assert {row[0]: row[1] for row in page["nominal"][1:]}["Q_SIDE"] == "held at start"
+    assert [row[0] for row in page["nominal"][1:]] == [param_label(n)
+                                                      for n in obj["nominal_params"]]
+    assert page["nominal"][1][0] == "wire length l (m)"
+    assert {row[0]: row[1] for row in page["nominal"][1:]}["SIDE quality factor Q_SIDE"] == (
+        "held at start")
+    measured = dict(map(tuple, page["measurement"][1:]))
+    assert measured["inputs"] == ", ".join(Path(p).name for p in NULL)
+    assert measured["estimate"].startswith("Welch (hann), ") and "twind" in measured["read by"]
+    text = (tmp_path / "report" / "index.html").read_text()
+    assert "positive favours the hypothesis" in text and "held at its start" in text
     assert page["located"] == [["none: no band stands out"]]
     from rerun.chunk import RrdReader
 

@@ -302,7 +302,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     show(result, args.json)
     cfg = result.read_through(cfg)
     if args.output:
-        print(f"wrote {write_report(result, tfs, cfg, args.output)}", file=sys.stderr)
+        print(f"wrote {write_report(result, tfs, cfg, args.output, args.inputs)}",
+              file=sys.stderr)
     if args.push:
         nominal, effect = result.final_model()
         with TwinClient(list(args.push)) as twin:

@@ -53,6 +53,7 @@ from twind.analysis.diagnose import (
 from twind.analysis.estimation.diaggui import write_measurement_set
 from twind.analysis.estimation.tf import from_diaggui, from_session
 from twind.analysis.identification.data import FitData
+from twind.analysis.identification.inmatrix import recorded_input_matrix
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.params import FitError, param_value, with_params
 from twind.config import OpticConfig
@@ -1139,8 +1140,8 @@ def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", s
         record_measurement(optic, path, bw=ROUTE_BW["mcap"], averages=AVERAGES, rms=RMS,
                            seed=seed + 1, plant=run)
         tfs = from_session([path], bw=ROUTE_BW["mcap"], settle_s=SETTLE_S)
-        d = diagnose(tfs, cfg)
-        write_report(d, tfs, cfg, out / name)
+        d = diagnose(tfs, cfg, input_matrix=recorded_input_matrix([path], cfg))
+        write_report(d, tfs, cfg, out / name, [path])
         say(f"{name}: " + "\n  ".join(d.lines()))
         say(f"{name}: report in {out / name}/index.html")
         results.append(d)

@@ -12,12 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from twind import strictjson
+from twind import __version__, strictjson
 from twind.analysis.diagnose import Diagnosis, DiagnoseError
 from twind.analysis.estimation.tf import TFSet
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.locate import Located
 from twind.analysis.identification.model import ClosedLoopModel
+from twind.analysis.identification.params import param_label
 from twind.config import OpticConfig
 from twind.viz.plotting import plot_fit
 from twind.viz.spectra import write_spectra_rrd
@@ -33,7 +34,8 @@ img { max-width: 100% }
 """
 
 
-def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
+def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]],
+                measured: Sequence[tuple[str, str]] = ()) -> str:
     """The HTML page of `diagnosis`: the verdict, the tables, then the figures.
 
     Parameters
@@ -42,6 +44,8 @@ def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
         As ``twind diagnose`` finds it.
     images : sequence of (str, str)
         The figures as ``(title, file)`` pairs, the file's path relative to the page.
+    measured : sequence of (str, str)
+        What was measured and how, as ``(what, value)`` rows (:func:`measurement`).
 
     Returns
     -------
@@ -55,6 +59,8 @@ def report_page(diagnosis: Diagnosis, images: Sequence[tuple[str, str]]) -> str:
              f"<p>chi2/nu {d.nominal.chi2_nu:.3f} with the nominal model refitted, "
              f"{d.final.chi2_nu:.3f} with the final one ({d.final.bins} bins, coherence "
              f"&gt;= {d.final.min_coherence:g}).</p>"]
+    if measured:
+        parts += ["<h2>The measurement</h2>", table("measurement", ("", ""), measured)]
     if d.input_matrix is not None:
         parts += ["<h2>The input matrix, measured (IN1 against the OSEM readings)</h2>",
                   _listed("input_matrix", d.input_matrix.lines())]
@@ -118,11 +124,13 @@ def _listed(key: str, lines: list[str]) -> str:
 def _nominal(d: Diagnosis) -> str:
     """The refitted nominal parameters; what the data cannot fix is held at its start."""
     params = d.nominal.to_json()["params"]
-    rows = [(n, "held at start" if p["sigma"] is None else number(p["value"], 6),
+    rows = [(param_label(n), "held at start" if p["sigma"] is None else number(p["value"], 6),
              number(p["sigma"], 3), "unidentifiable" if p["sigma"] is None else
              f"{100 * p['sigma'] / abs(p['value']):.2g} %", number(p["start"], 6))
             for n, p in params.items()]
-    return table("nominal", ("parameter", "value", "sigma", "relative", "start"), rows)
+    return (table("nominal", ("parameter", "value", "sigma", "relative", "start"), rows)
+            + "<p>A parameter these data cannot fix is held at its start: it has no sigma "
+            "(—).</p>")
 
 
 def _hypotheses(d: Diagnosis) -> str:
@@ -151,8 +159,11 @@ def _hypotheses(d: Diagnosis) -> str:
             shown.add(x.effect)
             rows.append((x.effect, f"not weighed at step {x.step}: {x.reason}", "", "", ""))
             classes.append("")
-    return table("hypotheses", ("hypothesis", "verdict", "p-value", "delta BIC",
-                                 "parameters ± sigma"), rows, classes)
+    return (table("hypotheses", ("hypothesis", "verdict", "p-value", "delta BIC",
+                                  "parameters ± sigma"), rows, classes)
+            + "<p>delta BIC is the likelihood ratio less ln(bins) per parameter: positive "
+            "favours the hypothesis over the model without it. A p-value pays for the "
+            "search and for the hypotheses tried (Bonferroni).</p>")
 
 
 def _separations(d: Diagnosis) -> str:
@@ -174,7 +185,20 @@ def bands(table_id: str, located: Sequence[Located], empty: str) -> str:
                              "residual power / expected"), rows)
 
 
-def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path) -> Path:
+def measurement(tfs: TFSet, inputs: Sequence[str | Path] = ()) -> list[tuple[str, str]]:
+    """What a report says of its measurement: the files, the optic and DOFs, the estimate
+    (estimator, resolution, averages, band) and the twind that read it."""
+    f = tfs.frequency_hz
+    df = float(np.median(np.diff(f))) if f.size > 1 else math.nan
+    how = "LPM" if tfs.window == "lpm" else f"Welch ({tfs.window}), {tfs.averages} averages"
+    rows = [("inputs", ", ".join(Path(p).name for p in inputs))] if inputs else []
+    return [*rows, ("optic", f"{tfs.ifo}:{tfs.optic}"), ("excited", ", ".join(tfs.excited)),
+            ("estimate", f"{how}, {number(df, 3)} Hz bins, {number(f.min(), 3)}-"
+                         f"{number(f.max(), 4)} Hz"), ("read by", f"twind {__version__}")]
+
+
+def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path,
+                 inputs: Sequence[str | Path] = ()) -> Path:
     """The report of a diagnosis in directory `out` (created).
 
     Parameters
@@ -188,6 +212,8 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
         The directory: ``nominal.png`` and ``augmented.png`` (measured, model, residual /
         sigma per bin, before and after), ``diagnosis.json``, ``diagnosis.rrd`` and
         ``index.html`` (:func:`report_page`).
+    inputs : sequence of path
+        The files measured, named in the report.
 
     Returns
     -------
@@ -209,7 +235,7 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
     titles = {"nominal.png": "The nominal model refitted: measured, model, residual / sigma",
               "augmented.png": "With the effects chosen"}
     images = [(t, n) for n, t in titles.items() if (out / n).exists()]
-    (out / "index.html").write_text(report_page(diagnosis, images))
+    (out / "index.html").write_text(report_page(diagnosis, images, measurement(tfs, inputs)))
     return out / "index.html"
 
 

@@ -15,6 +15,24 @@ FIT_PARAMS = ("wire_length_m", "b_m", "R1_m", "coil_N_per_ct", "osem_lever_m",
               "Q_POS", "Q_PIT", "Q_YAW", "Q_SIDE")
 
 
+LABELS = {"wire_length_m": ("wire length", "l", "m"),
+          "b_m": ("break-off above the centre of mass", "b", "m"),
+          "R1_m": ("half wire separation at the clamps", "R1", "m"),
+          "coil_N_per_ct": ("face coil force per DAC count", "alpha", "N/ct"),
+          "osem_lever_m": ("OSEM lever arm", "h", "m"),
+          **{f"Q_{d}": (f"{d} quality factor", f"Q_{d}", "") for d in ("POS", "PIT", "YAW",
+                                                                       "SIDE")}}
+"""Each fit parameter as a person reads it: (what it is, its symbol in docs/model.md, unit)."""
+
+
+def param_label(name: str) -> str:
+    """`name` as a person reads it, e.g. ``wire length l (m)``; `name` itself if unknown."""
+    if name not in LABELS:
+        return name
+    what, symbol, unit = LABELS[name]
+    return f"{what} {symbol}" + (f" ({unit})" if unit else "")
+
+
 class FitError(TwindError):
     """Parameters cannot be fitted to these measurements."""
 
