@@ -27,64 +27,30 @@ def frequency(text: str) -> float:
     return value
 
 
-def positive(text: str) -> float:
-    """A positive finite number."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        msg = f"must be a positive number, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return value
+def checked(convert: Callable[[str], float], ok: Callable[[float], bool], wants: str,
+            name: str) -> Callable[[str], float]:
+    """An argument type: `convert` of the text, refused unless `ok`, the message saying
+    it `wants` (argparse puts the option's name before it)."""
+    def parse(text: str) -> float:
+        try:
+            value = convert(text)
+        except ValueError:
+            value = None
+        if value is None or not ok(value):
+            msg = f"must be {wants}, got {text!r}"
+            raise argparse.ArgumentTypeError(msg)
+        return value
+
+    parse.__name__ = name
+    return parse
 
 
-def non_negative(text: str) -> float:
-    """A finite number, zero or more."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 0):
-        msg = f"must be a number, zero or more, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return value
-
-
-def positive_int(text: str) -> int:
-    """A whole number of at least 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        msg = f"must be a whole number of at least 1, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return value
-
-
-def count(text: str) -> int:
-    """A whole number, zero or more."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        msg = f"must be a whole number, zero or more, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return value
-
-
-def fraction(text: str) -> float:
-    """A number from 0 to 1."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not 0 <= value <= 1:
-        msg = f"must be a number from 0 to 1, got {text!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return value
+positive = checked(float, lambda v: math.isfinite(v) and v > 0, "a positive number", "positive")
+non_negative = checked(float, lambda v: math.isfinite(v) and v >= 0, "a number, zero or more",
+                       "non_negative")
+positive_int = checked(int, lambda v: v >= 1, "a whole number of at least 1", "positive_int")
+count = checked(int, lambda v: v >= 0, "a whole number, zero or more", "count")
+fraction = checked(float, lambda v: 0 <= v <= 1, "a number from 0 to 1", "fraction")
 
 
 def overlap(text: str) -> float:
