@@ -41,6 +41,8 @@ def test_the_tour_as_written(tmp_path: Path) -> None:
                      "--duration", "1000", "--connect", endpoint)
         assert late.returncode == 2
         assert "past the end of this service" in late.stderr and "serve --duration" in late.stderr
+        stopped = twind("stop", "all", "--connect", endpoint)  # the last one has ended
+        assert stopped.stdout.strip() == "no excitation was running", stopped.stdout
         assert serve.wait(timeout=120) == 0, serve.stderr.read()
     tf = twind("tf", *map(str, sorted(rec.glob("*.mcap"))), "--bw", "0.5", "--json")
     assert tf.returncode == 0, tf.stderr

@@ -73,7 +73,8 @@ def cmd_inject(args: argparse.Namespace) -> int:
 def cmd_stop(args: argparse.Namespace) -> int:
     """Stop an excitation by id (or all)."""
     with client(args) as twin:
-        print(" ".join(twin.stop(None if args.id == "all" else args.id)))
+        stopped = twin.stop(None if args.id == "all" else args.id)
+    print(" ".join(stopped) if stopped else "no excitation was running")
     return 0
 
 
