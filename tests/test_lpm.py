@@ -176,3 +176,18 @@ def test_lpm_refuses_what_it_cannot_estimate() -> None:
         lpm(U[:10], U[None, :10], 0.1)
     with pytest.raises(LPMError, match="responses of"):
         lpm_tfs(np.ones(100), [np.ones(99)], 1.0)
+
+
+def test_the_lpm_s_driven_band_is_where_the_excitation_is(tmp_path) -> None:  # noqa: ANN001
+    """``twind tf``'s default band on LPM estimates: excited below 10 Hz (a 4th-order
+    Butterworth), the band ends near there, not at Nyquist as the LPM's coherence alone had
+    it (0.13-8185 Hz)."""
+    from measurekit import record_excited_session
+
+    from twind.analysis.estimation.tf import from_session
+    from twind.config import load_config
+
+    cfg = load_config(None, "ETMX").select("ETMX")[0]
+    path = record_excited_session(cfg, tmp_path / "rec.mcap", {"POS": 2.0, "PIT": 5.0}, 60)
+    lo, hi = from_session([path], estimator="lpm").coherent_band()
+    assert lo < 0.5 and 5 < hi < 30, (lo, hi)

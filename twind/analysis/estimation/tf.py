@@ -24,7 +24,7 @@ import h5py
 import numpy as np
 import scipy.io
 from numpy.typing import NDArray
-from scipy import signal
+from scipy import signal, stats
 
 from twind import DOFS
 from twind.channels import DOF_CHANNEL, dof_channel
@@ -175,10 +175,16 @@ class TFSet:
 
     def coherent_band(self, at_least: float = 0.5) -> tuple[float, float] | None:
         """From the lowest to the highest frequency where some excited DOF's IN1 is driven by
-        its own EXC (:meth:`coherent`): where the excitation reached the optic. None when no
-        frequency is."""
+        its own EXC (:meth:`coherent`, and for the LPM's estimates above their own errors at
+        1 % over every bin): where the excitation reached the optic. None when no frequency
+        is."""
         rows = [self.responses.index(d) for d in self.excited]
         own = self.coherent("IN1", at_least)[:, rows, np.arange(len(rows))]
+        if self.error is not None:  # the LPM's: its coherence passes many undriven bins
+            h = self.tf["IN1"][:, rows, np.arange(len(rows))]
+            snr = np.abs(h) ** 2 / (2 * self.error["IN1"][:, rows, np.arange(len(rows))] ** 2)
+            # |H / sigma|^2 / 2 of an undriven bin is F(2, 2n - 2): none of them passes
+            own &= snr >= stats.f.isf(0.01 / snr.size, 2, 2 * max(self.averages - 1, 1))
         hit = np.flatnonzero(own.any(axis=1))
         f = self.frequency_hz
         return (float(f[hit[0]]), float(f[hit[-1]])) if hit.size else None
