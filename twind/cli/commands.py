@@ -23,7 +23,7 @@ from twind.cli.options import (
 )
 
 BENCH_SUITES = ("engine", "tf", "pull", "information", "diagnose", "rates", "freeswing",
-                "statespace")
+                "statespace", "commands")
 """``twind bench --suite``: what each measures is in ``--help``."""
 
 BENCH_PROGRESS = {"tf": "segment", "pull": "evaluation", "information": "evaluation",
@@ -380,7 +380,9 @@ def _bench(p: argparse.ArgumentParser) -> None:
                         "freeswing: twind freeswing on random drifted optics; statespace: "
                         "twind on KAGRA's state-space optics (--optic, default SRM,PRM): "
                         "nulls and moved modes measured open and closed loop (--nulls, "
-                        "default 6, --per-effect: moved modes, default 4)")
+                        "default 6, --per-effect: moved modes, default 4); commands: "
+                        "--help, a refused input and inject, timed from process start "
+                        "(--realisations runs each, default 5)")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--duration", type=float, default=None,
                    help="engine: simulated seconds per run (default 20); tf: seconds of "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from twind import DOFS
 from twind.config import CONFIG_DIR, load_config, optic_kinds
@@ -21,6 +22,7 @@ from twind.lab.corpus import (
 )
 from twind.lab.engine_speed import run_benchmarks
 from twind.lab.freeswing_bench import benchmark
+from twind.lab.latency import command_latency
 from twind.lab.rates import (
     NEAR_LIMIT,
     SETTINGS,
@@ -170,10 +172,19 @@ def _bench_freeswing(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_commands(args: argparse.Namespace) -> int:
+    """The commands a person waits on, timed from process start to their answer."""
+
+    lines = command_latency(runs=args.realisations or 5,
+                            say=lambda line: print(line, file=sys.stderr, flush=True))
+    print("\n".join(lines))
+    return 0
+
+
 SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
           "information": _bench_information, "diagnose": _bench_diagnose,
           "rates": _bench_rates, "freeswing": _bench_freeswing,
-          "statespace": _bench_statespace}
+          "statespace": _bench_statespace, "commands": _bench_commands}
 """The functions of ``twind bench --suite`` (:data:`twind.cli.commands.BENCH_SUITES`)."""
 
 

@@ -11,7 +11,6 @@ import numpy as np
 from twind import strictjson
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 from twind.client import TwinClient
-from twind.config import load_config
 from twind.errors import TwindError
 
 
@@ -26,7 +25,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # OpenMP threads that spin between blocks cost a whole core while serving in real time;
     # set before the engine loads its compiled kernel (the runtime reads it once)
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")
-    from twind.service.serve import main as serve_main  # after the line above: see there
+    # here, not at the top: the configuration (scipy.signal, python-control) takes a second
+    # to import, which inject, stop and status, the commands a person waits on, do without
+    from twind.config import load_config
+    from twind.service.serve import main as serve_main  # after the environment: see there
 
     twin = load_config(args.config, args.optics)
     optics = twin.select(args.optics)
