@@ -176,7 +176,8 @@ def _measured(cell: Sequence[Axes], f: NDArray, measured: Mapping[str, Measured]
         err = None if m.sigma is None else m.sigma[good, i, j]
         cell[0].errorbar(f[good], np.abs(h[good]), yerr=err, fmt=".", ms=2, elinewidth=0.5,
                          color=color, label=name)
-        cell[0].plot(f[~good], np.abs(h[~good]), ".", ms=2, color=color, alpha=0.2)
+        cell[0].plot(f[~good], np.abs(h[~good]), ".", ms=2, color=color, alpha=0.2,
+                     label=f"{name} where its EXC does not drive it (faded, no error bar)")
         cell[1].plot(f[good], np.degrees(np.angle(h[good])), ".", ms=2, color=color)
         cell[1].plot(f[~good], np.degrees(np.angle(h[~good])), ".", ms=2, color=color,
                      alpha=0.2)
