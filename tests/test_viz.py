@@ -6,7 +6,6 @@ from __future__ import annotations
 import functools
 import io
 import json
-import socket
 import threading
 import time
 import warnings
@@ -19,7 +18,7 @@ import zenoh
 
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import control_key, data_key
-from twind.bus.session import zenoh_config
+from twind.bus.session import free_port, zenoh_config
 from twind.cli import build_parser
 from twind.config import load_config
 from twind.errors import TwindError
@@ -216,15 +215,9 @@ def test_entity_paths_and_channel_patterns() -> None:
     assert matcher(None)("anything") and matcher("")("anything")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_view_streams_the_live_channels_into_a_recording(tmp_path: Path) -> None:
     """``twind view --save``: blocks published on Zenoh, decimated, in the .rrd with an event."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     twin = zenoh.open(zenoh_config(listen=[endpoint]))
     stop = threading.Event()
     channels = ("C1:SUS-ETMX_SUSPOS_IN1", "C1:SUS-ETMX_SUSPIT_IN1", "C1:SUS-ETMX_SUSPOS_EXC")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 from collections.abc import Sequence
 
 import zenoh
@@ -11,6 +12,14 @@ import zenoh
 from twind.errors import BusError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nothing listens on now (for a twin, a router or a
+    recorder a benchmark or test starts; another process may take it before they do)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def zenoh_config(listen: Sequence[str] = (), connect: Sequence[str] = (),

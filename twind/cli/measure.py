@@ -155,9 +155,7 @@ def _plot_tfs(tfs, path: Path) -> tuple[Path, Path]:  # noqa: ANN001 - TFSet
 
 def _estimate(tfs) -> str:  # noqa: ANN001 - TFSet
     """How `tfs` was estimated, and by which twind, for a figure's title."""
-    df = float(np.median(np.diff(tfs.frequency_hz))) if tfs.frequency_hz.size > 1 else 0.0
-    how = ("LPM" if tfs.window == "lpm" else f"Welch, {tfs.averages} averages")
-    return f"{how}, {df:.3g} Hz bins; twind {__version__}"
+    return f"{tfs.estimate()}; twind {__version__}"
 
 
 def _show_transfers(args: argparse.Namespace, why: str) -> int:

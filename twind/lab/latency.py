@@ -7,12 +7,13 @@ times, printed beside their targets (docs/benchmarks.md).
 
 from __future__ import annotations
 
-import socket
 import statistics
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
+
+from twind.bus.session import free_port
 
 TARGETS_S = {"twind --help": 1.0, "twind tf missing.xml": 1.0, "twind inject": 1.5}
 """The longest a person should wait for each (issue 42's)."""
@@ -24,12 +25,6 @@ def _timed(argv: Sequence[str]) -> tuple[float, int]:
     done = subprocess.run([sys.executable, "-m", "twind", *argv], capture_output=True,
                           check=False)
     return time.perf_counter() - start, done.returncode
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def command_latency(runs: int = 5, say: Callable[[str], None] = print) -> list[str]:
@@ -47,7 +42,7 @@ def command_latency(runs: int = 5, say: Callable[[str], None] = print) -> list[s
     list of str
         One line per command: median and largest seconds, and the target.
     """
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     serve = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--optics", "ETMX",
                               "--listen", endpoint, "--duration", "600"],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

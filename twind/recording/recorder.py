@@ -43,7 +43,7 @@ import twind
 from twind import DOFS, OSEMS
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
-from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
+from twind.bus.session import DEFAULT_ENDPOINT, free_port, zenoh_config
 from twind.channels import TEST_POINTS, dof_channel, osem_channel
 from twind.recording.session import RecordingError, rotated_name
 from twind.recording.writer import CHUNK_BYTES, CHUNK_SECONDS, BlockHeader, McapSession, scan_block
@@ -652,10 +652,7 @@ def recording_benchmark(seconds: float = 2.0, block_samples: int = 1024,
 
 def _end_to_end(tmp: Path, seconds: float, names: list[str], block_samples: int,
                 rate: float) -> dict[str, float]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     conf = zenoh_config(listen=[endpoint])
     recorder = Recorder(conf, tmp / "e2e.mcap", log=lambda line: None, status_timeout=0.1)
     recorder.start()

@@ -189,12 +189,10 @@ def measurement(tfs: TFSet, inputs: Sequence[str | Path] = ()) -> list[tuple[str
     """What a report says of its measurement: the files, the optic and DOFs, the estimate
     (estimator, resolution, averages, band) and the twind that read it."""
     f = tfs.frequency_hz
-    df = float(np.median(np.diff(f))) if f.size > 1 else math.nan
-    how = "LPM" if tfs.window == "lpm" else f"Welch ({tfs.window}), {tfs.averages} averages"
     rows = [("inputs", ", ".join(Path(p).name for p in inputs))] if inputs else []
     return [*rows, ("optic", f"{tfs.ifo}:{tfs.optic}"), ("excited", ", ".join(tfs.excited)),
-            ("estimate", f"{how}, {number(df, 3)} Hz bins, {number(f.min(), 3)}-"
-                         f"{number(f.max(), 4)} Hz"), ("read by", f"twind {__version__}")]
+            ("estimate", f"{tfs.estimate()}, {number(f.min(), 3)}-{number(f.max(), 4)} Hz"),
+            ("read by", f"twind {__version__}")]
 
 
 def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path,

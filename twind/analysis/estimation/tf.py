@@ -128,6 +128,14 @@ class TFSet:
         g2 = np.clip(self.coherence[point], 1e-12, 1.0)
         return np.abs(self.tf[point]) * np.sqrt((1 - g2) / (2 * self.averages * g2))
 
+    def estimate(self) -> str:
+        """How the TFs were estimated, for a title or a report: ``"Welch (hann), 19
+        averages, 0.05 Hz bins"`` or ``"LPM, 0.0167 Hz bins"``."""
+        f = self.frequency_hz
+        df = f"{float(np.median(np.diff(f))):.3g} Hz bins" if f.size > 1 else "one bin"
+        how = "LPM" if self.window == "lpm" else f"Welch ({self.window}), {self.averages} averages"
+        return f"{how}, {df}"
+
     def plant(self) -> tuple[NDArray[np.complex128], NDArray[np.float64]]:
         """The open-loop plant over the excited DOFs and its standard error.
 

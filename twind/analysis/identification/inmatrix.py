@@ -201,8 +201,11 @@ def recorded_input_matrix(paths: Sequence[str | Path], cfg: OpticConfig,
             channels = {n: (c.t0, c.rate, c.samples)
                         for n, c in read_frames(paths[:1], wanted, mapping).channels.items()}
         else:
-            span = _FirstSpan()
-            stream_channels(list(paths), wanted, span)
+            span = _FirstSpan(len(DOFS) + len(OSEMS))
+            try:
+                stream_channels(list(paths), wanted, span)
+            except _Enough:  # the rest of the recording is not read
+                pass
             channels = span.channels()
         in1, sen, rate = _aligned(channels, cfg.name)
     except RecordingError as err:
@@ -252,11 +255,17 @@ def _aligned(channels: Mapping[str, tuple[float, float, NDArray]], optic: str
     return data[:4], data[4:], rate
 
 
+class _Enough(Exception):  # noqa: N818 - a signal, not an error
+    """Raised by :class:`_FirstSpan` to end the reading once it holds what it needs."""
+
+
 class _FirstSpan:
     """A :class:`~twind.recording.fastread.SampleSink` keeping the first :data:`SPAN_S`
-    seconds of each channel, up to its first lost block."""
+    seconds of each channel, up to its first lost block; once `wanted` channels have theirs
+    it ends the reading (:class:`_Enough`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, wanted: int) -> None:
+        self._wanted = wanted
         self._parts: dict[str, list[NDArray]] = {}
         self._start: dict[str, tuple[float, float]] = {}
         self._next: dict[str, int] = {}
@@ -279,6 +288,8 @@ class _FirstSpan:
         self._next[name] += len(sequence)
         if lost.size or sum(len(p) for p in self._parts[name]) >= SPAN_S * r:
             self._done.add(name)
+            if len(self._done) >= self._wanted:
+                raise _Enough
 
     def event(self, event: dict[str, Any]) -> None:
         """Injection events are not needed."""
