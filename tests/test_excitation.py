@@ -280,7 +280,7 @@ _REFUSALS = [
     ("noise", {"amp": 0.1, "shape": "zpk([1],[2]"}, "shape", "unbalanced"),
     ("noise", {"amp": 0.1, "shape": "frobnicate(3)"}, "shape", "frobnicate"),
     ("noise", {"amp": 0.1, "shape": 'zpk([],[0],1,"n")'}, "shape", "not stable"),
-    ("noise", {"amp": 0.1, "shape": 'zpk([],[-3],1,"n")'}, "shape", "not stable"),
+    ("noise", {"amp": 0.1, "shape": 'zpk([],[-3],1,"n")'}, "shape", "right half plane"),
     ("noise", {"amp": 0.1, "shape": "gain(0)"}, "shape", "no finite, nonzero"),
     ("stream", {}, "samples", "at least one"),
     ("stream", {"samples": np.zeros(0)}, "samples", "at least one"),

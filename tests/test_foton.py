@@ -116,9 +116,11 @@ def test_pure_imaginary_and_exponents() -> None:
     assert np.allclose(z.poles, -TWO_PI * 20)
 
 
-def test_unstable_roots_are_allowed_in_parse() -> None:
-    z = parse_design('zpk([],[-10],1,"n")')
-    assert z.poles[0].real > 0
+@pytest.mark.parametrize("design", ['zpk([],[-10],1,"n")', "zpk([],[2],1)", "pole(-5)",
+                                    "pole2(-3,2)", "rpoly([1],[1;-2],1)"])
+def test_unstable_poles_are_refused_as_foton_refuses_them(design: str) -> None:
+    with pytest.raises(FotonError, match="right half plane"):
+        parse_design(design)
 
 
 # -- gains and concatenation -------------------------------------------------------------------
@@ -178,17 +180,30 @@ def test_notch_depth_and_resgain_height_at_centre() -> None:
         assert np.allclose(np.abs(z.zeros), TWO_PI * f0)
 
 
-def test_pole_zero_helpers() -> None:
+def test_pole_zero_helpers_in_their_planes() -> None:
     s = _s(F_GRID)
     w, q = TWO_PI * 5, 3.0
     cases = {
-        "pole(5,2)": 2 / (1 + s / w),
-        "zero(5,2)": 2 * (1 + s / w),
-        "pole2(5,3,2)": 2 / (1 + s / (w * q) + (s / w) ** 2),
+        "pole(5)": 1 / (s + 5),
+        "pole(5,2)": 2 / (s + 5),
+        'pole(5,2,"f")': 2 / (s + w),
+        'pole(5,2,"n")': 2 / (1 + s / w),
+        'zero(5,2,"n")': 2 * (1 + s / w),
+        "pole2(5,3)": 1 / (s**2 + 5 / q * s + 25),
+        'pole2(5,3,2,"n")': 2 / (1 + s / (w * q) + (s / w) ** 2),
         'zero2(5,3,2,"n")': 2 * (1 + s / (w * q) + (s / w) ** 2),
+        "pole2(5,0.3)": 1 / (s + 5) ** 2,
     }
     for design, want in cases.items():
-        assert _rel(parse_design(design).response(F_GRID), want) < 1e-12
+        assert _rel(parse_design(design).response(F_GRID), want) < 1e-12, design
+
+
+def test_a_lone_zero_gets_foton_s_pole_at_twice_the_rate() -> None:
+    s, c = _s(F_GRID), 2 * FS
+    want = 2 * (1 + s / (TWO_PI * 5)) * -c / (s + c)
+    assert _rel(parse_design('zero(5,2,"n")', FS).response(F_GRID), want) < 1e-12
+    pair = parse_design('zero2(5,3,1,"n")', FS)
+    assert np.allclose(np.abs(pair.poles), c) and pair.response(0.0) == pytest.approx(1.0)
 
 
 def test_rpoly_is_rational_polynomial_in_s() -> None:
@@ -212,13 +227,13 @@ def test_rpoly_is_rational_polynomial_in_s() -> None:
     ("gain(1e999)", "not finite"),
     ('zpk([1+i*2],[3],1,"n")', "no complex-conjugate partner"),
     ('butter("LowPass",2.5,10)', "order must be an integer"),
-    ('butter("BandPass",2,10,5)', "f2 must be above f1"),
+    ('butter("BandPass",2,10,10)', "f1 and f2 must differ"),
     ('butter("BandPass",2,10)', "takes f1 and f2"),
     ('butter("Sideways",2,10)', "type must be one of"),
     ("notch(-60,10,40)", "must be positive"),
     ('sos(1,[0;0;0;0],"s")', "z-plane"),
-    ("zpk([1],[2],1) junk", "expected '('"),
-    ("zpk([1],[2],1)*", "ends with '*'"),
+    ("zpk([1],[-2],1) junk", "expected '('"),
+    ("zpk([1],[-2],1)*", "ends with '*'"),
     ("zpk([1],[2],1)&", "unexpected character"),
     ('gain(1,"dB', "unterminated string"),
 ])
@@ -327,13 +342,13 @@ def test_dc_gain_exact_and_gain_only_design() -> None:
     assert np.array_equal(design_to_sos("gain(2)", FS), [[2.0, 0, 0, 1.0, 0, 0]])
 
 
-def test_unstable_design_discretizes_to_unstable_sos() -> None:
-    sos = design_to_sos('zpk([],[-10],1,"n")', FS)
+def test_unstable_zpk_discretizes_to_unstable_sos() -> None:
+    sos = zpk_to_sos(ZPK([], [62.8], 1.0), FS)
     assert np.max(np.abs(np.roots(sos[0, 3:]))) > 1
 
 
 def test_discretization_errors() -> None:
     with pytest.raises(FotonError, match="zeros but only"):
-        design_to_sos('zpk([1],[],1,"n")', FS)
+        zpk_to_sos(ZPK([-1.0], [], 1.0), FS)
     with pytest.raises(FotonError, match="sample rate"):
         zpk_to_sos(ZPK.unity(), -1.0)

@@ -8,6 +8,7 @@ and exit status 2; never a traceback.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -17,6 +18,7 @@ from twind import __version__, progress
 from twind.bus.session import zenoh_message
 from twind.cli.commands import COMMANDS
 from twind.errors import TwindError, TwindWarning
+from twind.loop import FOTON_READERS, FOTON_VARIABLE
 
 _DEFAULT_SHOWWARNING = warnings.showwarning
 
@@ -35,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="twind", description="twind: a digital twin of the LIGO 40m's suspended optics. "
                                   "'twind COMMAND --help' tells a command's options.")
     p.add_argument("--version", action="version", version=f"twind {__version__}")
+    p.add_argument("--foton", choices=FOTON_READERS,
+                   help="whose foton turns design strings into filters: twind's own (default) "
+                        "or LIGO's python-foton (pip install 'twind[foton]')")
     sub = p.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_to(sub)
@@ -44,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``twind`` console script."""
     args = build_parser().parse_args(argv)
+    if args.foton:  # in the environment, so that the processes a command starts read it too
+        os.environ[FOTON_VARIABLE] = args.foton
     command = args.command_of
     unit = command.progress(args)
     try:

@@ -128,7 +128,7 @@ def stage(rate_hz: float) -> Callable[[Any], Stage]:
             msg = f"expected [\"name\", \"foton design\"], got {v!r}"
             raise ValueError(msg)
         design_to_sos(v[1], rate_hz)  # a FotonError here names the design and its problem
-        return Stage(v[0], v[1])
+        return Stage(v[0], v[1], rate_hz=rate_hz)
 
     return convert
 

@@ -562,7 +562,7 @@ def _design_dof(optic_cfg: OpticConfig, loop: DampingLoop, dof: str, resp: tuple
     mult = np.ones(f_band.size)
     for _ in range(MAX_REFITS):
         fit = _fit_shape(f_band, need0 * mult, band, rate, max_order)
-        A2 = np.abs(parse_design(fit.foton).response(f_abs)) ** 2
+        A2 = np.abs(parse_design(fit.foton, rate).response(f_abs)) ** 2
         coh, ceiling = win.coherence(T, N2, A2)
         if np.any(ceiling <= g2):
             i, k = np.unravel_index(int(np.argmin(ceiling)), ceiling.shape)
@@ -581,7 +581,7 @@ def _design_dof(optic_cfg: OpticConfig, loop: DampingLoop, dof: str, resp: tuple
         # short by a little (or, after the last refit, by more): scale the whole shape up
         fit = dataclasses.replace(fit, gain=_round_up(fit.gain * float(scale.max()) * 1.0001))
     foton = fit.foton
-    zpk = parse_design(foton)
+    zpk = parse_design(foton, rate)
     A2 = np.abs(zpk.response(f_abs)) ** 2
     coh = win.coherence(T, N2, A2)[0].min(axis=1)
     shape = noise_shape(foton, rate)

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind.errors import FotonError
-from twind.loop.foton import parse_design, zpk_to_sos
+from twind.loop.foton import design_to_sos, implementation, parse_design
 from twind.loop.foton_file import N_STAGES
 
 IDENTITY_SECTION = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0])
@@ -47,14 +47,13 @@ class Stage:
 
     def response(self, f_hz: NDArray[np.float64]) -> NDArray[np.complex128]:
         """Response at `f_hz` of what runs: a foton file's coefficients (its design may be
-        stale), else the continuous design."""
+        stale), else the continuous design, read at the stage's rate when it has one."""
         if self.sos is not None:
             _, h = signal.sosfreqz(self.sos, worN=np.asarray(f_hz), fs=self.rate_hz)
             return h
-        return parse_design(self.design).response(f_hz)
+        return parse_design(self.design, self.rate_hz).response(f_hz)
 
 
-@lru_cache(maxsize=1024)
 def design_sections(design: str, rate_hz: float) -> NDArray[np.float64]:
     """A foton design's discrete sections at `rate_hz`, computed once per design: the
     service checks every live filter or parameter change against them, and parsing and
@@ -72,7 +71,12 @@ def design_sections(design: str, rate_hz: float) -> NDArray[np.float64]:
     ndarray, shape (n, 6)
         Read-only, shared by every caller.
     """
-    sos = zpk_to_sos(parse_design(design), rate_hz)
+    return _sections(design, rate_hz, implementation())
+
+
+@lru_cache(maxsize=1024)
+def _sections(design: str, rate_hz: float, reader: str) -> NDArray[np.float64]:
+    sos = design_to_sos(design, rate_hz, reader)
     sos.flags.writeable = False
     return sos
 

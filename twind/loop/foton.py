@@ -6,75 +6,56 @@ on its ``# DESIGN`` lines), e.g. ``zpk([0],[30],6.283185307179586,"n")`` or
 ``*``) multiply.  Whitespace, newlines, backslash line continuations and ``%`` comments
 (which IIRrational writes inside ``zpk`` vectors) are ignored.
 
-Conventions, and where they come from
--------------------------------------
-The foton C++ sources (gds ``iirutil``/``FilterDesign``) are not in the public stores
-searched, so the conventions below are pinned down from public code that talks to foton:
+Conventions
+-----------
+As LIGO's own foton reads them (``python-foton`` 4.1.5, the CDS DTT project's bindings,
+``foton.FilterDesign(design, rate)``), measured function by function and held against it
+by ``tests/test_foton_ligo.py`` over generated designs.  Each function is its own filter;
+they multiply.  ``plane`` is ``"s"`` (rad/s, as written; the default), ``"f"`` (Hz, same
+sign: ``s = 2 pi r``) or ``"n"`` (Hz, stable roots written positive: ``s = -2 pi r``, each
+root divided by its magnitude, ``s/(2 pi)`` at the origin, so ``gain`` is the DC gain).
 
-* [K] KAGRA ``kontrol`` (github.com/terrencetec/kontrol, ``kontrol/core/foton.py``:
-  ``tf2zpk``/``tf2foton``/``zpk2tf``).
-* [W] LIGO ``foton.py`` python bindings by C. Wipf (``ZPK_add``, ``gain_add``,
-  ``butter_add`` ..., ``iir2zpk(filt, plane, prewarp=True)``), as kept in IIRrational.
-* [M] IIRrational (L. McCuller) ``conversion.filter2fotonZPK`` and ``ZPKTF.xfer_eval``.
-* [V] a public MATLAB script translating ``# DESIGN`` lines of aLIGO DAQ filters:
-  ``zpk([...],[...],1,"n")`` -> ``zpk(-2*pi*[...], -2*pi*[...], 1)`` normalised by its DC
-  response, and ``ellip("LowPass",5,1,60,128)`` -> ``ellip(5,1,60,2*pi*128,'s')``.
-* [G] gwpy ``signal.filter_design.bilinear_zpk``: analog roots given in Hz map to
-  ``s = -2*pi*f``.
-
-``zpk(zeros, poles, gain[, plane])``, plane default ``"s"`` ([K] ``zpk2tf``):
-
-* ``"s"``: roots in rad/s exactly as written (a stable pole has a negative real part);
-  ``H(s) = gain * prod(s - z) / prod(s - p)``.
-* ``"f"``: roots in Hz, *same sign* as the s-plane, ``s_root = 2*pi*root`` ([K] ``tf2zpk``,
-  [M]; [K] ``zpk2tf`` negates them, contradicting its own ``tf2zpk``); the gain keeps its
-  s-plane meaning, ``H(s) = gain * prod(s - 2 pi z)/prod(s - 2 pi p)`` ([M] scales the gain
-  by ``(2 pi)**(n_z - n_p)`` from its Hz-root form; [W] ``ZPK_add`` does the same).
-* ``"n"``: roots in Hz with the sign *flipped*, so stable roots have a positive real part,
-  ``s_root = -2*pi*root`` ([K], [M], [V], [G]); the gain is the DC gain: every non-zero root
-  contributes ``(1 - s/s_root)`` and a root at the origin contributes ``s/(2*pi)`` (unity
-  at 1 Hz) ([K] ``tf2zpk``/``zpk2tf``, [M] ``root_gain``).  A lone real right-half-plane root
-  is normalised by its signed value, so the DC gain is exactly ``gain`` (choice; [K] and [M]
-  differ on it).
-
-Complex roots are written ``a+i*b``, ``a-i*b`` ([V], [K]), ``a + b*i`` ([M]); ``bi``, ``b*j``
-are accepted too.  They must come in conjugate pairs (the filter has real coefficients).
-Vector elements are separated by ``;`` (also ``,``).
-
-Other functions ([W] for the argument lists):
-
-* ``gain(g[, "scalar"|"dB"])`` ([W] ``gain_add`` writes ``"db"``/``"scalar"``).
-* ``notch(f, Q, depth_dB)``: ``(s^2 + a w/Q s + w^2)/(s^2 + w/Q s + w^2)``,
-  ``a = 10**(-|depth|/20)``, so the response at ``f`` is exactly ``-|depth|`` dB.
-* ``resgain(f, Q, height_dB)``: ``(s^2 + g w/Q s + w^2)/(s^2 + w/Q s + w^2)``,
-  ``g = 10**(height/20)``, response at ``f`` exactly ``height`` dB, unity at DC and
-  high frequency.  (That the poles carry the written ``Q`` is an assumption.)
-* ``butter(type, order, f1[, f2])``, ``cheby1(type, order, ripple_dB, f1[, f2])``,
-  ``cheby2(type, order, atten_dB, f1[, f2])``, ``ellip(type, order, ripple_dB, atten_dB,
-  f1[, f2])`` with type ``"LowPass"``, ``"HighPass"``, ``"BandPass"``, ``"BandStop"``: the
-  analog (s-plane) prototypes of MATLAB/scipy (``analog=True``) with the edges ``2*pi*f``
-  ([V]); band types need ``f2 > f1``.  Orders 1..20.
-* ``pole(f, gain)``, ``zero(f, gain)``, ``pole2(f, Q, gain)``, ``zero2(f, Q, gain)``: the
-  ``"n"``-plane real root at ``f`` / root pair at ``f`` with quality ``Q``, DC gain ``gain``
-  (an optional 4th/3rd argument may only be ``"n"``).
-* ``rpoly(num, den, gain)``: ``gain * num(s)/den(s)``, coefficients in descending powers of
-  ``s`` in rad/s ([W] ``iir2poly`` doc, [K] ``rpoly2tf``).
-
-z-plane designs (``sos``, ``zroots``, ``direct``) have no continuous zpk and are refused;
-``poly`` and foton's other functions are not implemented (unknown-function error).
+* ``zpk(zeros, poles, gain[, plane])``; complex roots ``a+i*b;a-i*b`` (also ``a+b*i``,
+  ``bi``, ``i*-b``) in conjugate pairs; ``;`` or ``,`` between elements.
+* ``pole(f[, gain[, plane]])`` = ``gain/(s + w)``, ``zero`` its inverse;
+  ``pole2(f, Q[, gain[, plane]])`` = ``gain/(s^2 + (w/|Q|) s + w^2)`` (a double real pole
+  at ``-w`` for ``|Q| <= 1/2``), ``zero2`` its inverse; ``w`` is ``f`` in "s", ``2 pi f``
+  otherwise, "n" normalises.
+* ``rpoly(num, den, gain)``: ``gain num(s)/den(s)``, coefficients highest power first.
+* ``gain(g[, "scalar"|"dB"])``.
+* ``notch(f, Q[, depth])``: zeros and poles at ``f``; foton's ``Q`` is ``f`` over *half*
+  the width between the -3 dB points, so the poles' quality is ``sqrt(1 - 2 r^2) Q (4Q^2 -
+  1)/(8Q^2 - 1)``, ``r`` the depth as a ratio (0 for depth 0, an infinitely deep notch;
+  otherwise deeper than 3.01 dB), and the zeros' damping ``r`` times the poles'.
+  ``resgain(f, Q[, height])`` is the inverse of the notch of depth ``height`` (30 dB by
+  default).  Both need complex roots (quality above 1/2).
+* ``comb(f, Q[, amplitude[, N]])``: a resgain (amplitude > 0) or notch (< 0; 0: infinitely
+  deep) at ``f`` and its harmonics up to the N-th, all below Nyquist for N = 0.
+* ``butter(type, order, f1[, f2])``, ``cheby1(type, order, ripple, f1[, f2])``,
+  ``cheby2(type, order, attenuation, f1[, f2])``, ``ellip(type, order, ripple,
+  attenuation, f1[, f2])``, type ``"LowPass"``, ``"HighPass"``, ``"BandPass"`` or
+  ``"BandStop"`` (any case), band edges in either order: digital designs, the analog
+  prototype at the prewarped edges then the bilinear transform (``scipy.signal`` with
+  ``fs``).
+* z-plane designs: ``sos(gain, [b1;b2;a1;a2;...][, "s"|"o"])`` (sections ``(1 + b1/z +
+  b2/z^2)/(1 + a1/z + a2/z^2)``; "o" orders each a1, a2, b1, b2), ``biquad(b0, b1, b2, a1,
+  a2)``, ``direct([b0;b1;...], [a1;a2;...])`` (denominator ``1 - a1/z - ...``) and
+  ``zroots(zeros, poles[, gain])`` (``gain prod(z - zeros)/prod(z - poles)``); a numerator
+  shorter than the denominator counts its missing zeros at z = -1.
+* A function with more zeros than poles gets foton's poles at twice the sample rate: a
+  Butterworth pair for two missing, ``-2fs/(s + 2fs)`` for one, which turns the sign of the
+  response (``zero(5)`` has DC gain -5).
+* Poles in the right half plane (or outside the unit circle, or at or above Nyquist) are
+  refused, as foton refuses them.
 
 Discretization
 --------------
-foton converts s-plane designs with the bilinear transform and prewarps the roots by
-default ([W]: ``iir2zpk(..., prewarp=True)``; ``iir2poly(..., unwarp=True)`` undoes the
-warping on the way back).  The exact formula is not in the public sources; we use per-root
-prewarping: every s-plane root ``r`` below the Nyquist frequency is moved radially to
-``|r'| = 2 fs tan(|r| / (2 fs))`` (angle, hence Q, kept), then ``s -> 2 fs (z-1)/(z+1)``.
-Each root's factor is normalised at DC so the DC gain is exact; roots at the origin map to
-``z = 1``.  For a Butterworth low-pass this is exactly the textbook prewarped design
-(``scipy.signal.butter(..., fs=fs)``).  Roots at or above Nyquist are mapped without
-prewarping.  More zeros than poles is refused (the bilinear transform would put poles on the
-unit circle at Nyquist).
+Every s-plane root is prewarped radially, ``|r| -> 2 fs tan(|r| / 2 fs)`` (a root above
+Nyquist folds through infinity), then ``s -> 2 fs (z-1)/(z+1)``, each factor normalised at
+DC; missing zeros go to z = -1.  The digital designs (IIR, z-plane, foton's extra poles)
+depend on the sample rate: :func:`parse_design` with ``rate_hz`` returns the continuous
+filter whose discretization is exactly foton's (roots unwarped, the inverse of the
+prewarp), which is what the model's continuous responses use.
 
 What the bilinear transform cannot keep is the high-frequency asymptote: each pole in excess
 of the zeros makes the discrete response differ by ``tan(x)/x - 1 ~ x^2/3``, ``x = pi f/fs``
@@ -86,6 +67,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import re
 import warnings
 from collections.abc import Callable, Sequence
@@ -98,6 +80,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 
 from twind.errors import FotonError
+from twind.loop import FOTON_READERS, FOTON_VARIABLE
 
 __all__ = [
     "NOMINAL_FM1",
@@ -105,12 +88,14 @@ __all__ = [
     "NOMINAL_FM3",
     "ZPK",
     "design_to_sos",
+    "implementation",
+    "n_plane_design",
     "parse_design",
     "zpk_to_sos",
 ]
 
 TWO_PI = 2.0 * math.pi
-MAX_ORDER = 20  # foton's own limit for a single design (10 second-order sections)
+MAX_ORDER = 20  # twind's limit for one design; the RCG runs at most 10 sections a stage
 
 # --- nominal damping controller (sos_etmx_nominal.json "controller"), foton "n" plane ------
 # FM1: an "n"-plane zero at the origin is s/(2 pi) (unity at 1 Hz); the gain 2 pi makes it s.
@@ -193,9 +178,14 @@ class ZPK:
         """
         f = np.asarray(f_hz, dtype=float)
         s = (2j * math.pi * f).ravel()[:, None]
-        num = np.prod(s - self.zeros[None, :], axis=1)
-        den = np.prod(s - self.poles[None, :], axis=1)
-        return (self.gain * num / den).reshape(f.shape)
+        if self.zeros.size + self.poles.size <= 40:
+            num = np.prod(s - self.zeros[None, :], axis=1)
+            den = np.prod(s - self.poles[None, :], axis=1)
+            return (self.gain * num / den).reshape(f.shape)
+        with np.errstate(divide="ignore", invalid="ignore"):  # a comb's hundreds of roots
+            log_h = (np.sum(np.log(s - self.zeros[None, :]), axis=1)
+                     - np.sum(np.log(s - self.poles[None, :]), axis=1))
+        return (self.gain * np.exp(log_h)).reshape(f.shape)
 
     def __mul__(self, other: ZPK) -> ZPK:
         """Cascade (product) of two transfer functions.
@@ -261,10 +251,12 @@ _TOKEN_RE = re.compile(
 
 
 class _Failer:
-    """Builds FotonErrors that always name the design string."""
+    """Builds FotonErrors that always name the design string; carries the sample rate the
+    design is read at (None: the continuous design as written)."""
 
-    def __init__(self, design: str) -> None:
+    def __init__(self, design: str, rate_hz: float | None = None) -> None:
         self.design = design
+        self.rate_hz = rate_hz
 
     def __call__(self, msg: str) -> FotonError:
         return FotonError(f"{msg} in design {self.design!r}")
@@ -315,8 +307,8 @@ def _check_brackets(tokens: Sequence[_Token], fail: _Failer) -> None:
 # Parser: design := { NAME '(' args ')' [ '*' ] }
 # ============================================================================================
 class _Parser:
-    def __init__(self, design: str) -> None:
-        self.fail = _Failer(design)
+    def __init__(self, design: str, rate_hz: float | None = None) -> None:
+        self.fail = _Failer(design, rate_hz)
         self.tokens = _tokenize(design, self.fail)
         _check_brackets(self.tokens, self.fail)
         self.i = 0
@@ -360,14 +352,15 @@ class _Parser:
         args = self._args()
         func = _FUNCTIONS.get(name.text)
         if func is None:
-            if name.text in _DIGITAL_FUNCTIONS:
-                raise self.fail(f"{name.text}() is a z-plane (digital) design and has no "
-                                "continuous zpk")
             raise self.fail(f"unknown foton function {name.text!r}")
         with np.errstate(all="ignore"):
             factor = func(name.text, args, self.fail)
         if not factor.is_finite():
             raise self.fail(f"{name.text}(): numbers out of range give a non-finite filter")
+        rate = self.fail.rate_hz
+        if rate is not None and np.any(np.abs(factor.poles) >= math.pi * rate):
+            raise self.fail(f"{name.text}(): a pole is not below the Nyquist frequency "
+                            f"{rate / 2:g} Hz")
         return factor
 
     def _args(self) -> list[Arg]:
@@ -445,8 +438,9 @@ class _Parser:
         if self._is_imag_unit(tok):
             if self._peek_kind() == "*":
                 self.i += 1
+                sign = self._sign(required=False)  # foton reads i*-3 as -3i
                 num = self._expect("num", "a number after 'i*'")
-                return 1j * float(num.text)
+                return 1j * sign * float(num.text)
             return 1j
         raise self.fail(f"expected a number at position {tok.pos}, got {tok.text!r}")
 
@@ -498,7 +492,7 @@ def _vector_arg(fname: str, args: Sequence[Arg], k: int, what: str,
     values = arg if isinstance(arg, list) else [arg]
     if len(values) > 2 * MAX_ORDER:
         raise fail(f"{fname}(): argument {k + 1} ({what}) has {len(values)} roots, "
-                   f"more than foton's {2 * MAX_ORDER}")
+                   f"more than {2 * MAX_ORDER}")
     return np.array(values, dtype=complex)
 
 
@@ -541,46 +535,102 @@ def _fmt(z: complex) -> str:
 
 
 # ============================================================================================
-# Plane conversions
+# Planes and foton's normalisations
 # ============================================================================================
 _PLANES = ("s", "f", "n")
+_NONE = np.empty(0, complex)
+
+
+def _abs_norm(roots: ComplexArray) -> float:
+    """``prod |r|``, 2 pi for each root at the origin: what makes a root "normalised"."""
+    nonzero = roots[roots != 0]
+    return float(np.prod(np.abs(nonzero))) * TWO_PI ** (roots.size - nonzero.size)
+
+
+def _normalised(zeros: ComplexArray, poles: ComplexArray, gain: float, plane: str) -> ZPK:
+    """s-plane roots and a gain written in `plane`: in "n" each root is divided by its
+    magnitude (``1 + s/|w|``, ``s/(2 pi)`` at the origin), so `gain` is the DC gain of
+    stable roots."""
+    if plane != "n":
+        return ZPK(zeros, poles, gain)
+    return ZPK(zeros, poles, gain * _abs_norm(poles) / _abs_norm(zeros))
 
 
 def _zpk_from_plane(zeros: ComplexArray, poles: ComplexArray, gain: float,
                     plane: str) -> ZPK:
     """Convert roots and gain written in foton plane `plane` to an s-plane ZPK."""
-    if plane == "s":
-        return ZPK(zeros, poles, gain)
-    if plane == "f":
-        return ZPK(TWO_PI * zeros, TWO_PI * poles, gain)
-    z_s, p_s = -TWO_PI * zeros, -TWO_PI * poles
-    return ZPK(z_s, p_s, gain * _dc_norm(p_s) / _dc_norm(z_s))
+    scale = {"s": 1.0, "f": TWO_PI, "n": -TWO_PI}[plane]
+    return _normalised(scale * zeros, scale * poles, gain, plane)
 
 
 def _dc_norm(roots: ComplexArray, origin: float = TWO_PI) -> float:
-    """Product turning prod(s - r) into prod(1 - s/r), with s/origin for the roots at 0.
-
-    foton's "n" plane writes a root at the origin as s/(2 pi), unity at 1 Hz.
-    """
+    """Product turning prod(s - r) into prod(1 - s/r), with s/origin for the roots at 0."""
     nonzero = roots[roots != 0]
     n_origin = roots.size - nonzero.size
     return float(np.real(np.prod(-nonzero))) * origin**n_origin
 
 
-def _pair_hz(f_hz: float, q: float) -> ComplexArray:
-    """s-plane roots of s^2 + (w/Q) s + w^2 with w = 2 pi f."""
-    w = TWO_PI * f_hz
-    disc = 1.0 - 1.0 / (4.0 * q * q)
-    if disc >= 0:
-        im = w * math.sqrt(disc)
-        return np.array([complex(-w / (2 * q), im), complex(-w / (2 * q), -im)])
-    re_ = w * math.sqrt(-disc)
-    return np.array([complex(-w / (2 * q) + re_), complex(-w / (2 * q) - re_)])
+def _pair(w: float, q: float) -> ComplexArray:
+    """Roots of ``s^2 + (w/|Q|) s + w^2``; foton puts a double real root at ``-w`` when
+    ``|Q| <= 1/2``."""
+    q = abs(q)
+    if q <= 0.5:
+        return np.array([complex(-w), complex(-w)])
+    im = abs(w) * math.sqrt(1.0 - 1.0 / (4.0 * q * q))
+    return np.array([complex(-w / (2 * q), im), complex(-w / (2 * q), -im)])
 
 
-def _dc_unity(zeros: ComplexArray, poles: ComplexArray, dc_gain: float) -> ZPK:
-    """s-plane ZPK with non-zero roots and the given DC gain."""
-    return ZPK(zeros, poles, dc_gain * _dc_norm(poles) / _dc_norm(zeros))
+def _stable(fname: str, poles: ComplexArray, fail: _Failer) -> None:
+    """foton takes poles in the left half plane or on the imaginary axis only."""
+    bad = poles[poles.real > 0]
+    if bad.size:
+        raise fail(f"{fname}(): pole {_fmt(bad[0])} rad/s is in the right half plane "
+                   "(foton takes stable poles only)")
+
+
+def _with_foton_poles(unit: ZPK, fail: _Failer) -> ZPK:
+    """Poles foton adds to a function with more zeros than poles, at twice the sample rate.
+
+    foton packs a function's zeros and its poles two by two into second-order sections;
+    a section with two zeros and no pole gets a Butterworth pair at ``|s| = 2 fs`` (Q
+    1/sqrt(2)), a section one pole short a real pole at ``s = -2 fs`` written ``-2fs/(s +
+    2fs)``: each such real pole turns the sign of the response.  Without a sample rate
+    the design is kept as written.
+    """
+    n_z, n_p = unit.zeros.size, unit.poles.size
+    if n_z <= n_p or fail.rate_hz is None:
+        return unit
+    c = 2.0 * fail.rate_hz
+    added: list[complex] = []
+    sign = 1.0
+    for k in range(0, n_z, 2):
+        short = min(2, n_z - k) - max(0, min(2, n_p - k))
+        if short == 2:
+            added += [c * complex(-1, 1) / math.sqrt(2), c * complex(-1, -1) / math.sqrt(2)]
+        elif short == 1:
+            added.append(complex(-c))
+            sign = -sign
+    return ZPK(unit.zeros, np.concatenate([unit.poles, added]),
+               unit.gain * sign * c ** len(added))
+
+
+def _unwarp(roots: ComplexArray, rate_hz: float) -> ComplexArray:
+    """Undo :func:`_prewarp`: the continuous roots whose prewarped images are `roots`."""
+    c = 2.0 * rate_hz
+    out = np.array(roots, dtype=complex)
+    mag = np.abs(out)
+    nz = mag > 0
+    out[nz] *= c * np.arctan(mag[nz] / c) / mag[nz]
+    return out
+
+
+def _unwarped(zeros: ComplexArray, poles: ComplexArray, gain: float, rate_hz: float) -> ZPK:
+    """The continuous ZPK that :func:`zpk_to_sos` turns into the plain bilinear transform
+    of ``gain prod(s - zeros)/prod(s - poles)``."""
+    z_s, p_s = _unwarp(zeros, rate_hz), _unwarp(poles, rate_hz)
+    k = (gain * _dc_norm(zeros, 1.0) / _dc_norm(poles, 1.0)
+         * _dc_norm(p_s, 1.0) / _dc_norm(z_s, 1.0))
+    return ZPK(z_s, p_s, k)
 
 
 # ============================================================================================
@@ -589,15 +639,22 @@ def _dc_unity(zeros: ComplexArray, poles: ComplexArray, dc_gain: float) -> ZPK:
 FotonFunction = Callable[[str, Sequence[Arg], _Failer], ZPK]
 
 
+def _plane(fname: str, args: Sequence[Arg], k: int, fail: _Failer) -> str:
+    """The optional plane argument at `k`, ``"s"`` when absent (foton's default)."""
+    plane = _string(fname, args, k, "plane", fail) if len(args) > k else "s"
+    if plane not in _PLANES:
+        raise fail(f'{fname}(): plane must be one of "s", "f", "n", got "{plane}"')
+    return plane
+
+
 def _f_zpk(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
     _arity(fname, args, 3, 4, fail)
     zeros = _paired(_vector_arg(fname, args, 0, "zeros", fail), fname, "zero", fail)
     poles = _paired(_vector_arg(fname, args, 1, "poles", fail), fname, "pole", fail)
     gain = _real(fname, args, 2, "gain", fail)
-    plane = _string(fname, args, 3, "plane", fail) if len(args) == 4 else "s"
-    if plane not in _PLANES:
-        raise fail(f'{fname}(): plane must be one of "s", "f", "n", got "{plane}"')
-    return _zpk_from_plane(zeros, poles, gain, plane)
+    unit = _zpk_from_plane(zeros, poles, gain, _plane(fname, args, 3, fail))
+    _stable(fname, unit.poles, fail)
+    return _with_foton_poles(unit, fail)
 
 
 def _f_rpoly(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
@@ -617,7 +674,8 @@ def _f_rpoly(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
         zeros, poles = np.roots(num), np.roots(den)
     if not (np.all(np.isfinite(zeros)) and np.all(np.isfinite(poles))):
         raise fail(f"{fname}(): polynomial roots are not finite")
-    return ZPK(zeros, poles, gain * num[0] / den[0])
+    _stable(fname, poles, fail)
+    return _with_foton_poles(ZPK(zeros, poles, gain * num[0] / den[0]), fail)
 
 
 def _f_gain(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
@@ -630,47 +688,71 @@ def _f_gain(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
             raise fail(f"{fname}(): gain in dB is too large")
     elif unit != "scalar":
         raise fail(f'{fname}(): format must be "scalar" or "dB", got "{unit}"')
-    return ZPK(np.empty(0, complex), np.empty(0, complex), g)
-
-
-def _only_n_plane(fname: str, args: Sequence[Arg], n_base: int, fail: _Failer) -> None:
-    _arity(fname, args, n_base, n_base + 1, fail)
-    if len(args) > n_base:
-        plane = _string(fname, args, n_base, "plane", fail)
-        if plane != "n":
-            raise fail(f'{fname}(): only the normalised plane "n" is supported, got "{plane}"')
+    return ZPK(_NONE, _NONE, g)
 
 
 def _f_pole(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
-    _only_n_plane(fname, args, 2, fail)
-    f = _positive(fname, args, 0, "frequency", fail)
-    root = np.array([-TWO_PI * f + 0j])
-    gain = _real(fname, args, 1, "gain", fail)
-    none = np.empty(0, complex)
-    return _dc_unity(none, root, gain) if fname == "pole" else _dc_unity(root, none, gain)
+    """pole(f[, gain[, plane]]) = gain/(s + f), zero(...) = gain (s + f); f in rad/s in
+    "s", in Hz in "f" and "n"."""
+    _arity(fname, args, 1, 3, fail)
+    f = _real(fname, args, 0, "frequency", fail)
+    gain = _real(fname, args, 1, "gain", fail) if len(args) > 1 else 1.0
+    plane = _plane(fname, args, 2, fail)
+    root = np.array([complex(-f if plane == "s" else -TWO_PI * f)])
+    if fname == "pole":
+        _stable(fname, root, fail)
+        return _normalised(_NONE, root, gain, plane)
+    return _with_foton_poles(_normalised(root, _NONE, gain, plane), fail)
 
 
 def _f_pole2(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
-    _only_n_plane(fname, args, 3, fail)
-    pair = _pair_hz(_positive(fname, args, 0, "frequency", fail),
-                    _positive(fname, args, 1, "Q", fail))
-    gain = _real(fname, args, 2, "gain", fail)
-    none = np.empty(0, complex)
-    return _dc_unity(none, pair, gain) if fname == "pole2" else _dc_unity(pair, none, gain)
+    """pole2(f, Q[, gain[, plane]]) = gain/(s^2 + (w/Q) s + w^2), zero2 its inverse."""
+    _arity(fname, args, 2, 4, fail)
+    f = _real(fname, args, 0, "frequency", fail)
+    q = _real(fname, args, 1, "Q", fail)
+    gain = _real(fname, args, 2, "gain", fail) if len(args) > 2 else 1.0
+    plane = _plane(fname, args, 3, fail)
+    roots = _pair(f if plane == "s" else TWO_PI * f, q)
+    if fname == "pole2":
+        _stable(fname, roots, fail)
+        return _normalised(_NONE, roots, gain, plane)
+    return _with_foton_poles(_normalised(roots, _NONE, gain, plane), fail)
+
+
+_SQRT2_DB = 20.0 * math.log10(math.sqrt(2.0))  # 3.01 dB: a notch must be deeper than this
 
 
 def _f_notch(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
-    _arity(fname, args, 3, 3, fail)
+    """notch(f, Q[, depth]) and resgain(f, Q[, height]) as foton designs them.
+
+    foton's Q is ``f`` over *half* the width between the -3 dB points: the poles' Q is
+    ``sqrt(1 - 2 r^2) Q (4Q^2 - 1)/(8Q^2 - 1)`` with ``r`` the notch's depth as a ratio
+    (0 for depth 0, an infinitely deep notch); the zeros share the poles' frequency with
+    ``r`` times their damping.  resgain is the inverse of the notch of depth ``height``
+    (default 30 dB).
+    """
+    _arity(fname, args, 2, 3, fail)
     f = _positive(fname, args, 0, "frequency", fail)
     q = _positive(fname, args, 1, "Q", fail)
-    level = _real(fname, args, 2, "depth" if fname == "notch" else "height", fail)
-    # Zero damping = pole damping * ratio, so |H(i w0)| = ratio exactly.
-    ratio = 10.0 ** (-abs(level) / 20.0) if fname == "notch" else 10.0 ** (level / 20.0)
-    if not (math.isfinite(ratio) and ratio > 0):
-        raise fail(f"{fname}(): {level!r} dB is out of range")
-    poles = _pair_hz(f, q)
-    zeros = _pair_hz(f, q / ratio)
-    return _dc_unity(zeros, poles, 1.0)
+    what = "depth" if fname == "notch" else "height"
+    level = _real(fname, args, 2, what, fail) if len(args) == 3 else (
+        0.0 if fname == "notch" else 30.0)
+    ratio = 0.0 if (fname == "notch" and level == 0) else 10.0 ** (-level / 20.0)
+    if level < 0 or 1.0 - 2.0 * ratio**2 <= 0:
+        zero = ", or 0 for an infinitely deep notch" if fname == "notch" else ""
+        raise fail(f"{fname}(): {what} must exceed {_SQRT2_DB:.2f} dB{zero}, got {level!r}")
+    width = (8 * q * q - 1) / (q * (4 * q * q - 1))  # -3 dB width over f
+    q_low = math.sqrt(1.0 - 2.0 * ratio**2) / width
+    if q <= 0.5 or q_low <= 0.5:
+        raise fail(f"{fname}(): Q {q!r} is too small for a {what} of {level!r} dB (the "
+                   "roots would be real)")
+    if fail.rate_hz is not None and f >= fail.rate_hz / 2:
+        raise fail(f"{fname}(): {f!r} Hz is not below the Nyquist frequency "
+                   f"{fail.rate_hz / 2:g} Hz")
+    w = TWO_PI * f
+    low = _pair(w, q_low)
+    high = _pair(w, math.inf) if ratio == 0 else _pair(w, q_low / ratio)
+    return ZPK(high, low, 1.0) if fname == "notch" else ZPK(low, high, 1.0)
 
 
 _BAND_TYPES = {"lowpass": "lowpass", "highpass": "highpass",
@@ -678,22 +760,28 @@ _BAND_TYPES = {"lowpass": "lowpass", "highpass": "highpass",
 
 
 def _band_edges(fname: str, args: Sequence[Arg], k: int, btype: str,
-                fail: _Failer) -> float | list[float]:
+                fail: _Failer) -> list[float]:
+    """The edges in Hz; foton takes a band's two edges in either order."""
     needs_two = btype in ("bandpass", "bandstop")
     if len(args) != k + 1 + needs_two:
         want = "f1 and f2" if needs_two else "only f1"
         raise fail(f"{fname}(): a {btype} design takes {want} after its other arguments, "
                    f"got {len(args)} arguments in all")
-    f1 = _positive(fname, args, k, "f1", fail)
-    if not needs_two:
-        return TWO_PI * f1
-    f2 = _positive(fname, args, k + 1, "f2", fail)
-    if f2 <= f1:
-        raise fail(f"{fname}(): f2 must be above f1, got f1={f1!r}, f2={f2!r}")
-    return [TWO_PI * f1, TWO_PI * f2]
+    edges = sorted(_positive(fname, args, k + j, f"f{j + 1}", fail)
+                   for j in range(1 + needs_two))
+    if needs_two and edges[0] == edges[1]:
+        raise fail(f"{fname}(): f1 and f2 must differ, both are {edges[0]!r}")
+    rate = fail.rate_hz
+    if rate is not None and edges[-1] >= rate / 2:
+        raise fail(f"{fname}(): {edges[-1]!r} Hz is not below the Nyquist frequency "
+                   f"{rate / 2:g} Hz")
+    return edges
 
 
 def _f_iir(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
+    """butter, cheby1, cheby2, ellip: with a sample rate, the digital design foton makes
+    (the analog prototype at the prewarped edges, then the bilinear transform, as
+    ``scipy.signal`` does with ``fs``); without, the analog prototype."""
     n_spec = {"butter": 0, "cheby1": 1, "cheby2": 1, "ellip": 2}[fname]
     _arity(fname, args, 3 + n_spec, 4 + n_spec, fail)
     raw_type = _string(fname, args, 0, "type", fail)
@@ -705,18 +793,130 @@ def _f_iir(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
     spec = [_positive(fname, args, 2 + j, ("ripple" if fname != "cheby2" and j == 0
                                              else "attenuation") + " (dB)", fail)
             for j in range(n_spec)]
-    wn = _band_edges(fname, args, 2 + n_spec, btype, fail)
+    edges = _band_edges(fname, args, 2 + n_spec, btype, fail)
+    rate = fail.rate_hz
+    wn = [TWO_PI * e if rate is None else 2 * rate * math.tan(math.pi * e / rate)
+          for e in edges]
     design = {"butter": signal.butter, "cheby1": signal.cheby1,
               "cheby2": signal.cheby2, "ellip": signal.ellip}[fname]
     try:
         with warnings.catch_warnings(), np.errstate(all="ignore"):
             warnings.simplefilter("ignore")
-            z, p, k = design(order, *spec, wn, btype=btype, analog=True, output="zpk")
+            z, p, k = design(order, *spec, wn if len(wn) == 2 else wn[0], btype=btype,
+                             analog=True, output="zpk")
     except (ValueError, ArithmeticError) as exc:
         raise fail(f"{fname}(): cannot design this filter ({exc})") from None
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(p)) and np.isfinite(k)):
         raise fail(f"{fname}(): the design has non-finite roots or gain")
-    return ZPK(z, p, float(np.real(k)))
+    if rate is None:
+        return ZPK(z, p, float(np.real(k)))
+    return _unwarped(z, p, float(np.real(k)), rate)
+
+
+# -- z-plane designs --------------------------------------------------------------------
+def _rate(fname: str, fail: _Failer) -> float:
+    if fail.rate_hz is None:
+        raise fail(f"{fname}() is a z-plane design: it needs the sample rate")
+    return fail.rate_hz
+
+
+def _from_z(fname: str, zeros: ComplexArray, poles: ComplexArray, gain: float,
+            fail: _Failer) -> ZPK:
+    """The continuous ZPK whose discretization is ``gain prod(z - zeros)/prod(z - poles)``.
+
+    Each root maps back through the bilinear transform and is unwarped; a zero at z = -1 is
+    what :func:`zpk_to_sos` puts there for a pole in excess, and counts as 2 at DC, as a
+    zero missing against the poles does in foton's ``zroots``.
+    """
+    rate = _rate(fname, fail)
+    if np.any(np.abs(poles) > 1.0 + 1e-12):
+        raise fail(f"{fname}(): a z-plane pole is outside the unit circle")
+    at_origin = min(int(np.sum(zeros == 0)), int(np.sum(poles == 0)))
+    zeros = np.concatenate([zeros[zeros != 0], np.zeros(int(np.sum(zeros == 0)) - at_origin)])
+    poles = np.concatenate([poles[poles != 0], np.zeros(int(np.sum(poles == 0)) - at_origin)])
+    zeros = zeros[np.abs(zeros + 1.0) > 1e-6]
+    c = 2.0 * rate
+    k = (gain * np.prod((1.0 + zeros) / c) / np.prod((1.0 + poles) / c)
+         * 2.0 ** (poles.size - zeros.size))
+    unit = _unwarped(c * (zeros - 1) / (zeros + 1), c * (poles - 1) / (poles + 1),
+                     float(np.real(k)), rate)
+    return _with_foton_poles(unit, fail)
+
+
+def _polynomial(fname: str, coef: NDArray[np.float64], what: str,
+                fail: _Failer) -> tuple[ComplexArray, float]:
+    """Roots and leading coefficient of a polynomial written highest power first; foton
+    reads a shorter numerator's missing zeros as zeros at z = -1 (see :func:`_from_z`)."""
+    if coef.size == 0 or coef[0] == 0:
+        raise fail(f"{fname}(): the {what}'s first coefficient (b0) must not be 0")
+    return np.roots(coef).astype(complex), float(coef[0])
+
+
+def _f_sos(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
+    """sos(gain, [b1;b2;a1;a2;...][, "s"|"o"]): sections ``(1 + b1/z + b2/z^2)/(1 + a1/z +
+    a2/z^2)``; the "o" (online) format orders each section a1, a2, b1, b2."""
+    _arity(fname, args, 2, 3, fail)
+    gain = _real(fname, args, 0, "gain", fail)
+    coef = _vector_arg(fname, args, 1, "coefficients", fail).real
+    form = _string(fname, args, 2, "format", fail) if len(args) == 3 else "s"
+    if form not in ("s", "o"):
+        raise fail(f'{fname}(): format must be "s" or "o", got "{form}"')
+    if coef.size == 0 or coef.size % 4:
+        raise fail(f"{fname}(): the number of coefficients must be a multiple of 4, "
+                   f"got {coef.size}")
+    rows = coef.reshape(-1, 4) if form == "s" else coef.reshape(-1, 4)[:, [2, 3, 0, 1]]
+    zeros = np.concatenate([np.roots([1.0, b1, b2]) for b1, b2, _, _ in rows])
+    poles = np.concatenate([np.roots([1.0, a1, a2]) for _, _, a1, a2 in rows])
+    return _from_z(fname, zeros.astype(complex), poles.astype(complex), gain, fail)
+
+
+def _f_biquad(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
+    """biquad(b0, b1, b2, a1, a2): ``(b0 + b1/z + b2/z^2)/(1 + a1/z + a2/z^2)``."""
+    _arity(fname, args, 5, 5, fail)
+    b0, b1, b2, a1, a2 = (_real(fname, args, k, what, fail)
+                          for k, what in enumerate(("b0", "b1", "b2", "a1", "a2")))
+    zeros, k = _polynomial(fname, np.array([b0, b1, b2]), "numerator", fail)
+    poles, _ = _polynomial(fname, np.array([1.0, a1, a2]), "denominator", fail)
+    return _from_z(fname, zeros, poles, k, fail)
+
+
+def _f_direct(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
+    """direct([b0;b1;...], [a1;a2;...]): ``(b0 + b1/z + ...)/(1 - a1/z - a2/z^2 - ...)``."""
+    _arity(fname, args, 2, 2, fail)
+    b = _vector_arg(fname, args, 0, "numerator", fail).real
+    a = _vector_arg(fname, args, 1, "denominator", fail).real
+    zeros, k = _polynomial(fname, b, "numerator", fail)
+    poles, _ = _polynomial(fname, np.concatenate([[1.0], -a]), "denominator", fail)
+    return _from_z(fname, zeros, poles, k, fail)
+
+
+def _f_zroots(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
+    """zroots(zeros, poles[, gain]): ``gain prod(z - zeros)/prod(z - poles)``."""
+    _arity(fname, args, 2, 3, fail)
+    zeros = _paired(_vector_arg(fname, args, 0, "zeros", fail), fname, "zero", fail)
+    poles = _paired(_vector_arg(fname, args, 1, "poles", fail), fname, "pole", fail)
+    gain = _real(fname, args, 2, "gain", fail) if len(args) == 3 else 1.0
+    return _from_z(fname, zeros, poles, gain, fail)
+
+
+def _f_comb(fname: str, args: Sequence[Arg], fail: _Failer) -> ZPK:
+    """comb(f, Q[, amplitude[, N]]): at f and its harmonics up to the N-th (all below the
+    Nyquist frequency for N = 0), a resgain of `amplitude` dB when it is positive, a notch
+    of its depth when negative, an infinitely deep notch when 0."""
+    _arity(fname, args, 2, 4, fail)
+    f = _positive(fname, args, 0, "frequency", fail)
+    q = _positive(fname, args, 1, "Q", fail)
+    amp = _real(fname, args, 2, "amplitude", fail) if len(args) > 2 else 0.0
+    n = int(_real(fname, args, 3, "harmonics", fail)) if len(args) > 3 else 0
+    if n <= 0:
+        n = math.ceil(_rate(fname, fail) / 2 / f) - 1
+    if n < 1:
+        raise fail(f"{fname}(): {f!r} Hz is not below the Nyquist frequency")
+    single = "resgain" if amp > 0 else "notch"
+    out = ZPK.unity()
+    for k in range(1, n + 1):
+        out = out * _f_notch(single, [k * f, q, abs(amp)], fail)
+    return out
 
 
 _FUNCTIONS: dict[str, FotonFunction] = {
@@ -733,20 +933,29 @@ _FUNCTIONS: dict[str, FotonFunction] = {
     "cheby1": _f_iir,
     "cheby2": _f_iir,
     "ellip": _f_iir,
+    "sos": _f_sos,
+    "biquad": _f_biquad,
+    "direct": _f_direct,
+    "zroots": _f_zroots,
+    "comb": _f_comb,
 }
-_DIGITAL_FUNCTIONS = ("sos", "zroots", "direct")
 
 
 # ============================================================================================
 # Public API
 # ============================================================================================
-def parse_design(design: str) -> ZPK:
+def parse_design(design: str, rate_hz: float | None = None) -> ZPK:
     """Parse a whole foton design string into one continuous zpk.
 
     Parameters
     ----------
     design : str
         E.g. ``'zpk([1],[10],1,"n")gain(3)'``; factors multiply.  An empty string is unity.
+    rate_hz : float, optional
+        The sample rate the design runs at.  With it, the result is the continuous filter
+        whose discretization (:func:`zpk_to_sos`) is the filter foton makes at that rate:
+        its IIR designs are digital, and functions with more zeros than poles get poles
+        at twice the rate.  Without it, the design as written in continuous time.
 
     Returns
     -------
@@ -761,27 +970,49 @@ def parse_design(design: str) -> ZPK:
     if not isinstance(design, str):
         msg = f"a foton design must be a string, got {type(design).__name__}"
         raise FotonError(msg)
-    return _parsed(design)
+    if rate_hz is not None:
+        _check_rate(rate_hz)
+        rate_hz = float(rate_hz)
+    return _parsed(design, rate_hz)
 
 
 @lru_cache(maxsize=4096)
-def _parsed(design: str) -> ZPK:
+def _parsed(design: str, rate_hz: float | None) -> ZPK:
     """A design parsed once (a ZPK is immutable): a fit evaluates the damping loop's filter
     responses thousands of times, and parsing was most of the fit's time."""
-    return _Parser(design).parse()
+    return _Parser(design, rate_hz).parse()
+
+
+def _check_rate(rate_hz: object) -> None:
+    if not (isinstance(rate_hz, numbers.Real) and math.isfinite(rate_hz) and rate_hz > 0):
+        msg = f"sample rate must be a positive number of Hz, got {rate_hz!r}"
+        raise FotonError(msg)
 
 
 def _prewarp(roots: ComplexArray, rate_hz: float) -> ComplexArray:
-    """Move each root radially so its frequency survives the bilinear transform."""
+    """Move each root radially so its frequency survives the bilinear transform, as foton
+    does: ``|r| -> 2 fs tan(|r| / 2 fs)``; a root above the Nyquist frequency folds."""
     out = roots.copy()
     mag = np.abs(roots)
-    below = (mag > 0) & (mag < math.pi * rate_hz)
-    out[below] *= 2.0 * rate_hz * np.tan(mag[below] / (2.0 * rate_hz)) / mag[below]
+    nz = mag > 0
+    out[nz] *= 2.0 * rate_hz * np.tan(mag[nz] / (2.0 * rate_hz)) / mag[nz]
     return out
 
 
-def _bilinear_factors(roots: ComplexArray, rate_hz: float) -> tuple[ComplexArray, float]:
-    """z-plane roots and gain of prod(1 - s/r) (s for r = 0) under s -> 2fs(z-1)/(z+1).
+def _log_product(values: ComplexArray) -> tuple[float, float]:
+    """``log |prod(values)|`` and the sign of the product (real: conjugates come in pairs),
+    without the overflow of a product over a comb's hundreds of roots."""
+    if values.size == 0:
+        return 0.0, 1.0
+    mag = np.abs(values)
+    phase = np.prod(np.where(mag > 0, values / np.where(mag > 0, mag, 1.0), 1.0))
+    return float(np.sum(np.log(mag))), float(np.sign(phase.real) or 1.0)
+
+
+def _bilinear_factors(roots: ComplexArray, rate_hz: float) -> tuple[
+        ComplexArray, tuple[float, float]]:
+    """z-plane roots and the gain of prod(1 - s/r) (s for r = 0) under
+    s -> 2fs(z-1)/(z+1), as :func:`_log_product` gives it.
 
     Each factor becomes ``g (z - zr)/(z + 1)``; the ``(z + 1)`` are left to the caller.
     """
@@ -794,8 +1025,8 @@ def _bilinear_factors(roots: ComplexArray, rate_hz: float) -> tuple[ComplexArray
                "to infinity")
         raise FotonError(msg)
     zr = np.concatenate([(c + nonzero) / (c - nonzero), np.ones(int(origin.sum()))])
-    gain = np.prod(1.0 - c / nonzero) * c ** int(origin.sum())
-    return zr.astype(complex), float(np.real(gain))
+    log_gain, sign = _log_product(1.0 - c / nonzero)
+    return zr.astype(complex), (log_gain + int(origin.sum()) * math.log(c), sign)
 
 
 def zpk_to_sos(zpk: ZPK, rate_hz: float) -> NDArray[np.float64]:
@@ -819,9 +1050,7 @@ def zpk_to_sos(zpk: ZPK, rate_hz: float) -> NDArray[np.float64]:
         If the rate is not a positive number, the filter has more zeros than poles, or a
         root lands on the singularity of the bilinear map.
     """
-    if not (isinstance(rate_hz, numbers.Real) and math.isfinite(rate_hz) and rate_hz > 0):
-        msg = f"sample rate must be a positive number of Hz, got {rate_hz!r}"
-        raise FotonError(msg)
+    _check_rate(rate_hz)
     n_excess = zpk.zeros.size - zpk.poles.size
     if n_excess > 0:
         msg = (f"filter has {zpk.zeros.size} zeros but only {zpk.poles.size} poles; the "
@@ -829,10 +1058,13 @@ def zpk_to_sos(zpk: ZPK, rate_hz: float) -> NDArray[np.float64]:
         raise FotonError(msg)
     with np.errstate(all="ignore"):
         # k prod(s - r) = k prod(-r) prod(1 - s/r) s^m: the per-factor form keeps DC exact.
-        dc_gain = zpk.gain * _dc_norm(zpk.zeros, origin=1.0) / _dc_norm(zpk.poles, origin=1.0)
-        zd, gz = _bilinear_factors(zpk.zeros, rate_hz)
-        pd, gp = _bilinear_factors(zpk.poles, rate_hz)
-        kd = dc_gain * gz / gp
+        (lz, sz), (lp, sp) = (_log_product(-r[r != 0]) for r in (zpk.zeros, zpk.poles))
+        zd, (lgz, sgz) = _bilinear_factors(zpk.zeros, rate_hz)
+        pd, (lgp, sgp) = _bilinear_factors(zpk.poles, rate_hz)
+        # a root that prewarping folds past infinity keeps the sign of its factor at DC
+        folded = sum(int(np.sum(np.abs(r) > math.pi * rate_hz)) for r in (zpk.zeros, zpk.poles))
+        kd = (zpk.gain * sz * sp * sgz * sgp * (-1.0) ** folded
+              * math.exp(lz - lp + lgz - lgp))
     if not (math.isfinite(kd) and np.all(np.isfinite(zd)) and np.all(np.isfinite(pd))):
         msg = "the discrete roots or gain are not finite numbers"
         raise FotonError(msg)
@@ -849,7 +1081,76 @@ def zpk_to_sos(zpk: ZPK, rate_hz: float) -> NDArray[np.float64]:
     return np.asarray(sos, dtype=float)
 
 
-def design_to_sos(design: str, rate_hz: float) -> NDArray[np.float64]:
+def n_plane_design(zeros: ArrayLike, poles: ArrayLike, gain: float = 1.0) -> str:
+    """A foton design ``zpk([...],[...],gain,"n")`` of continuous roots.
+
+    Parameters
+    ----------
+    zeros, poles : array_like of complex
+        s-plane roots in rad/s (complex ones in conjugate pairs); poles stable.
+    gain : float
+        The DC gain (of roots off the origin).
+
+    Returns
+    -------
+    str
+        Roots in Hz with foton's "n" sign (stable: positive real part), 10 digits.
+    """
+    def written(roots: ArrayLike) -> str:
+        hz = -np.asarray(roots, dtype=complex) / TWO_PI
+        hz = hz[np.argsort(np.abs(hz), kind="stable")]
+        out = []
+        for r in hz:
+            if abs(r.imag) <= 1e-12 * abs(r):
+                out.append(f"{r.real:.10g}")
+            elif r.imag > 0:
+                out += [f"{r.real:.10g}+i*{r.imag:.10g}", f"{r.real:.10g}-i*{r.imag:.10g}"]
+        return ";".join(out)
+
+    return f'zpk([{written(zeros)}],[{written(poles)}],{gain:.10g},"n")'
+
+
+def implementation() -> str:
+    """Which foton turns design strings into sections, from the environment variable
+    ``TWIND_FOTON`` (``twind --foton``): ``"twind"``, this module, by default, or
+    ``"python-foton"``, LIGO's own foton from the optional extra ``twind[foton]``.
+
+    Returns
+    -------
+    str
+        One of :data:`twind.loop.FOTON_READERS`.
+
+    Raises
+    ------
+    FotonError
+        If the variable names neither.
+    """
+    name = os.environ.get(FOTON_VARIABLE, "twind")
+    if name not in FOTON_READERS:
+        msg = (f"{FOTON_VARIABLE}={name!r}: the foton reader must be one of "
+               f"{', '.join(FOTON_READERS)}")
+        raise FotonError(msg)
+    return name
+
+
+def _ligo_sections(design: str, rate_hz: float) -> NDArray[np.float64]:
+    """Sections from LIGO's foton (python-foton), as the front end would run them."""
+    try:
+        import foton  # the optional GPL extra, imported only when a user asks for it
+    except ImportError:
+        msg = ("TWIND_FOTON=python-foton, but python-foton is not installed: "
+               "pip install 'twind[foton]' (Linux x86-64, Python 3.11-3.13)")
+        raise FotonError(msg) from None
+    _check_rate(rate_hz)
+    ligo = foton.FilterDesign("", rate=float(rate_hz))
+    if not ligo.filt.filter(design):
+        msg = f"python-foton refuses design {design!r} (its reason is printed above)"
+        raise FotonError(msg)
+    return np.array(ligo.get_sos(), dtype=float)
+
+
+def design_to_sos(design: str, rate_hz: float,
+                  reader: str | None = None) -> NDArray[np.float64]:
     """Parse a foton design string and discretize it.
 
     Parameters
@@ -858,6 +1159,8 @@ def design_to_sos(design: str, rate_hz: float) -> NDArray[np.float64]:
         Foton design string.
     rate_hz : float
         Sample rate of the CDS model, e.g. 16384.
+    reader : {"twind", "python-foton"}, optional
+        Whose foton reads it; :func:`implementation` by default.
 
     Returns
     -------
@@ -869,7 +1172,9 @@ def design_to_sos(design: str, rate_hz: float) -> NDArray[np.float64]:
     FotonError
         From :func:`parse_design` or :func:`zpk_to_sos`; the design string is quoted.
     """
-    zpk = parse_design(design)
+    if (reader or implementation()) == "python-foton":
+        return _ligo_sections(design, rate_hz)
+    zpk = parse_design(design, rate_hz)
     try:
         return zpk_to_sos(zpk, rate_hz)
     except FotonError as exc:

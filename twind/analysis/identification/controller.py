@@ -34,6 +34,7 @@ from twind.config import OpticConfig
 from twind.analysis.identification.locate import band_edges, gaussian_sigma
 from twind.config.reader import ModuleConfig
 from twind.loop.filtermodule import Stage
+from twind.loop.foton import n_plane_design
 
 ALPHA = 0.01
 """Family-wise false-alarm probability of calling a controller different (every band of
@@ -544,6 +545,7 @@ def _fit_stages(ratio: Ratio, module: ModuleConfig, rate_hz: float):  # noqa: AN
 
 
 def _design(p: NDArray[np.float64]) -> str:
-    """A fitted stage as foton writes it."""
+    """A fitted stage as foton writes it: one zpk, so foton adds no poles to its zeros."""
     fz, qz, fp, qp = np.exp(p)
-    return f"zero2({fz:.6g},{qz:.4g},1)pole2({fp:.6g},{qp:.4g},1)"
+    wz, wp = 2 * np.pi * fz, 2 * np.pi * fp
+    return n_plane_design(np.roots([1, wz / qz, wz**2]), np.roots([1, wp / qp, wp**2]))
