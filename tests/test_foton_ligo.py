@@ -292,9 +292,17 @@ def _written_by_twind(tmp_path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("which", ["fixture", "written"])
+def _rewritten(tmp_path: Path) -> Path:
+    fixture = read_filter_file(FIXTURE)
+    path = tmp_path / "C1TWN.txt"
+    write_filter_file(path, fixture.modules, fixture.rate_hz)
+    return path
+
+
+@pytest.mark.parametrize("which", ["fixture", "rewritten", "written"])
 def test_foton_files_read_as_foton_reads_them(which: str, tmp_path: Path) -> None:
-    path = FIXTURE if which == "fixture" else _written_by_twind(tmp_path)
+    path = {"fixture": lambda _: FIXTURE, "rewritten": _rewritten,
+            "written": _written_by_twind}[which](tmp_path)
     ours, theirs = read_filter_file(path), foton.FilterFile(str(path))
     assert sorted(ours.modules) == sorted(theirs)
     for name, stages in ours.modules.items():

@@ -145,17 +145,15 @@ def _plot_tfs(tfs, path: Path) -> tuple[Path, Path]:  # noqa: ANN001 - TFSet
     own = driven[:, rows, np.arange(len(rows))].all(axis=1)
     closed = Measured(tfs.tf["IN1"][keep], tfs.sigma("IN1")[keep], driven[keep])
     plant = Measured(P[keep], sigma[keep], np.broadcast_to(own[keep, None, None], P[keep].shape))
+    caption = f"{tfs.caption()}; twind {__version__}"
+    coh = tfs.coherence["IN1"][keep]
     done = bode_matrix(f[keep], path, tfs.responses, tfs.excited, measured={"IN1/EXC": closed},
-                       title=f"{tfs.optic}: measured IN1/EXC ({_estimate(tfs)})")
+                       title=f"{tfs.optic}: measured IN1/EXC", coherence=coh, caption=caption)
     other = bode_matrix(f[keep], path.with_name(f"{path.stem}_plant{path.suffix}"),
                         tfs.excited, tfs.excited, measured={"plant IN1/OUT": plant}, per="ct",
-                        title=f"{tfs.optic}: the plant (IN1/EXC)(OUT/EXC)^-1 ({_estimate(tfs)})")
+                        title=f"{tfs.optic}: the plant (IN1/EXC)(OUT/EXC)^-1, coherence of "
+                              "IN1/EXC", coherence=coh[:, rows], caption=caption)
     return done, other
-
-
-def _estimate(tfs) -> str:  # noqa: ANN001 - TFSet
-    """How `tfs` was estimated, and by which twind, for a figure's title."""
-    return f"{tfs.estimate()}; twind {__version__}"
 
 
 def _show_transfers(args: argparse.Namespace, why: str) -> int:

@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from twind import DOFS, strictjson
+from twind import DOFS, __version__, strictjson
 from twind.channels import block_channels
 from twind.cli import plant as statespace
+from twind.cli.options import shown
 from twind.config import default_optic, load_config
 from twind.errors import TwindError
 from twind.model.compare import compare_models
@@ -65,11 +66,12 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     path = Path(args.output or f"{cfg.name}_response.png")
     plant = path.with_name(f"{path.stem}_plant{path.suffix}")
     name = f"C1:SUS-{cfg.name} ({cfg.model} model)"
+    caption = f"model {shown(cfg.source)}; twind {__version__}"
     bode_matrix(f, path, DOFS, DOFS, {"IN1/EXC": r["closed_loop_IN1_per_EXC"],
                                       "IN2/EXC": r["closed_loop_IN2_per_EXC"]},
-                title=f"{name}: closed loop")
+                title=f"{name}: closed loop", caption=caption)
     bode_matrix(f, plant, DOFS, DOFS, {"IN1/OUT": r["plant_IN1_per_OUT"]}, per="ct",
-                title=f"{name}: plant")
+                title=f"{name}: plant", caption=caption)
     print(f"wrote {path} and {plant}")
     for f_hz, q in cfg.closed_loop_modes:
         print(f"closed-loop mode {f_hz:.3f} Hz, Q {q:.1f}")

@@ -159,3 +159,12 @@ def show(result, as_json: bool) -> None:  # noqa: ANN001 - anything with to_json
         sys.stdout.write("\n")
     else:
         print("\n".join(result.lines()))
+
+
+def shown(path: str | Path) -> str:
+    """`path` as a person here would type it: relative to the working directory when it is
+    under it (a figure's caption names its model so)."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except (ValueError, OSError):
+        return str(path)

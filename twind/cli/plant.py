@@ -11,14 +11,14 @@ from pathlib import Path
 
 import numpy as np
 
-from twind import strictjson
+from twind import __version__, strictjson
 from twind.analysis.estimation.diaggui import read_transfers
 from twind.analysis.statespace.diagnose import diagnose_plant
 from twind.analysis.statespace.fit import fit_baseline
 from twind.analysis.statespace.measurement import PlantSet, read_plant
 from twind.config import load_config, optic_kinds
 from twind.config.statespace import SENSOR_NOISE, StateSpaceOptic
-from twind.cli.options import show
+from twind.cli.options import show, shown
 from twind.errors import TwindError
 from twind.simulation.statespace import truncation_error
 from twind.viz.plant import plot_plant, write_plant_report
@@ -187,7 +187,8 @@ def response(args: argparse.Namespace, optic: StateSpaceOptic, f: np.ndarray) ->
     path = Path(args.output or f"{optic.name}_response.png")
     bode_matrix(f, path, readbacks, drives, {"model": H}, per="drive",
                 title=f"{optic.convention.ifo}:{optic.convention.system}-{optic.name}: "
-                      f"state-space model ({Path(optic.model.source).name})")
+                      f"state-space model ({Path(optic.model.source).name})",
+                caption=f"model {shown(optic.model.source)}; twind {__version__}")
     print(f"wrote {path}")
     print(f"{len(modal.modes)} modes (modal form's condition {modal.condition:.2g}); label: "
           "the DOF that carries the largest share of each")

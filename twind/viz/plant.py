@@ -22,7 +22,7 @@ from twind.viz.report import bands, html_page, number, report_dir, table
 
 COLUMNS = 3
 """Elements side by side in a figure."""
-FONT = 9
+FONT = 10
 
 
 def plot_elements(f: NDArray[np.float64], H: NDArray[np.complex128],
@@ -141,7 +141,8 @@ def measurement_notes(plant: PlantSet) -> list[str]:
     drives = ", ".join(plant.channels.get(d, d) for d in plant.drives)
     return [f"excited {drives}; {len(plant.readbacks)} readbacks; "
             f"{plant.resolution_hz:.4g} Hz bins, {plant.averages} averages (Hann)",
-            f"{', '.join(Path(s).name for s in plant.sources)}; twind {__version__}"]
+            f"{', '.join(Path(s).name for s in plant.sources)}; "
+            + (f"GPS from {plant.gps:.0f}; " if plant.gps else "") + f"twind {__version__}"]
 
 
 def plot_plant(plant: PlantSet, path: str | Path) -> list[Path]:

@@ -13,7 +13,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 from scipy import signal
 
-from twind import DOFS, OSEMS
+from twind import DOFS, OSEMS, __version__
 from twind.analysis.estimation.tf import TFSet
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import ClosedLoopModel
@@ -75,12 +75,18 @@ def dof_unit(dof: str) -> str:
     return UNITS[dof].replace("u", "µ") if dof in UNITS else "a.u."
 
 
+FONT = {"title": 11, "label": 10, "tick": 9, "note": 9}
+"""Font sizes (points) of the Bode figures: read at 100 dpi, as diaggui's are on a screen."""
+
+
 def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str],
                 cols: Sequence[str], models: Mapping[str, NDArray[np.complex128]] | None = None,
                 measured: Mapping[str, Measured] | None = None, per: str | None = None,
-                residuals: bool = False, title: str = "") -> Path:
+                residuals: bool = False, title: str = "",
+                coherence: NDArray[np.float64] | None = None, caption: str = "") -> Path:
     """Write a Bode matrix: per element (response row / excitation column) magnitude and
-    phase, and with `residuals` the measured minus the first model over sigma.
+    phase, the coherence beneath them as diaggui draws it, and with `residuals` the
+    measured minus each model over sigma.
 
     Parameters
     ----------
@@ -92,71 +98,121 @@ def bode_matrix(f_hz: NDArray[np.float64], path: str | Path, rows: Sequence[str]
         The DOFs of the responses and of the excitations.
     models : mapping of str to ndarray, shape (nf, rows, cols), optional
         Named model curves. An element that is zero in a model (its largest magnitude below
-        1e-9 of the model's largest: zero by symmetry, round-off left) is not drawn.
+        1e-9 of the model's largest: zero by symmetry, round-off left) is drawn as zero: a
+        dashed line along the panel's floor, named.
     measured : mapping of str to Measured, optional
         Named measurements: points with error bars, faded where incoherent.
     per : str, optional
         The unit of the denominator ("ct" for a plant IN1/OUT); default the excited DOF's.
     residuals : bool
-        A third panel per element: ``|measured - model| / sigma`` of the first measurement
+        A last panel per element: ``|measured - model| / sigma`` of the first measurement
         against every model.
     title : str
+    coherence : ndarray, shape (nf, rows, cols), optional
+        The first measurement's coherence: a panel under each magnitude and phase.
+    caption : str
+        A line under the panels: the channels, GPS span, estimator and the like.
 
     Returns
     -------
     Path
     """
     models, measured = models or {}, measured or {}
-    panels = 3 if residuals else 2
-    width, height = 3.3 * len(cols), (2.0 * panels + 0.4) * len(rows)
+    kinds = ["mag", "phase"] + ["coh"] * (coherence is not None) + ["res"] * residuals
+    ratios = {"mag": 3, "phase": 2, "coh": 1.2, "res": 1.6}
+    width = 3.6 * len(cols)
+    n_labels = len(models) + 2 * len(measured)
+    legend = 0.3 * -(-n_labels // 3)  # inches: three entries a row
+    height = (0.75 * sum(ratios[k] for k in kinds) + 0.5) * len(rows) + 0.9 + legend
     fig = Figure(figsize=(width, height))
-    axes = fig.subplots(panels * len(rows), len(cols), sharex=True, squeeze=False)
+    axes = fig.subplots(len(kinds) * len(rows), len(cols), sharex=True, squeeze=False,
+                        gridspec_kw={"height_ratios": [ratios[k] for k in kinds] * len(rows)})
     for i, r in enumerate(rows):
         for j, c in enumerate(cols):
-            unit = f"{dof_unit(r)}/{per or dof_unit(c)}"
-            cell = axes[panels * i: panels * (i + 1), j]
-            drawn = _models(cell, f_hz, models, i, j)
-            drawn |= _measured(cell, f_hz, measured, i, j)
-            if residuals and measured and next(iter(measured.values())).sigma is not None:
-                _residuals(cell[2], f_hz, next(iter(measured.values())), models, i, j)
-            cell[0].set_title(f"{r} / {c}", fontsize=9)
-            cell[0].set_ylabel(f"|{r}/{c}| [{unit}]", fontsize=8)
-            if not drawn:
-                cell[0].text(0.5, 0.5, "zero in the model", ha="center", va="center",
-                             transform=cell[0].transAxes, color="gray", fontsize=8)
-                cell[0].set_yticks([])
-            cell[1].set_ylabel("phase [deg]", fontsize=8)
-            cell[1].set(ylim=(-180, 180), yticks=[-180, -90, 0, 90, 180])
-            for ax in cell:
-                ax.grid(True, alpha=0.3)
+            cell = dict(zip(kinds, axes[len(kinds) * i: len(kinds) * (i + 1), j], strict=True))
+            _element(cell, f_hz, models, measured, coherence, i, j)
+            cell["mag"].set_title(f"{r} / {c}", fontsize=FONT["title"])
+            cell["mag"].set_ylabel(f"|{r}/{c}| [{dof_unit(r)}/{per or dof_unit(c)}]",
+                                   fontsize=FONT["label"])
     for ax in axes[-1]:
-        ax.set_xlabel("frequency [Hz]")
+        ax.set_xlabel("frequency [Hz]", fontsize=FONT["label"])
+    for ax in axes.flat:
+        ax.tick_params(labelsize=FONT["tick"])
+        ax.grid(True, which="both", alpha=0.3)
     axes[0, 0].set_xlim(f_hz[f_hz > 0].min(), f_hz.max())  # shared by every panel
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="upper center", ncol=len(labels) or 1, fontsize=8,
-               frameon=False, bbox_to_anchor=(0.5, 1 - 0.45 / height))  # above the panels
-    fig.suptitle(title, y=1 - 0.25 / height)
+    fig.legend(handles, labels, loc="upper center", ncol=min(len(labels), 3) or 1,
+               fontsize=FONT["label"], frameon=False,
+               bbox_to_anchor=(0.5, 1 - 0.45 / height))  # above the panels
+    fig.suptitle(title, y=1 - 0.2 / height, fontsize=FONT["title"] + 1)
+    if caption:
+        fig.text(0.01, 0.12 / height, caption, fontsize=FONT["note"], color="0.3")
     # fixed margins (inches): tight_layout measures every tick label, seconds for a matrix
-    fig.subplots_adjust(left=1.05 / width, right=1 - 0.15 / width, bottom=0.6 / height,
-                        top=1 - 0.9 / height, wspace=0.6, hspace=0.3)
+    fig.subplots_adjust(left=1.0 / width, right=1 - 0.15 / width, bottom=0.75 / height,
+                        top=1 - (0.75 + legend) / height, wspace=0.45, hspace=0.35)
     path = Path(path)
-    fig.savefig(path, dpi=80)
+    fig.savefig(path, dpi=100)
     return path
 
 
-def _models(cell: Sequence[Axes], f: NDArray, models: Mapping[str, NDArray], i: int,
-            j: int) -> bool:
-    """Each model's element (i, j) on the cell's magnitude and phase; True if any drawn."""
-    drawn = False
+def _element(cell: Mapping[str, Axes], f: NDArray, models: Mapping[str, NDArray],
+             measured: Mapping[str, Measured], coherence: NDArray | None, i: int,
+             j: int) -> None:
+    """Element (i, j) of every model and measurement on its panels."""
+    zero = _models(cell, f, models, i, j)
+    drawn = _measured(cell, f, measured, i, j) or len(zero) < len(models)
+    if "res" in cell and measured and next(iter(measured.values())).sigma is not None:
+        _residuals(cell["res"], f, next(iter(measured.values())), models, i, j)
+    if "coh" in cell:
+        _coherence(cell["coh"], f, coherence[:, i, j], next(iter(measured.values()), None),
+                   i, j)
+    every = len(zero) == len(models)
+    if zero and drawn:
+        _zero(cell["mag"], zero, every)
+    elif zero:
+        cell["mag"].text(0.5, 0.5, f"{'model' if every else ', '.join(zero)}: 0",
+                         ha="center", va="center", transform=cell["mag"].transAxes,
+                         color="0.3", fontsize=FONT["note"])
+        cell["mag"].set_yticks([])
+    cell["phase"].set_ylabel("phase [deg]", fontsize=FONT["label"])
+    cell["phase"].set(ylim=(-180, 180), yticks=[-180, -90, 0, 90, 180])
+
+
+def _zero(ax: Axes, names: Sequence[str], every: bool) -> None:
+    """Models that are zero in this element, drawn as zero: a dashed line just above the
+    floor of the log-magnitude panel, named beside it."""
+    ax.autoscale_view()
+    lo, hi = ax.get_ylim()
+    ax.set_ylim(lo / (hi / lo) ** 0.08, hi)
+    ax.axhline(lo, color="0.3", ls="--", lw=1.2)
+    ax.text(0.02, 0.07, f"{'model' if every else ', '.join(names)}: 0", color="0.3",
+            transform=ax.transAxes, fontsize=FONT["note"], va="bottom")
+
+
+def _coherence(ax: Axes, f: NDArray, g2: NDArray, m: Measured | None, i: int, j: int) -> None:
+    """The coherence of element (i, j), faded where the measurement is not trusted."""
+    good = np.isfinite(g2) if m is None else m.trusted(i, j)
+    ax.semilogx(f[good], g2[good], ".", ms=2, color="0.15")
+    ax.semilogx(f[~good], g2[~good], ".", ms=2, color="0.15", alpha=0.2)
+    ax.set(ylim=(0, 1.05), yticks=[0, 0.5, 1])
+    ax.set_ylabel("coherence", fontsize=FONT["label"])
+
+
+def _models(cell: Mapping[str, Axes], f: NDArray, models: Mapping[str, NDArray], i: int,
+            j: int) -> list[str]:
+    """Each model's element (i, j) on the cell's magnitude and phase; the names of those
+    that are zero there."""
+    zero = []
     for k, (name, h) in enumerate(models.items()):
         mag, top = np.abs(h[:, i, j]), np.abs(h).max()
         if not mag.max() > 1e-9 * top:
-            continue  # zero by symmetry: round-off is not worth a curve
+            zero.append(name)  # zero by symmetry: round-off is not worth a curve
+            continue
         there = mag > 1e-13 * top  # points where the model is exactly zero: not drawn
-        drawn = True
-        cell[0].loglog(f, np.where(there, mag, np.nan), color=f"C{k}", lw=1, label=name)
-        cell[1].semilogx(f, phase(np.where(there, h[:, i, j], np.nan)), color=f"C{k}", lw=1)
-    return drawn
+        cell["mag"].loglog(f, np.where(there, mag, np.nan), color=f"C{k}", lw=1.2, label=name)
+        cell["phase"].semilogx(f, phase(np.where(there, h[:, i, j], np.nan)), color=f"C{k}",
+                               lw=1.2)
+    return zero
 
 
 def phase(h: NDArray[np.complex128]) -> NDArray[np.float64]:
@@ -166,7 +222,7 @@ def phase(h: NDArray[np.complex128]) -> NDArray[np.float64]:
     return deg
 
 
-def _measured(cell: Sequence[Axes], f: NDArray, measured: Mapping[str, Measured], i: int,
+def _measured(cell: Mapping[str, Axes], f: NDArray, measured: Mapping[str, Measured], i: int,
               j: int) -> bool:
     """Each measurement's element (i, j): coherent points with error bars, the others
     faded; True if any drawn."""
@@ -174,14 +230,14 @@ def _measured(cell: Sequence[Axes], f: NDArray, measured: Mapping[str, Measured]
         h, good = m.h[:, i, j], m.trusted(i, j)
         color = f"{0.15 + 0.25 * k:.2f}"
         err = None if m.sigma is None else m.sigma[good, i, j]
-        cell[0].errorbar(f[good], np.abs(h[good]), yerr=err, fmt=".", ms=2, elinewidth=0.5,
-                         color=color, label=name)
-        cell[0].plot(f[~good], np.abs(h[~good]), ".", ms=2, color=color, alpha=0.2,
-                     label=f"{name} where its EXC does not drive it (faded, no error bar)")
-        cell[1].plot(f[good], np.degrees(np.angle(h[good])), ".", ms=2, color=color)
-        cell[1].plot(f[~good], np.degrees(np.angle(h[~good])), ".", ms=2, color=color,
-                     alpha=0.2)
-        cell[0].set(xscale="log", yscale="log")
+        cell["mag"].errorbar(f[good], np.abs(h[good]), yerr=err, fmt=".", ms=3,
+                             elinewidth=0.5, color=color, label=name)
+        cell["mag"].plot(f[~good], np.abs(h[~good]), ".", ms=3, color=color, alpha=0.2,
+                         label=f"{name} where its EXC does not drive it (faded, no error bar)")
+        cell["phase"].plot(f[good], np.degrees(np.angle(h[good])), ".", ms=3, color=color)
+        cell["phase"].plot(f[~good], np.degrees(np.angle(h[~good])), ".", ms=3, color=color,
+                           alpha=0.2)
+        cell["mag"].set(xscale="log", yscale="log")
     return bool(measured)
 
 
@@ -192,12 +248,13 @@ def _residuals(ax: Axes, f: NDArray, m: Measured, models: Mapping[str, NDArray],
     good = m.trusted(i, j)
     if not good.any():
         ax.text(0.5, 0.5, "no bin fitted", ha="center", va="center", transform=ax.transAxes,
-                color="gray", fontsize=8)
+                color="gray", fontsize=FONT["note"])
     for k, h in enumerate(models.values()):
         z = np.abs(m.h[good, i, j] - h[good, i, j]) / m.sigma[good, i, j]
         ax.semilogx(f[good], z, ".", ms=2, color=f"C{k}")
     ax.axhline(3, color="k", lw=0.5, ls="--")
-    ax.set_ylabel("|residual| / sigma", fontsize=8)
+    ax.set_ylim(0, None if good.any() else 5)
+    ax.set_ylabel("|res.| / sigma", fontsize=FONT["label"])
 
 
 def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Path:
@@ -241,7 +298,12 @@ def bode_transfers(transfers: Sequence, path: str | Path, title: str = "") -> Pa
     mag.legend(fontsize=8)
     kinds = sorted({f"{t.kind}, {t.averages} averages" for t in transfers})
     fig.suptitle(title or f"measured transfer functions ({'; '.join(kinds)})")
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    starts = [t.gps for t in transfers if t.gps]
+    files = sorted({Path(t.source).name for t in transfers})
+    fig.text(0.01, 0.005, f"{', '.join(files)}; "
+             + (f"GPS from {min(starts):.0f}; " if starts else "") + f"twind {__version__}",
+             fontsize=FONT["note"], color="0.3")
+    fig.tight_layout(rect=(0, 0.02, 1, 0.97))
     path = Path(path)
     fig.savefig(path, dpi=90)
     return path
@@ -350,11 +412,13 @@ def _panel(ax: "Axes", cmp: "ModelComparison", i: int, j: int, zero: bool, worst
     ax.grid(True, which="both", alpha=0.3)
 
 
-def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
+def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str,
+             baseline: FitResult | None = None) -> str:
     """A fit as a Bode matrix: per element, measured ``IN1/EXC`` (the bins the fit used with
-    their errors, the others faded) with the starting and fitted models, and beneath it the
-    residual of each in units of the measurement's sigma (what the fit minimised), over the
-    span of the bins the fit used: a recording reaches Nyquist, its excitation does not.
+    their errors, the others faded) with the model it started from and the fitted one, the
+    coherence, and the residual of each in units of the measurement's sigma (what the fit
+    minimised), over the span of the bins the fit used: a recording reaches Nyquist, its
+    excitation does not.
 
     Parameters
     ----------
@@ -365,6 +429,9 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
     result : FitResult
     path : str
         The PNG to write.
+    baseline : FitResult, optional
+        Drawn in place of the configuration the fit started from: the nominal model refitted,
+        beside the nominal model with an effect.
 
     Returns
     -------
@@ -377,12 +444,20 @@ def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str) -> str:
         used = used[(tfs.frequency_hz >= f_used[0]) & (tfs.frequency_hz <= f_used[-1])]
         tfs = tfs.band(f_used[0], f_used[-1])
     data = FitData.from_tfset(tfs, min_coherence=0.0)
-    model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
-    curves = {"start": model({}), "fitted" + (f" + {result.effect}" if result.effect else ""):
-              model(result.as_dict())}
-    title = (f"{result.optic} IN1/EXC" + (f", nominal + {result.effect}" if result.effect
-                                          else ", nominal model")
-             + f": chi2/nu {result.chi2_nu:.3g} after the fit")
+
+    def curve(fitted: FitResult | None) -> NDArray[np.complex128]:
+        effect = (fitted or result).effect
+        model = ClosedLoopModel.of(cfg, data, effect).for_data(data)
+        return model(fitted.as_dict() if fitted else {})
+
+    effect = f"nominal + {result.effect}" if result.effect else "nominal"
+    curves = {"nominal, refitted" if baseline else "configuration (the fit's start)":
+              curve(baseline), f"{effect}, fitted": curve(result)}
+    rows = [tfs.responses.index(r) for r in data.responses]
+    cols = [tfs.excited.index(e) for e in data.excited]
+    title = f"{result.optic} IN1/EXC, {effect} model: chi2/nu {result.chi2_nu:.3g} after the fit"
     bode_matrix(data.frequency_hz, path, data.responses, data.excited, curves,
-                {"measured": Measured(data.H, data.sigma, used)}, residuals=True, title=title)
+                {"measured": Measured(data.H, data.sigma, used)}, residuals=True, title=title,
+                coherence=tfs.coherence["IN1"][:, rows][:, :, cols],
+                caption=f"{tfs.caption()}; twind {__version__}")
     return path

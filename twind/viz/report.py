@@ -190,8 +190,10 @@ def measurement(tfs: TFSet, inputs: Sequence[str | Path] = ()) -> list[tuple[str
     (estimator, resolution, averages, band) and the twind that read it."""
     f = tfs.frequency_hz
     rows = [("inputs", ", ".join(Path(p).name for p in inputs))] if inputs else []
-    return [*rows, ("optic", f"{tfs.ifo}:{tfs.optic}"), ("excited", ", ".join(tfs.excited)),
-            ("estimate", f"{tfs.estimate()}, {number(f.min(), 3)}-{number(f.max(), 4)} Hz"),
+    about = tfs.description()
+    return [*rows, ("optic", f"{tfs.ifo}:{tfs.optic}"), ("channels", about["channels"]),
+            ("GPS", about["GPS"]),
+            ("estimate", f"{about['estimate']}, {number(f.min(), 3)}-{number(f.max(), 4)} Hz"),
             ("read by", f"twind {__version__}")]
 
 
@@ -227,11 +229,12 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
                            "diagnosis.rrd"], DiagnoseError)
     plot_fit(tfs, cfg, diagnosis.nominal, str(out / "nominal.png"))
     if diagnosis.effects:
-        plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"))
+        plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"), diagnosis.nominal)
     (out / "diagnosis.json").write_text(strictjson.dumps(diagnosis.to_json(), indent=1))
     _write_rrd(diagnosis, tfs, cfg, out / "diagnosis.rrd")
-    titles = {"nominal.png": "The nominal model refitted: measured, model, residual / sigma",
-              "augmented.png": "With the effects chosen"}
+    titles = {"nominal.png": "The nominal model refitted, against the configuration it "
+                             "started from: measured, models, coherence, residual / sigma",
+              "augmented.png": "With the effects chosen, against the nominal model refitted"}
     images = [(t, n) for n, t in titles.items() if (out / n).exists()]
     (out / "index.html").write_text(report_page(diagnosis, images, measurement(tfs, inputs)))
     return out / "index.html"

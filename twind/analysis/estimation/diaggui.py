@@ -67,6 +67,8 @@ class Transfer:
         ``"swept sine"`` or ``"FFT"``.
     source : str
         The file it was read from.
+    gps : float or None
+        The measurement's start (GPS seconds), when the file has it.
     """
 
     numerator: str
@@ -77,6 +79,7 @@ class Transfer:
     averages: int
     kind: str
     source: str
+    gps: float | None = None
 
     @property
     def name(self) -> str:
@@ -164,7 +167,7 @@ def read_transfers(path: str | Path) -> list[Transfer]:
         transfers.append(Transfer(b, a, np.asarray(x.FHz, dtype=float),
                                   np.asarray(x.xfer, dtype=complex),
                                   np.asarray(x.coh, dtype=float), int(x.averages), KINDS[kind],
-                                  str(path)))
+                                  str(path), x.gps_second))
     if not transfers:
         msg = f"{path}: no transfer function in it (a diaggui file of spectra only?)"
         raise TFError(msg)

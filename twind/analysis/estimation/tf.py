@@ -16,7 +16,7 @@ import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import dttxml
@@ -118,6 +118,9 @@ class TFSet:
     in1_correlation: NDArray[np.complex128] | None = None
     found: tuple[str, ...] = ()  # the excitations found in the data (no injection events)
     ifo: str = "C1"  # the interferometer prefix of the channels measured
+    # GPS start and end of each excited DOF's excitation; the end None where a file gives
+    # only the start (diaggui)
+    spans: dict[str, tuple[float, float | None]] = field(default_factory=dict)
 
     def sigma(self, point: str) -> NDArray[np.float64]:
         """Standard error of the real and of the imaginary part of each element of
@@ -135,6 +138,26 @@ class TFSet:
         df = f"{float(np.median(np.diff(f))):.3g} Hz bins" if f.size > 1 else "one bin"
         how = "LPM" if self.window == "lpm" else f"Welch ({self.window}), {self.averages} averages"
         return f"{how}, {df}"
+
+    def description(self) -> dict[str, str]:
+        """What a figure or report of these TFs shows: ``channels``, ``GPS`` span and
+        ``estimate``."""
+        points = "{IN1,IN2,OUT}/_EXC"
+        starts = [a for a, _ in self.spans.values()]
+        ends = [b for _, b in self.spans.values()]
+        if not starts:
+            gps = "not recorded"
+        elif None in ends:
+            gps = f"from {min(starts):.0f}"
+        else:
+            gps = f"{min(starts):.0f}-{max(ends):.0f}"
+        return {"channels": f"{self.ifo}:SUS-{self.optic}_SUS<DOF>_{points}, "
+                            f"<DOF> {', '.join(self.excited)}",
+                "GPS": gps, "estimate": self.estimate()}
+
+    def caption(self) -> str:
+        """:meth:`description` in one line, for a figure."""
+        return "; ".join(f"GPS {v}" if k == "GPS" else v for k, v in self.description().items())
 
     def plant(self) -> tuple[NDArray[np.complex128], NDArray[np.float64]]:
         """The open-loop plant over the excited DOFs and its standard error.
@@ -351,7 +374,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
         If a file is not readable diaggui XML, has no single excitation, or the files
         disagree on the optic or the frequencies.
     """
-    columns, freq, optic, averages, ifo = {}, None, None, None, "C1"
+    columns, freq, optic, averages, ifo, spans = {}, None, None, None, "C1", {}
     for path in paths:
         try:
             acc = dttxml.DiagAccess(str(path))
@@ -379,6 +402,8 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                 if name not in names:
                     continue
                 f, h, g2, n = xml_transfer(acc, name, exc[0])
+                if m["dof"] not in spans:  # diaggui keeps the start only
+                    spans[m["dof"]] = (float(acc.xfer(name, exc[0]).gps_second or 0.0), None)
                 _warn_unusable(path, name, exc[0], h, g2)
                 if freq is None:
                     freq, averages = f, n
@@ -387,7 +412,7 @@ def from_diaggui(paths: Sequence[str | Path]) -> TFSet:
                     raise TFError(msg)
                 column[(dof, point)] = (h, g2)
         columns[m["dof"]] = column
-    return assemble(optic, freq, columns, averages, ifo)
+    return replace(assemble(optic, freq, columns, averages, ifo), spans=spans)
 
 
 def _warn_unusable(path: str | Path, name: str, exc: str, h: NDArray, g2: NDArray) -> None:
@@ -589,8 +614,8 @@ def from_session(paths: Sequence[str | Path], bw: float = 0.01, overlap: float =
         nperseg = _nperseg(rate, bw, plan, settle_s)
         freq, h, g2, averages = welch_tfs(x, ys, rate, nperseg, overlap, window=window)
         columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(plan.keys)}
-    tfs = assemble(key[1], freq, columns, averages, key[0])
-    tfs.window, tfs.found = window, notes
+    tfs = replace(assemble(key[1], freq, columns, averages, key[0]), window=window, found=notes,
+                  spans={k[2]: span for k, span in segments.items()})
     return with_lpm(tfs, estimates) if estimates else tfs
 
 
@@ -797,6 +822,8 @@ def _demodulated(channels: Mapping[str, Channel], extents: Mapping[str, Extent],
         columns[dof] = {k: (h[i], g2[i]) for i, k in enumerate(keys[dof])}
     tfs = assemble(next(iter(sines))[1], freq, columns, AVERAGES, next(iter(sines))[0])
     tfs.window, tfs.found = "sine", notes
+    tfs.spans = {k[2]: (min(s.start for s in v), max(s.end for s in v))
+                 for k, v in sines.items()}
     return tfs
 
 
@@ -845,7 +872,8 @@ def merged(sets: Sequence[TFSet], names: Sequence[str]) -> TFSet:
     if all(t.in1_correlation is not None and t.responses == out.responses for t in sets):
         rho = np.concatenate([t.in1_correlation for t in sets], axis=-1)
     return replace(out, window=first.window, kernel=first.kernel, in1_correlation=rho,
-                   found=tuple(x for t in sets for x in t.found))
+                   found=tuple(x for t in sets for x in t.found),
+                   spans={k: v for t in sets for k, v in t.spans.items()})
 
 
 def _exc_keys(channels: Mapping[str, Channel]) -> list[tuple[str, str, str]]:
@@ -883,6 +911,7 @@ def _streamed(paths: Sequence[str | Path], bw: float, overlap: float, optic: str
         columns[key[2]] = {k: (h[i], g2[i]) for i, k in enumerate(keys)}
     tfs = assemble(key[1], freq, columns, averages, key[0])
     tfs.window = window
+    tfs.spans = {k[2]: span for k, span in excitations.items()}
     return tfs
 
 

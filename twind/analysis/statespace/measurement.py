@@ -86,6 +86,8 @@ class PlantSet:
     window : str
         ``"hann"`` (FFT measurements: each bin averages over the window's kernel) or
         ``"none"`` (swept sines: each point at its own frequency).
+    gps : float or None
+        The first measurement's start (GPS seconds), when the files have it.
     """
 
     optic: str
@@ -100,6 +102,7 @@ class PlantSet:
     loops: Mapping[str, LoopTF] = field(default_factory=dict)
     sources: tuple[str, ...] = ()
     window: str = "hann"
+    gps: float | None = None
 
     @property
     def resolution_hz(self) -> float:
@@ -138,7 +141,7 @@ class PlantSet:
                  for k, v in self.loops.items()}
         return PlantSet(self.optic, self.frequency_hz[keep], self.drives, self.readbacks,
                         self.H[keep], self.sigma[keep], self.coherence[keep], self.averages,
-                        self.channels, loops, self.sources, self.window)
+                        self.channels, loops, self.sources, self.window, self.gps)
 
     def to_json(self) -> dict:
         """The ``twind tf --json`` object: the plant, its errors, coherence, the bins
@@ -200,9 +203,10 @@ def read_plant(paths: Sequence[str | Path], optic: StateSpaceOptic) -> PlantSet:
     columns: dict[str, dict[str, tuple]] = {}
     loops: dict[str, LoopTF] = {}
     channels: dict[str, str] = {}
-    freq, averages, kinds = None, [], set()
+    freq, averages, kinds, starts = None, [], set(), []
     for path in paths:
         transfers = read_transfers(path)
+        starts += [t.gps for t in transfers if t.gps]
         drive, by_suffix = _by_suffix(path, transfers, optic)
         f = transfers[0].frequency_hz
         averages += [t.averages for t in transfers]
@@ -232,7 +236,7 @@ def read_plant(paths: Sequence[str | Path], optic: StateSpaceOptic) -> PlantSet:
     channels.update({r: optic.channel(r) for r in readbacks})
     return PlantSet(optic.name, np.asarray(freq), drives, readbacks, H, sigma, coh,
                     int(min(averages)), channels, loops, tuple(str(p) for p in paths),
-                    "hann" if kinds == {"FFT"} else "none")
+                    "hann" if kinds == {"FFT"} else "none", min(starts, default=None))
 
 
 def _by_suffix(path: str | Path, transfers: list[Transfer], optic: StateSpaceOptic
