@@ -7,6 +7,7 @@ import io
 import math
 import subprocess
 import sys
+import time
 from contextlib import redirect_stdout
 from pathlib import Path
 
@@ -64,3 +65,34 @@ def test_serve_record_inject_export(tmp_path: Path) -> None:
     assert list(seqs) == list(range(seqs[0], seqs[0] + len(seqs)))
     events = [e["event"] for e in session.events]
     assert "start" in events and events.count("refused") == 2
+
+
+@pytest.mark.slow
+def test_serve_starts_again_a_recorder_that_ends_and_says_so(tmp_path: Path) -> None:
+    """The recorder of ``serve --record`` killed while the twin serves: serve says so, starts
+    another (a file of its own) and the twin's status tells both; the gap is the outage."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    rec = tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--optics", "ETMX",
+                             "--listen", endpoint, "--speed", "2", "--duration", "40",
+                             "--record", str(rec)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    with TwinClient.wait([endpoint], alive=lambda: proc.poll() is None) as twin:
+        assert twin.status()["recorder"] == {"folder": str(rec), "recording": True,
+                                             "restarts": 0, "last_exit": None}
+        assert subprocess.run(["pkill", "-KILL", "-f", f"record -o {rec}"]).returncode == 0
+        deadline = time.monotonic() + 60
+        while (state := twin.status()["recorder"])["restarts"] < 1 or not state["recording"]:
+            assert time.monotonic() < deadline, state
+            time.sleep(0.2)
+        assert state["last_exit"] == -9
+    out = io.StringIO()
+    with redirect_stdout(out):
+        assert main(["status", "--connect", endpoint]) == 0
+    assert f"recorder: recording to {rec}, restarted 1 time(s)" in out.getvalue()
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert f"the recorder for {rec} ended (exit -9)" in err and "starting another" in err
+    starts = {p.name.rsplit("-", 1)[0] for p in rec.glob("*.mcap")}
+    assert len(starts) == 2  # two recordings, one before the outage and one after
+    assert read_session(sorted(rec.glob("*.mcap"))[-1]).channels

@@ -85,7 +85,7 @@ class StandIn:
         def on_query(query: zenoh.Query) -> None:
             request = json.loads(query.payload.to_string()) if query.payload is not None else {}
             self.reached.append((verb, request))
-            reply = {"ok": True, "ifo": "C1", "verb": verb}
+            reply = {"ok": True, "ifo": "C1", "verb": verb, "twin": "stand-in"}
             if verb == "inject":
                 reply |= {"accepted": True, "id": f"exc-{len(self.reached)}"}
             elif verb == "stop":

@@ -25,7 +25,8 @@ from servicekit import free_port, serving
 from twind import DOFS
 from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
-from twind.client import TwinClient
+from twind.cli import main
+from twind.client import InjectionRefused, SeveralTwins, TwinClient, TwinUnreachable
 from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
 from twind.limits import ServiceLimits
@@ -224,7 +225,7 @@ def test_excitations_are_counted_scheduled_ones_listed_and_stopped_at_once(
     waiting ones and ``stop all`` removes them at once, freeing their budget."""
     limits = fresh.accepts
     gps = _ask(fresh, "status", {})["gps"]
-    later = {"channel": EXC[3], "waveform": "sine", "amp": 0.0, "freq": 1.0, "duration": 1.0,
+    later = {"channel": EXC[3], "waveform": "sine", "amp": 1e-6, "freq": 1.0, "duration": 1.0,
              "start_gps": gps + 3600}
     ids = [_ask(fresh, "inject", later)["id"] for _ in range(limits.excitations_per_channel)]
     reply = _ask(fresh, "inject", later)
@@ -424,3 +425,138 @@ def _trip_and_rearm(svc: TwinService) -> None:
     assert _ask(svc, "params", {"optic": "ETMX"})["filters"]["POS"]["gain"] == 0.5
     bad = _ask(svc, "params", {"optic": "ETMX", "watchdog": "off"})
     assert not bad["ok"] and "rearm" in bad["reason"]
+
+
+# -- a client cannot be fooled by what is not a twin, nor by two twins ------------------
+@contextmanager
+def _bus() -> Iterator[tuple[str, zenoh.Session]]:
+    """A session listening on a port of its own, and its endpoint."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with zenoh.open(zenoh_config(listen=[endpoint])) as session:
+        yield endpoint, session
+
+
+def _impostor(session: zenoh.Session, verb: str, answer: bytes | None) -> zenoh.Queryable:
+    """A process answering on a twin's key what it likes (an error when `answer` is None)."""
+    def reply(query: zenoh.Query) -> None:
+        if answer is None:
+            query.reply_err(b"impostor says no")
+        else:
+            query.reply(query.key_expr, answer)
+    return session.declare_queryable(control_key("C1", verb), reply)
+
+
+def test_a_client_keeps_only_the_twins_replies() -> None:
+    """An impostor answering inject "ok", an error or bytes that are not UTF-8 beside a twin
+    that refuses: the client reports the twin's refusal; alone, the impostor is no twin."""
+    twin = load_config(None, ["ETMX"])
+    with _bus() as (endpoint, session):
+        svc = TwinService(session, twin, list(twin.optics.values()))
+        fakes = [_impostor(session, "inject", b'{"ok": true, "accepted": true, "id": "x"}'),
+                 _impostor(session, "inject", None), _impostor(session, "inject", b"\xff\xfe"),
+                 _impostor(session, "status", b'{"ok": true}')]
+        try:
+            with TwinClient([endpoint]) as client:
+                time.sleep(0.3)
+                with pytest.raises(InjectionRefused, match="5000"):
+                    client.inject(EXC[0], "sine", freq=3.0, amp=5000.0, duration=1.0)
+                assert client.last_reply["twin"] == svc.twin_id
+                (status,) = client.replies("status")
+                assert status["twin"] == svc.twin_id and "gps" in status
+        finally:
+            svc.close()
+        with TwinClient([endpoint], timeout=1.0) as client:
+            with pytest.raises(TwinUnreachable, match="no twin answered.*3 other answer"):
+                client.inject(EXC[0], "sine", freq=3.0, amp=0.1, duration=1.0)
+        for fake in fakes:
+            fake.undeclare()
+
+
+def test_two_twins_serving_one_optic_are_named_not_merged(capsys) -> None:  # noqa: ANN001
+    """Two twins of ETMX on one bus: an injection both start is an error naming both twins
+    and both ids; stop all stops it on both; status lists both."""
+    twin = load_config(None, ["ETMX"])
+    with _bus() as (endpoint, first), \
+            zenoh.open(zenoh_config(connect=[endpoint])) as second:
+        services = [TwinService(s, twin, list(twin.optics.values())) for s in (first, second)]
+        try:
+            with TwinClient([endpoint]) as client:
+                time.sleep(0.3)
+                with pytest.raises(SeveralTwins, match="2 twins did this inject") as info:
+                    client.inject(EXC[0], "sine", freq=3.0, amp=0.1, duration=100.0)
+                both = {r["twin"] for r in info.value.replies}
+                assert both == {s.twin_id for s in services}
+                ids = {r["id"] for r in info.value.replies}
+                assert set(client.stop()) == ids
+                assert all(not r["excitations"] for r in client.replies("status"))
+            assert main(["status", "--connect", endpoint]) == 0
+            out = capsys.readouterr().out
+            assert out.startswith("2 twins answer:")
+            assert all(s.twin_id in out for s in services)
+        finally:
+            for s in services:
+                s.close()
+
+
+def test_a_wildcard_runs_no_verb_a_refusal_echoes_little_and_zero_amplitude_is_refused(
+        fresh: TwinService) -> None:
+    """``twin/@/**`` used to run every verb (a stop among them); a 200 kB shape came back in
+    the reason and went into every recording; 64 excitations of amplitude 0 filled the slots."""
+    running = _ask(fresh, "inject", {"channel": EXC[0], "waveform": "sine", "amp": 0.1,
+                                     "freq": 3.0, "duration": 100.0})["id"]
+    replies = list(fresh._session.get("twin/@/**", payload=json.dumps({"all": True}),
+                                      timeout=2.0))
+    assert replies and all(r.ok is None for r in replies)
+    assert "on its own key" in replies[0].err.payload.to_string()
+    assert [e["id"] for e in _ask(fresh, "status", {})["excitations"]] == [running]
+    events: list[dict] = []
+    sub = fresh._session.declare_subscriber(
+        control_key("C1", "events"), lambda s: events.append(json.loads(s.payload.to_bytes())))
+    huge = _ask(fresh, "inject", {"channel": EXC[1], "waveform": "noise", "amp": 0.1,
+                                  "duration": 1.0, "shape": "gain(" * 50_000})
+    zero = _ask(fresh, "inject", {"channel": EXC[1], "waveform": "sine", "amp": 0.0,
+                                  "freq": 1.0, "duration": 1.0})
+    time.sleep(0.3)
+    sub.undeclare()
+    assert not huge["ok"] and len(huge["reason"]) < 1000
+    assert not zero["ok"] and "excites nothing" in zero["reason"]
+    assert events and all(len(json.dumps(e)) < 2000 for e in events)
+    _ask(fresh, "stop", {"all": True})
+
+
+def test_a_misspelt_or_mistyped_field_is_refused_and_a_stop_is_taken_once(
+        fresh: TwinService) -> None:
+    """``{"sett": ...}`` answered ok and changed nothing; ``{"set": {"mass_kg": true}}`` stored
+    True; ``stop`` with ``"ramp": 0`` ramped over the request's 30 s; a second stop of an
+    excitation still ramping down published a second stop."""
+    for request, words in (({"sett": {"mass_kg": 0.25}}, "unknown field(s): 'sett'"),
+                           ({"set": {"mass_kg": True}}, "'set' takes numbers"),
+                           ({"set": {"mass_kg": "heavy"}}, "'set' takes numbers")):
+        reply = _ask(fresh, "params", request)
+        assert not reply["ok"] and words in reply["reason"], reply
+    assert _ask(fresh, "params", {})["params"]["mass_kg"] != 0.25
+    act = _ask(fresh, "inject", {"channel": EXC[0], "waveform": "sine", "amp": 0.1,
+                                 "freq": 3.0, "duration": 100.0, "ramp": 30.0})["id"]
+    for _ in range(2):
+        fresh.step()
+    assert not _ask(fresh, "stop", {"id": act, "rampp": 0})["ok"]
+    assert _ask(fresh, "stop", {"id": act, "ramp": 0})["stopped"] == [act]
+    assert _ask(fresh, "stop", {"id": act})["stopped"] == []  # stopping already: no second
+    fresh.step()
+    fresh.step()
+    assert _ask(fresh, "status", {})["excitations"] == []  # gone at once, not in 30 s
+
+
+def test_the_memory_excitations_hold_is_bounded() -> None:
+    """64 multisines of a few hundred bytes each held a 2^22-sample period (2 GB in all):
+    past ``service.waveform_bytes`` an excitation is refused with the reason."""
+    nominal = load_config(None, ["ETMX"])
+    small = replace(nominal, service=replace(nominal.service, waveform_bytes=10_000_000))
+    with _serving(small) as svc:
+        # its period: 2^20 samples, 8 MB
+        tone = {"waveform": "multisine", "amp": 0.1, "freqs": [1.0, 1.0625],
+                "duration": 100.0}
+        assert _ask(svc, "inject", {"channel": EXC[0], **tone})["ok"]
+        reply = _ask(svc, "inject", {"channel": EXC[1], **tone})
+        assert not reply["ok"] and "service.waveform_bytes" in reply["reason"]
+        _ask(svc, "stop", {"all": True})

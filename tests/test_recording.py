@@ -7,6 +7,7 @@ recorder or replayer connects, with multicast scouting off.
 from __future__ import annotations
 
 import json
+import math
 import os
 import queue
 import shutil
@@ -16,6 +17,7 @@ import sys
 import threading
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -28,6 +30,7 @@ from mcap_reference import reference_session
 from servicekit import free_port
 
 from twind.bus.codec import SampleBlock
+from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
 from twind.channels import block_channels
 from twind.cli import build_parser, main
@@ -760,3 +763,52 @@ def test_a_damaged_chunk_inside_a_complete_file_costs_only_its_own_span(
     with open(tmp_path / "fixed.mcap", "rb") as fh:
         counts = make_reader(fh).get_summary().statistics.channel_message_counts
     assert sorted(counts.values())[-len(SYNTH):] == sorted(kept)
+
+
+def test_the_recorder_skips_what_no_twin_sends_and_its_file_stays_whole(tmp_path: Path) -> None:
+    """Forged blocks (GPS NaN, negative or far off, rate 0, a sequence beyond MCAP's 32 bits,
+    a block on another channel's key, the same block twice, one inside the block before it)
+    and forged events (a time of 1e300, a channel that is a number, not JSON) are skipped
+    and counted; the recording goes on and reads back whole, by twind and by mcap."""
+    port, out, lines = free_port(), tmp_path / "forged.mcap", []
+    ch, other = SYNTH[0], SYNTH[1]
+
+    def block(**change: object) -> bytes:
+        fields = {"channel": ch, "gps_start": GPS0 + 1e4, "rate_hz": 16384.0, "sequence": 50,
+                  "samples": np.ones(1024), "unit": "um", **change}
+        return SampleBlock(**fields).encode()
+
+    forged_blocks = [block(gps_start=math.nan), block(gps_start=-1.0),
+                     block(gps_start=1e300), block(rate_hz=0.0), block(rate_hz=math.inf),
+                     block(sequence=2**32), block(channel=other), block(samples=np.ones(0))]
+    events = control_key("C1", "events")
+    forged_events = [b'{"event": "start", "gps": 1e300}', b"not json",
+                     json.dumps({"event": "start", "gps": GPS0, "id": "x", "channel": 5}).encode()]
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        rec = Recorder(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), out,
+                       status_timeout=0.2, log=lines.append)
+        rec.start()
+        try:
+            pubs = _publishers(session, [ch])
+            _publish_synthetic(pubs, 5)
+            for data in forged_blocks:
+                pubs[ch].put(data)
+            pubs[ch].put(synthetic_block(ch, 4))  # the same block twice
+            inside = SampleBlock.decode(synthetic_block(ch, 5))
+            pubs[ch].put(replace(inside, gps_start=inside.gps_start - 0.01).encode())
+            for data in forged_events:
+                session.put(events, data)
+            _publish_synthetic(pubs, 10, first=5)
+            _until(lambda: rec.stats.blocks == 10 and rec.stats.invalid + rec.stats.undecodable
+                   == len(forged_blocks) + 2 + len(forged_events))
+        finally:
+            stats = rec.stop()
+    assert (stats.invalid, stats.undecodable, stats.restarts) == (12, 1, 0)
+    assert "skipped 12 blocks or events no twin sends" in stats.summary()
+    assert any("at GPS nan, not a time" in line for line in lines)  # once a key
+    session = read_session(out)
+    np.testing.assert_array_equal(session.channels[ch].samples, _expected(ch, range(10)))
+    assert not session.events and not session.gaps
+    with open(out, "rb") as fh:  # the standard reader reads every message
+        topics = [channel.topic for _, channel, _ in make_reader(fh).iter_messages()]
+    assert topics.count(f"twin/{ch}") == 10 and not any("events" in t for t in topics)

@@ -24,6 +24,7 @@ from twind.analysis.estimation.tf import (
 )
 from twind.cli import main
 from twind.config import load_config
+from twind.errors import MeasurementWarning
 from twind.model.analytical import analytical_mechanics
 from twind.model.plant import Plant
 
@@ -525,3 +526,18 @@ def test_an_excitation_too_short_for_the_resolution_says_which_would_do(tmp_path
     with pytest.raises(TFError, match=r"less than 1/bw = 100 s \(--bw, default 0\.01 Hz\); "
                                       r"--bw 0\.1 needs 10 s"):
         from_session([path], bw=0.01)
+
+
+def test_events_no_twin_sends_are_left_out_with_a_warning() -> None:
+    """A start without its channel (a forged or careless message recorded before the recorder
+    checked events) is left out, said once, and the excitation beside it still read."""
+    from twind.analysis.estimation.tf import _segments
+
+    good = {"event": "start", "id": "e1", "channel": "C1:SUS-ETMX_SUSPOS_EXC",
+            "gps": 1e9, "start_gps": 1e9, "request": {"duration": 10.0}}
+    forged = [{"event": "start", "id": "e2", "gps": 1e9, "start_gps": 1e9},
+              {"event": "stop", "id": "e1", "channel": good["channel"], "start_gps": 1e9,
+               "gps": 1e300}]
+    with pytest.warns(MeasurementWarning, match="2 event.s. in the recording left out"):
+        segments = _segments([good, *forged])
+    assert segments == {("C1", "ETMX", "POS"): (1e9, 1e9 + 10.0)}

@@ -28,6 +28,20 @@ class TwinUnreachable(TwindError):
     """No twin answered on the bus."""
 
 
+class SeveralTwins(TwindError):
+    """More than one twin did what one request asked: two twins serve the same optic.
+
+    Attributes
+    ----------
+    replies : list of dict
+        Each twin's reply (its ``twin`` and, for an injection, its excitation ``id``).
+    """
+
+    def __init__(self, msg: str, replies: list[dict]) -> None:
+        super().__init__(msg)
+        self.replies = replies
+
+
 class AccessRefused(TwinUnreachable):
     """A twin answers ``status`` but not this request: Zenoh's access control dropped it.
 
@@ -69,6 +83,7 @@ class TwinClient:
     def __init__(self, connect: Sequence[str] = (DEFAULT_ENDPOINT,), ifo: str = "C1",
                  timeout: float = 5.0, root: str = ROOT, config_file: str | None = None) -> None:
         self.ifo, self.timeout, self.root = ifo, timeout, root
+        self.last_reply: dict = {}  # the reply :meth:`query` returned last (its twin)
         try:
             self._session = zenoh.open(zenoh_config(connect=connect, mode="client",
                                                     config_file=config_file))
@@ -118,11 +133,60 @@ class TwinClient:
                     raise
                 time.sleep(0.2)
 
-    def query(self, verb: str, request: dict | None = None) -> dict:
-        """Send one control request and return the reply.
+    def replies(self, verb: str, request: dict | None = None) -> list[dict]:
+        """Send one control request and return every twin's reply.
 
-        With one twin per host every twin answers; the reply that succeeded wins (the twin
-        that runs the optic), otherwise the first refusal with its reason.
+        A reply counts when it is a JSON object naming the twin that sent it (``twin``);
+        anything else that answers on the key (an error, bytes that are not JSON, a process
+        that is not a twin) is left out, and said so when no twin answered.
+
+        Parameters
+        ----------
+        verb : str
+            ``status``, ``inject``, ``stop``, ``params`` or ``filter``.
+        request : dict, optional
+            The request's JSON object.
+
+        Returns
+        -------
+        list of dict
+            The twins' replies, one per twin.
+
+        Raises
+        ------
+        TwinUnreachable
+            If no twin answers within the timeout.
+        AccessRefused
+            If the twin answers ``status`` but not `verb` (the session's rights).
+        """
+        key = control_key(self.ifo, verb, self.root)
+        replies, others = [], []
+        # no consolidation: every twin's reply, not only the last one per key
+        for reply in self._session.get(key, payload=json.dumps(request or {}), timeout=self.timeout,
+                                       consolidation=zenoh.ConsolidationMode.NONE):
+            answer = _twin_reply(reply)
+            (replies if isinstance(answer, dict) else others).append(answer)
+        if replies:
+            return replies
+        if others:
+            msg = f"no twin answered on {key}; {len(others)} other answer(s): {others[0]}"
+            raise TwinUnreachable(msg)
+        if verb != "status" and self._answers_status():
+            msg = (f"the twin answers status but not {verb} ({key}): most likely the "
+                   f"access rights of this session do not allow {verb}; log in as a user "
+                   "who may (an operator, --zenoh-config), see deploy/README.md")
+            raise AccessRefused(msg)
+        msg = (f"no twin answered on {key} within {self.timeout} s: is `twind serve` "
+               "running and reachable at the endpoint given (--connect)?")
+        raise TwinUnreachable(msg)
+
+    def query(self, verb: str, request: dict | None = None) -> dict:
+        """Send one control request and return the reply of the twin it concerns.
+
+        Every twin on the bus answers; the one that did what was asked (its reply ``ok``)
+        answers for all, otherwise the first refusal with its reason. Where several twins
+        did it (two twins serving one optic), that is an error naming them: their replies
+        are not merged.
 
         Parameters
         ----------
@@ -134,34 +198,25 @@ class TwinClient:
         Returns
         -------
         dict
-            The reply's JSON object.
+            The reply's JSON object; ``twin`` names the twin.
 
         Raises
         ------
-        TwinUnreachable
-            If no twin answers within the timeout.
-        AccessRefused
-            If the twin answers ``status`` but not `verb` (the session's rights).
+        TwinUnreachable, AccessRefused
+            As :meth:`replies`.
+        SeveralTwins
+            If more than one twin did what was asked.
         """
-        key = control_key(self.ifo, verb, self.root)
-        replies = []
-        # no consolidation: every twin's reply, not only the last one per key
-        for reply in self._session.get(key, payload=json.dumps(request or {}), timeout=self.timeout,
-                                       consolidation=zenoh.ConsolidationMode.NONE):
-            if reply.ok is None:
-                msg = f"{key}: {reply.err.payload.to_string()}"
-                raise TwindError(msg)
-            replies.append(json.loads(reply.ok.payload.to_string()))
-        if not replies:
-            if verb != "status" and self._answers_status():
-                msg = (f"the twin answers status but not {verb} ({key}): most likely the "
-                       f"access rights of this session do not allow {verb}; log in as a user "
-                       "who may (an operator, --zenoh-config), see deploy/README.md")
-                raise AccessRefused(msg)
-            msg = (f"no twin answered on {key} within {self.timeout} s: is `twind serve` "
-                   "running and reachable at the endpoint given (--connect)?")
-            raise TwinUnreachable(msg)
-        return next((r for r in replies if r.get("ok")), replies[0])
+        replies = self.replies(verb, request)
+        done = [r for r in replies if r.get("ok") and r.get("accepted", True)]
+        if verb != "status" and len(done) > 1:
+            ids = "; ".join(f"twin {r['twin']}" + (f" (id {r['id']})" if "id" in r else "")
+                            for r in done)
+            msg = (f"{len(done)} twins did this {verb}, where one serves each optic: {ids}; "
+                   "twind status lists them, twind stop all stops every excitation")
+            raise SeveralTwins(msg, done)
+        self.last_reply = (done or replies)[0]
+        return self.last_reply
 
     def _answers_status(self) -> bool:
         key = control_key(self.ifo, "status", self.root)
@@ -202,11 +257,12 @@ class TwinClient:
         return reply["id"]
 
     def stop(self, exc_id: str | None = None) -> list[str]:
-        """Stop one excitation by id, or all of them when `exc_id` is None."""
-        reply = self.query("stop", {"all": True} if exc_id is None else {"id": exc_id})
-        if not reply.get("ok"):
-            raise TwindError(reply.get("reason", "stop failed"))
-        return reply["stopped"]
+        """Stop one excitation by id, or all of them, on every twin, when `exc_id` is None."""
+        replies = self.replies("stop", {"all": True} if exc_id is None else {"id": exc_id})
+        done = [r for r in replies if r.get("ok")]
+        if not done:
+            raise TwindError(replies[0].get("reason", "stop failed"))
+        return [x for r in done for x in r.get("stopped", [])]
 
     def params(self, optic: str, effect: dict | None = None, **changes: float) -> dict:
         """An optic's parameters and filter modules, set live first if asked.
@@ -320,3 +376,17 @@ class TwinClient:
     def __exit__(self, et: type[BaseException] | None, ev: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+
+def _twin_reply(reply: zenoh.Reply) -> dict | str:
+    """A twin's reply as its JSON object, or what else answered, in words."""
+    if reply.ok is None:
+        return f"an error: {reply.err.payload.to_bytes().decode(errors='replace')[:200]}"
+    raw = reply.ok.payload.to_bytes()
+    try:
+        answer = json.loads(raw)
+    except ValueError:  # UnicodeDecodeError is one
+        return f"{len(raw)} bytes that are not JSON"
+    if not (isinstance(answer, dict) and isinstance(answer.get("twin"), str)):
+        return f"a reply that names no twin: {raw[:120].decode(errors='replace')}"
+    return answer

@@ -35,6 +35,10 @@ class ServiceLimits:
         hung) before Zenoh closes that subscriber's session. Blocks wait for a slow reader,
         so that a recording has no gap, but one stalled client holds the loop and every
         other subscriber at most this long; it reconnects when it runs again.
+    waveform_bytes : int
+        Memory the running and scheduled excitations' waveforms may hold in all (a
+        multisine keeps its whole period: 32 MB for 2^22 samples), so that a few short
+        requests cannot fill the host's memory.
     """
 
     exc_peak: float = 100.0
@@ -46,3 +50,4 @@ class ServiceLimits:
     watchdog_um: float = 1000.0
     changes_per_minute: int = 60
     subscriber_wait_s: float = 0.5
+    waveform_bytes: int = 512_000_000

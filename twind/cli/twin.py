@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import numpy as np
 
@@ -69,6 +70,8 @@ def cmd_inject(args: argparse.Namespace) -> int:
     with client(args, args.channel) as twin:
         exc_id = twin.inject(args.channel, args.waveform, **settings)
     print(exc_id)
+    print(f"twind inject: {args.channel} started by twin {twin.last_reply['twin']}",
+          file=sys.stderr)
     return 0
 
 
@@ -81,19 +84,35 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    """Print the service status."""
+    """Print the status of every twin that answers."""
     with client(args) as twin:
-        status = twin.status()
+        replies = twin.replies("status")
     if args.json:
-        print(strictjson.dumps(status))
+        print(strictjson.dumps(replies[0] if len(replies) == 1 else {"twins": replies}))
         return 0
-    print(f"{status['ifo']} twin of {', '.join(status['optics'])}: GPS {status['gps']:.3f}, "
-          f"up {status['uptime_s']:.1f} s, {status['real_time_factor']:.3f} x real time "
-          f"(speed {status['speed']:g}), lag {1e3 * status['lag_s']:.1f} ms "
-          f"(max {1e3 * status['max_lag_s']:.1f}), {status['late_blocks']} late blocks, "
-          f"busy {100 * status['cpu_fraction']:.1f} %")
+    if len(replies) > 1:
+        print(f"{len(replies)} twins answer:")
+    for status in replies:
+        try:
+            _print_status(status)
+        except (KeyError, TypeError, ValueError) as err:
+            print(f"twin {status['twin']}: a status twind cannot read ({err!r} missing or "
+                  "not a number)")
+    return 0
+
+
+def _print_status(status: dict) -> None:
+    print(f"{status['ifo']} twin of {', '.join(status['optics'])} ({status['twin']}): GPS "
+          f"{status['gps']:.3f}, up {status['uptime_s']:.1f} s, "
+          f"{status['real_time_factor']:.3f} x real time (speed {status['speed']:g}), lag "
+          f"{1e3 * status['lag_s']:.1f} ms (max {1e3 * status['max_lag_s']:.1f}), "
+          f"{status['late_blocks']} late blocks, busy {100 * status['cpu_fraction']:.1f} %")
+    rec = status.get("recorder")
+    if rec:
+        again = f", restarted {rec['restarts']} time(s)" if rec["restarts"] else ""
+        print(f"  recorder: {'recording' if rec['recording'] else 'NOT RECORDING'} to "
+              f"{rec['folder']}{again}")
     for exc in status["excitations"]:
         when = "waits for" if exc["scheduled"] else "since"
         print(f"  {exc['id']}: {exc['waveform']} on {exc['channel']}, {when} GPS "
               f"{exc['start_gps']:.3f}")
-    return 0

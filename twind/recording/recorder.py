@@ -46,6 +46,7 @@ from twind.bus.keys import all_data, control_key
 from twind.bus.session import DEFAULT_ENDPOINT, free_port, zenoh_config
 from twind.channels import TEST_POINTS, dof_channel, osem_channel
 from twind.recording.session import RecordingError, rotated_name
+from twind.recording.validate import block_problem, event_problem
 from twind.recording.writer import CHUNK_BYTES, CHUNK_SECONDS, BlockHeader, McapSession, scan_block
 from twind.timeutil import now_gps
 
@@ -71,6 +72,9 @@ class RecordingStats:
         Messages dropped because the writer fell more than ``max_backlog_bytes`` behind.
     undecodable : int
         Messages on data keys that were not SampleBlocks (skipped).
+    invalid : int
+        Blocks and events no twin sends (:mod:`twind.recording.validate`: a forged time,
+        rate, sequence or channel; a block overlapping the one before it), skipped.
     elapsed_s : float
         Wall-clock seconds from subscribing to the end.
     max_backlog_bytes : int
@@ -90,6 +94,7 @@ class RecordingStats:
     channels: set[str] = field(default_factory=set)
     dropped: int = 0
     undecodable: int = 0
+    invalid: int = 0
     elapsed_s: float = 0.0
     max_backlog_bytes: int = 0
     restarts: int = 0
@@ -108,6 +113,8 @@ class RecordingStats:
             line += f"; DROPPED {self.dropped} messages: the disk could not keep up"
         if self.undecodable:
             line += f"; skipped {self.undecodable} messages that were not SampleBlocks"
+        if self.invalid:
+            line += f"; skipped {self.invalid} blocks or events no twin sends"
         if self.restarts or self.silences:
             line += (f"; the twin fell silent {self.silences} time(s) and restarted "
                      f"{self.restarts} time(s), each marked in the file")
@@ -200,6 +207,7 @@ class Recorder:
         self._t_start = 0.0
         self.silence_s = silence_s
         self._last_sequence: dict[str, int] = {}  # the writer thread's, as below
+        self._ends: dict[str, float] = {}  # GPS where each channel's last block ends
         self._last_block: tuple[float, float] | None = None  # (monotonic, GPS end)
         self._silent = False
 
@@ -442,12 +450,7 @@ class Recorder:
                 if kind == _DATA:
                     self._write_block(key, data)
                 else:
-                    try:
-                        self._file.write_event(data)
-                        stats.events += 1
-                    except ValueError:
-                        stats.undecodable += 1
-                        self._warn_once(key, "an event that is not JSON")
+                    self._write_event(key, data)
                 self._file.maybe_flush(self.chunk_seconds)
         except BaseException as err:  # noqa: BLE001 - reported by stop()
             self._error, self._failed = err, True
@@ -456,12 +459,32 @@ class Recorder:
             while self._queue.get() is not _STOP:
                 pass
 
+    def _write_event(self, key: str, data: bytes) -> None:
+        try:
+            event = json.loads(data)
+        except ValueError:
+            self.stats.undecodable += 1
+            self._warn_once(key, "an event that is not JSON")
+            return
+        problem = event_problem(event)
+        if problem:
+            self.stats.invalid += 1
+            self._warn_once(key, problem)
+            return
+        self._file.write_event(event)
+        self.stats.events += 1
+
     def _write_block(self, key: str, data: bytes) -> None:
         try:
             header = scan_block(data)
         except ValueError as err:
             self.stats.undecodable += 1
             self._warn_once(key, f"not a twind.v1.SampleBlock ({err})")
+            return
+        problem = block_problem(key, header) or self._overlap(key, header)
+        if problem:
+            self.stats.invalid += 1
+            self._warn_once(key, problem)
             return
         f = self._file
         if self.rotate_bytes and f.messages > 1 and \
@@ -475,6 +498,19 @@ class Recorder:
         self.stats.blocks += 1
         self.stats.block_bytes += len(data)
         self.stats.channels.add(key)
+
+    def _overlap(self, key: str, header: BlockHeader) -> str | None:
+        """A block of a channel that repeats or overlaps the one before it: not written (a
+        reader takes a file's blocks of a channel to follow one another)."""
+        last = self._last_sequence.get(key)
+        end = self._ends.get(key)
+        if last is None or end is None or header.sequence < last:  # the first, or a restart
+            return None
+        if header.sequence == last:
+            return "the same block twice"
+        if header.gps_start < end - 0.5 / header.rate_hz:
+            return f"a block at GPS {header.gps_start:.6f}, inside the one before it"
+        return None
 
     def _follow(self, key: str, header: BlockHeader) -> None:
         """Mark the twin's return after a silence and its restarts (a channel's numbering
@@ -494,8 +530,9 @@ class Recorder:
                       "the file")
             self._last_sequence.clear()  # every channel begins again: one mark
         self._last_sequence[key] = header.sequence
-        n = sum(b for _, b in header.runs) // 8
-        self._last_block = (time.monotonic(), header.gps_start + n / header.rate_hz)
+        end = header.gps_start + header.n_samples / header.rate_hz
+        self._ends[key] = end
+        self._last_block = (time.monotonic(), end)
 
     def _check_silence(self) -> None:
         """Report, once, a twin that sent no block for :attr:`silence_s`."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -67,10 +68,13 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
         with zenoh.open(conf) as session:
             # the recorder subscribes before the service answers anything, so that no block
             # and no injection event escapes the recording
-            recorder = (_recorder(record_dir, endpoints, twin.ifo, record_config)
+            recorder = (Recording(record_dir, endpoints, twin.ifo, record_config)
                         if record_dir else None)
             kind = PlantTwinService if kinds == {"statespace"} else TwinService
             service = kind(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
+            if recorder is not None:
+                service.recorder_status = recorder.state
+                threading.Thread(target=recorder.watch, args=(stop,), daemon=True).start()
             print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
                   f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "
                   f"{service.gps0:.3f}, on {' '.join(endpoints) or 'the configured endpoints'}"
@@ -85,7 +89,7 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
                 service.close()
     finally:
         if recorder is not None:
-            _stop_recorder(recorder)
+            recorder.stop()
     print(f"twind serve: stopped after {status['blocks']} blocks, {status['late_blocks']} late, "
           f"max lag {status['max_lag_s'] * 1e3:.1f} ms, busy {100 * status['cpu_fraction']:.1f} %",
           file=sys.stderr)
@@ -156,6 +160,10 @@ def _recorder(folder: str, endpoints: Sequence[str], ifo: str,
 
     Path(folder).mkdir(parents=True, exist_ok=True)
     out = Path(folder) / f"{ifo}-twin-{int(now_gps())}.mcap"
+    for k in itertools.count(2):  # a recorder started again within the same second
+        if not out.with_name(f"{out.stem}-0001.mcap").exists():
+            break
+        out = Path(folder) / f"{ifo}-twin-{int(now_gps())}r{k}.mcap"
     connect = [a for e in endpoints for a in ("--connect", e.replace("0.0.0.0", "127.0.0.1"))]
     proc = subprocess.Popen([sys.executable, "-m", "twind", "record", "-o", str(out),
                              "--mode", "client", "--rotate-s", "3600", "--ifo", ifo,
@@ -171,6 +179,67 @@ def _recorder(folder: str, endpoints: Sequence[str], ifo: str,
             raise TwindError(msg)
         time.sleep(0.05)
     return proc
+
+
+class Recording:
+    """The recorder ``serve --record`` runs beside the twin, watched: one that ends while the
+    twin serves (killed, its disk full) is said so on the terminal and in the twin's status,
+    and started again in a file of its own, :data:`RESTARTS` times at most.
+
+    Parameters
+    ----------
+    folder : str
+        Where it records.
+    endpoints : sequence of str
+        Where the twin listens.
+    ifo : str
+        The interferometer prefix.
+    zenoh_config_file : str, optional
+        The recorder's own Zenoh configuration.
+    """
+
+    RESTARTS = 5
+
+    def __init__(self, folder: str, endpoints: Sequence[str], ifo: str,
+                 zenoh_config_file: str | None = None) -> None:
+        self.folder = folder
+        self._args = (folder, endpoints, ifo, zenoh_config_file)
+        self.proc: subprocess.Popen | None = _recorder(*self._args)
+        self.restarts = 0
+        self.last_exit: int | None = None
+
+    def watch(self, stop: threading.Event, every_s: float = 1.0) -> None:
+        """Look at the recorder every `every_s` until `stop` is set."""
+        while not stop.wait(every_s):
+            proc = self.proc
+            if proc is None or proc.poll() is None:
+                continue
+            self.last_exit, self.proc = proc.returncode, None
+            if stop.is_set():
+                return
+            again = self.restarts < self.RESTARTS
+            print(f"twind serve: the recorder for {self.folder} ended (exit "
+                  f"{proc.returncode}) at {time.strftime('%H:%M:%S')}; "
+                  + ("starting another: the recording has a gap" if again else
+                     f"not started again after {self.RESTARTS} restarts: NOT RECORDING"),
+                  file=sys.stderr, flush=True)
+            if again:
+                self.restarts += 1
+                try:
+                    self.proc = _recorder(*self._args)
+                except TwindError as err:
+                    print(f"twind serve: {err}: NOT RECORDING", file=sys.stderr, flush=True)
+
+    def state(self) -> dict:
+        """For the twin's status: the folder, whether it records, its restarts."""
+        proc = self.proc
+        return {"folder": self.folder, "recording": proc is not None and proc.poll() is None,
+                "restarts": self.restarts, "last_exit": self.last_exit}
+
+    def stop(self) -> None:
+        """End the recording (its file complete)."""
+        if self.proc is not None:
+            _stop_recorder(self.proc)
 
 
 def _stop_recorder(proc: subprocess.Popen) -> None:

@@ -13,6 +13,8 @@ import collections
 import itertools
 import json
 import math
+import os
+import socket
 import threading
 import time
 import uuid
@@ -29,7 +31,7 @@ from twind.channels import block_channels, dof_channel
 from twind.config import OpticConfig, TwinConfig
 from twind.errors import FotonError, TwindError
 from twind.excitation import ExcitationError, ExcitationRequest, Limits, check, make_waveform
-from twind.excitation.request import is_int, is_real
+from twind.excitation.request import MAX_FINITE_SAMPLES, is_int, is_real
 from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import FilterModule
 from twind.loop.foton_file import N_STAGES
@@ -57,6 +59,7 @@ class Active:
     start_sample: int
     waveform: object = field(repr=False)
     received: float = 0.0  # monotonic time the request was taken up
+    stopping: bool = False  # asked to stop: ramping down
 
 
 @dataclass
@@ -132,9 +135,11 @@ class TwinService:
         self._unpublished: dict[str, Active] = {}  # accepted, first sample not yet published
         tag = uuid.uuid4().hex[:6]  # ids stay unique when several twins share a router
         self._ids = (f"exc-{tag}-{i}" for i in itertools.count(1))
+        self.twin_id = f"{socket.gethostname()}/{os.getpid()}/{tag}"  # in every reply, event
         self._ended: set[str] = set()
         self._started = self._t0 = time.monotonic()
         self._end: int | None = None  # the sample the service stops at, when it is to stop
+        self.recorder_status: Callable[[], dict] | None = None  # serve --record's recorder
         self._session = session
         # Zenoh drops samples under congestion by default; a twin whose recordings have gaps is
         # worse than one that waits a moment for a slow subscriber
@@ -146,8 +151,8 @@ class TwinService:
             "status": lambda _: self.status(), "inject": self.inject, "stop": self.stop,
             "params": self.params, "filter": self.filter}
         self._queryables = [
-            session.declare_queryable(control_key(twin.ifo, verb, root), self._answer(verb))
-            for verb in VERBS]
+            session.declare_queryable(key, self._answer(verb, key))
+            for verb in VERBS for key in (control_key(twin.ifo, verb, root),)]
 
     def _start_engine(self, seed: int) -> None:
         """The engine, warmed up, and the channels it publishes (:attr:`_channels`: name,
@@ -281,10 +286,14 @@ class TwinService:
         return exc
 
     # ---------------------------------------------------------------------------- control
-    def _answer(self, verb: str) -> Callable[[zenoh.Query], None]:
+    def _answer(self, verb: str, key: str) -> Callable[[zenoh.Query], None]:
         def on_query(query: zenoh.Query) -> None:
+            if str(query.key_expr) != key:  # a wildcard would run every verb at once
+                query.reply_err(f"ask {verb} on its own key {key}, not {query.key_expr}")
+                return
             payload = query.payload if query.payload is not None else b""
-            query.reply(query.key_expr, strictjson.dumps(self.handle(verb, payload)))
+            reply = self.status() if verb == "status" else self.handle(verb, payload)
+            query.reply(query.key_expr, strictjson.dumps({**reply, "twin": self.twin_id}))
 
         return on_query
 
@@ -323,8 +332,8 @@ class TwinService:
                 return self.inject(request, received)
             return self._handlers[verb](request)
         except Exception as err:  # noqa: BLE001 - every request gets an answer, never silence
-            return {"ok": False, "accepted": False, "reason": f"{type(err).__name__}: {err}"
-                    if not isinstance(err, TwindError) else str(err)}
+            return {"ok": False, "accepted": False, "reason": _cut(
+                f"{type(err).__name__}: {err}" if not isinstance(err, TwindError) else str(err))}
 
     def status(self) -> dict:
         """Real-time factor, lag, late blocks, active excitations, uptime."""
@@ -335,7 +344,8 @@ class TwinService:
                        "start_gps": self.gps0 + a.start_sample / self.rate,
                        "scheduled": a.start_sample >= self.engine.samples}
                       for a in self._active.values()]
-        return {"ok": True, "ifo": self.twin.ifo, "optics": [o.name for o in self.optics],
+        return {"ok": True, "twin": self.twin_id, "ifo": self.twin.ifo,
+                "optics": [o.name for o in self.optics],
                 "rate_hz": self.rate, "block_s": self.block_s, "speed": self.speed,
                 "gps": self.gps0 + twin_time, "uptime_s": uptime, "blocks": self.stats.blocks,
                 "real_time_factor": twin_time / uptime if uptime > 0 else 0.0,
@@ -344,7 +354,8 @@ class TwinService:
                 "injection_latency_s": self.stats.latency(),
                 "cpu_fraction": self.stats.busy_s / uptime if uptime > 0 else 0.0,
                 "excitations": active, "config": self.twin.source,
-                "watchdogs": self._watchdogs()}
+                "watchdogs": self._watchdogs(),
+                "recorder": self.recorder_status() if self.recorder_status else None}
 
     def inject(self, request: dict, received: float | None = None) -> dict:
         """Accept an excitation (reply with its id) or refuse it with the reason.
@@ -369,12 +380,16 @@ class TwinService:
             req = ExcitationRequest.from_json(request)
             optic, dof = self._test_point(req.channel)
         except (ExcitationError, TwindError) as err:  # maybe another twin's channel: no event
-            return {"ok": False, "accepted": False, "reason": str(err)}
+            return {"ok": False, "accepted": False, "reason": _cut(str(err))}
+        if req.waveform != "stream" and req.amp == 0:
+            return {"ok": False, "accepted": False, "reason": "amp: 0 excites nothing, and "
+                    "would hold one of the test point's slots"}
         try:
             check(req, self._room_left(optic, dof), self.rate)
         except ExcitationError as err:
-            self._publish_event("refused", None, request=_summary(req.to_json()), reason=str(err))
-            return {"ok": False, "accepted": False, "reason": str(err)}
+            reason = _cut(str(err))
+            self._publish_event("refused", None, request=_summary(req.to_json()), reason=reason)
+            return {"ok": False, "accepted": False, "reason": reason}
         with self._lock:
             next_sample = self.engine.samples
             if req.start_gps is None:
@@ -391,8 +406,15 @@ class TwinService:
             crowded = self._crowded(optic, dof, start - next_sample) or self._past_end(req, start)
             if crowded:
                 return {"ok": False, "accepted": False, "reason": f"{req.channel}: {crowded}"}
-            act = Active(next(self._ids), req, optic, dof, start, make_waveform(req, self.rate),
-                         received)
+            waveform = make_waveform(req, self.rate)
+            held = _held_bytes(waveform) + sum(_held_bytes(a.waveform)
+                                                for a in self._active.values())
+            if held > self.accepts.waveform_bytes:
+                reason = (f"{req.channel}: the excitations' waveforms would hold "
+                          f"{held / 1e6:.0f} MB, beyond the {self.accepts.waveform_bytes / 1e6:.0f}"
+                          " MB the twin keeps for them (service.waveform_bytes)")
+                return {"ok": False, "accepted": False, "reason": reason}
+            act = Active(next(self._ids), req, optic, dof, start, waveform, received)
             self._active[act.id] = act
             if req.start_gps is None:  # "now": its latency is the service's
                 self._unpublished[act.id] = act
@@ -438,24 +460,32 @@ class TwinService:
                       rms=math.sqrt(max(0.0, self.limits.rms**2 - rms**2)))
 
     def stop(self, request: dict) -> dict:
-        """Stop an excitation by id (``{"id": ...}``), or all with ``{"all": true}``."""
+        """Stop an excitation by id (``{"id": ...}``), or all with ``{"all": true}``; it
+        ramps down over its request's ``ramp``, or ``"ramp"`` seconds if given."""
+        _known(request, ("id", "all", "ramp"), "stop")
         if request.get("all") is not True and not isinstance(request.get("id"), str):
             msg = 'stop takes {"id": "<the id inject returned>"} or {"all": true}'
+            raise TwindError(msg)
+        ramp = request.get("ramp")
+        if ramp is not None and not (_number(ramp) and 0 <= ramp * self.rate <= MAX_FINITE_SAMPLES):
+            msg = f"'ramp' takes a number of seconds >= 0, got {str(ramp)[:40]}"
             raise TwindError(msg)
         with self._lock:
             ids = list(self._active) if request.get("all") is True else [request["id"]]
             ended = [i for i in ids if i in self._ended]
             missing = [i for i in ids if i not in self._active and i not in self._ended]
             if missing:
-                return {"ok": False, "reason": f"no excitation {missing[0]!r}"}
-            stopping = [self._active[i] for i in ids if i in self._active]
+                return {"ok": False, "reason": _cut(f"no excitation {missing[0]!r}")}
+            stopping = [self._active[i] for i in ids
+                        if i in self._active and not self._active[i].stopping]
             for act in stopping:
+                act.stopping = True
                 if act.start_sample >= self.engine.samples:  # never ran: gone at once
                     del self._active[act.id]
                     self._unpublished.pop(act.id, None)
                     self._ended.add(act.id)
-                else:  # ramp down as the request asked, no kick to the optic
-                    act.waveform.stop(act.request.ramp)
+                else:  # ramp down as asked, no kick to the optic
+                    act.waveform.stop(act.request.ramp if ramp is None else ramp)
         for act in stopping:
             self._publish_event("stop", act)
         return {"ok": True, "stopped": [a.id for a in stopping], "already_ended": ended}
@@ -466,6 +496,7 @@ class TwinService:
         leaves out (the catalogue of docs/model.md; ``{"id": null}`` removes it), kept across later
         changes of the nominal parameters; ``"watchdog": "rearm"`` re-arms a tripped
         watchdog."""
+        _known(request, ("optic", "set", "effect", "watchdog"), "params")
         name = request.get("optic", self.optics[0].name)
         index = self._optic_index(name)
         watchdog = request.get("watchdog")
@@ -484,8 +515,12 @@ class TwinService:
             raise TwindError(msg)
         unknown = [k for k in changes if k not in LIVE_PARAMS]
         if unknown:
-            msg = (f"cannot change {', '.join(unknown)} live; parameters: "
+            msg = (f"cannot change {', '.join(unknown)[:200]} live; parameters: "
                    f"{', '.join(sorted(LIVE_PARAMS))}")
+            raise TwindError(msg)
+        bad = [k for k, v in changes.items() if not _number(v)]
+        if bad:
+            msg = f"'set' takes numbers; {bad[0]} is {str(changes[bad[0]])[:40]}"
             raise TwindError(msg)
         if effect is not None and not (isinstance(effect, dict) and "id" in effect):
             msg = "'effect' must be an object {\"id\": <catalogue id or null>, \"values\": {...}}"
@@ -581,7 +616,8 @@ class TwinService:
         raise TwindError(msg)
 
     def _publish_event(self, event: str, act: Active | None, **extra: object) -> None:
-        body: dict = {"event": event, "gps": self.gps0 + self.engine.samples / self.rate, **extra}
+        body: dict = {"event": event, "gps": self.gps0 + self.engine.samples / self.rate,
+                      "twin": self.twin_id, **extra}
         if act is not None:
             body.update(id=act.id, channel=act.request.channel,
                         start_gps=self.gps0 + act.start_sample / self.rate,
@@ -675,12 +711,44 @@ def _jsonable(obj: object) -> str:
     return str(obj)
 
 
+def _held_bytes(waveform: object) -> int:
+    """Memory a waveform keeps: a multisine's period, a stream's samples."""
+    held = getattr(waveform, "period_samples", 0)
+    samples = getattr(waveform, "_samples", None)
+    return 8 * (held + (samples.size if samples is not None else 0))
+
+
+def _number(value: object) -> bool:
+    """A finite JSON number (not a boolean)."""
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value))
+
+
+def _known(request: dict, fields: tuple[str, ...], verb: str) -> None:
+    """Refuse a request with a field `verb` does not take: a misspelt one does nothing."""
+    unknown = sorted(set(request) - set(fields))
+    if unknown:
+        msg = (f"{verb} takes {', '.join(fields)}; unknown field(s): "
+               f"{', '.join(map(repr, unknown))[:200]}")
+        raise TwindError(msg)
+
+
 def _summary(request: dict) -> dict:
-    """A request for the event log: a stream's samples only by count and RMS."""
+    """A request for the event log: a stream's samples only by count and RMS, any other
+    long string cut to :data:`ECHO_CHARS`."""
     samples = request.get("samples")
     if isinstance(samples, list):
         x = np.asarray(samples, dtype=float)
         with np.errstate(over="ignore"):  # a refused stream of 1e300s: its RMS is inf
             rms = float(np.sqrt(np.mean(x**2))) if x.size else 0.0
         request = {**request, "samples": {"n": int(x.size), "rms": rms}}
-    return request
+    return {k: _cut(v) if isinstance(v, str) else v for k, v in request.items()}
+
+
+ECHO_CHARS = 300
+"""The longest piece of a request a reply or an event repeats: a refused 5 MB shape is not
+sent back whole, nor written into every recording."""
+
+
+def _cut(text: str) -> str:
+    return text if len(text) <= ECHO_CHARS else f"{text[:ECHO_CHARS]}... ({len(text)} characters)"

@@ -37,6 +37,7 @@ from twind.errors import MeasurementWarning, TwindError
 from twind.recording.fastread import event_count, read_channels, stream_channels
 from twind.recording.frames import is_frames, read_frames, same_channels
 from twind.recording.session import Channel
+from twind.recording.validate import event_problem, excitation_problem
 
 __all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "assemble", "from_diaggui", "from_session",
            "highpassed", "welch_tf", "welch_tfs", "xml_transfer"]
@@ -964,7 +965,14 @@ def _segments(events: list[dict], rate_hz: float = 16384.0
     several separate ones the longest is used.
     """
     starts, ends = {}, {}
-    for ev in events:
+    problems = [event_problem(ev) or excitation_problem(ev) for ev in events]
+    bad = [p for p in problems if p]
+    if bad:
+        warnings.warn(f"{len(bad)} event(s) in the recording left out: {bad[0]}",
+                      MeasurementWarning, stacklevel=3)
+    for ev, problem in zip(events, problems, strict=True):
+        if problem:
+            continue
         if ev.get("event") == "start":
             starts[ev["id"]] = (ev["channel"], ev["start_gps"])
             req = ev.get("request") or {}
