@@ -23,14 +23,21 @@ POS = "C1:SUS-ETMX_SUSPOS"
 RATE = 16384
 
 
-@pytest.mark.slow
-def test_serve_record_inject_export(tmp_path: Path) -> None:
+def _serve_recording(tmp_path: Path, speed: float, duration: float
+                     ) -> tuple[str, Path, subprocess.Popen]:
+    """``twind serve`` of ETMX recording to ``tmp_path/rec``: its endpoint, folder, process."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rec = tmp_path / "rec"
     proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--optics", "ETMX",
-                             "--listen", endpoint, "--speed", "4", "--duration", "24",
-                             "--record", str(rec)], stdout=subprocess.PIPE,
+                             "--listen", endpoint, "--speed", str(speed), "--duration",
+                             str(duration), "--record", str(rec)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
+    return endpoint, rec, proc
+
+
+@pytest.mark.slow
+def test_serve_record_inject_export(tmp_path: Path) -> None:
+    endpoint, rec, proc = _serve_recording(tmp_path, speed=4, duration=24)
     with TwinClient.wait([endpoint], alive=lambda: proc.poll() is None) as twin:
         exc_id = twin.inject(f"{POS}_EXC", "sine", freq=3.0, amp=0.1, duration=20.0)
         for bad in ({"freq": -3.0, "amp": 0.1}, {"freq": 3.0, "amp": math.nan}):
@@ -71,12 +78,7 @@ def test_serve_record_inject_export(tmp_path: Path) -> None:
 def test_serve_starts_again_a_recorder_that_ends_and_says_so(tmp_path: Path) -> None:
     """The recorder of ``serve --record`` killed while the twin serves: serve says so, starts
     another (a file of its own) and the twin's status tells both; the gap is the outage."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    rec = tmp_path / "rec"
-    proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--optics", "ETMX",
-                             "--listen", endpoint, "--speed", "2", "--duration", "40",
-                             "--record", str(rec)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    endpoint, rec, proc = _serve_recording(tmp_path, speed=2, duration=40)
     with TwinClient.wait([endpoint], alive=lambda: proc.poll() is None) as twin:
         assert twin.status()["recorder"] == {"folder": str(rec), "recording": True,
                                              "restarts": 0, "last_exit": None}
