@@ -164,7 +164,7 @@ class TwinClient:
         # no consolidation: every twin's reply, not only the last one per key
         for reply in self._session.get(key, payload=json.dumps(request or {}), timeout=self.timeout,
                                        consolidation=zenoh.ConsolidationMode.NONE):
-            answer = _twin_reply(reply)
+            answer = twin_reply(reply)
             (replies if isinstance(answer, dict) else others).append(answer)
         if replies:
             return replies
@@ -378,8 +378,19 @@ class TwinClient:
         self.close()
 
 
-def _twin_reply(reply: zenoh.Reply) -> dict | str:
-    """A twin's reply as its JSON object, or what else answered, in words."""
+def twin_reply(reply: zenoh.Reply) -> dict | str:
+    """A twin's reply as its JSON object, or what else answered, in words.
+
+    Parameters
+    ----------
+    reply : zenoh.Reply
+        One answer to a query on a twin's control key.
+
+    Returns
+    -------
+    dict or str
+        The JSON object when it names its twin (``twin``), else a description.
+    """
     if reply.ok is None:
         return f"an error: {reply.err.payload.to_bytes().decode(errors='replace')[:200]}"
     raw = reply.ok.payload.to_bytes()

@@ -16,6 +16,8 @@ from pathlib import Path
 import zenoh
 from threadpoolctl import threadpool_limits
 
+from twind.bus.keys import control_key
+from twind.client import twin_reply
 from twind.config import TwinConfig
 from twind.errors import TwindError
 from twind.limits import ServiceLimits
@@ -66,6 +68,9 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
     recorder = None
     try:
         with zenoh.open(conf) as session:
+            served = already_served(session, twin.ifo, [o.name for o in optics])
+            if served:
+                raise TwindError(served)
             # the recorder subscribes before the service answers anything, so that no block
             # and no injection event escapes the recording
             recorder = (Recording(record_dir, endpoints, twin.ifo, record_config)
@@ -94,6 +99,38 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
           f"max lag {status['max_lag_s'] * 1e3:.1f} ms, busy {100 * status['cpu_fraction']:.1f} %",
           file=sys.stderr)
     return 0
+
+
+def already_served(session: zenoh.Session, ifo: str, optics: Sequence[str],
+                   timeout: float = 2.0) -> str:
+    """Why a twin of `optics` must not start on this bus: another twin serves one of them
+    ("" if none does). Two twins of one optic would both start every excitation of it.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        The new twin's session, open.
+    ifo : str
+        Its interferometer prefix.
+    optics : sequence of str
+        The optics it is to serve.
+    timeout : float
+        Seconds the twins on the bus have to answer their status.
+
+    Returns
+    -------
+    str
+    """
+    for reply in session.get(control_key(ifo, "status"), timeout=timeout,
+                             consolidation=zenoh.ConsolidationMode.NONE):
+        status = twin_reply(reply)
+        both = sorted(set(optics) & set(status.get("optics", []) if isinstance(status, dict)
+                                        else []))
+        if both:
+            return (f"{', '.join(both)} already served on this bus by twin {status['twin']}; "
+                    "two twins of one optic would both run its excitations: stop that twin, "
+                    "or serve other optics (--optics)")
+    return ""
 
 
 SWITCH_INTERVAL_S = 0.001
