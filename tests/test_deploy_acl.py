@@ -359,8 +359,10 @@ def test_usrpwd_acl_on_the_router_with_twind_serve(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------ TLS
-def _pki_cryptography(folder: Path, common_names: tuple[str, ...]) -> None:
-    """A CA, a server certificate for localhost/127.0.0.1 and client certificates."""
+def _pki_cryptography(folder: Path, common_names: tuple[str, ...],
+                      hosts: tuple[str, ...] = ("localhost", "127.0.0.1")) -> None:
+    """A CA, the twin's server certificate for `hosts` (names or addresses) and client
+    certificates."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -401,10 +403,16 @@ def _pki_cryptography(folder: Path, common_names: tuple[str, ...]) -> None:
         if cn == "twin":
             usage.append(ExtendedKeyUsageOID.SERVER_AUTH)
             b = b.add_extension(x509.SubjectAlternativeName(
-                [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
-                critical=False)
+                [_alt_name(x509, h) for h in hosts]), critical=False)
         b = b.add_extension(x509.ExtendedKeyUsage(usage), critical=False)
         write(cn, key, b.sign(ca_key, hashes.SHA256()))
+
+
+def _alt_name(x509, host: str):  # noqa: ANN001, ANN202 - cryptography's module and name
+    try:
+        return x509.IPAddress(ipaddress.ip_address(host))
+    except ValueError:
+        return x509.DNSName(host)
 
 
 def _pki_openssl(folder: Path, common_names: tuple[str, ...]) -> None:

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from test_deploy_acl import _pki_cryptography, config, materialise
+
 from twind.recording.reader import read_session
 
 pytestmark = pytest.mark.skipif(
@@ -32,12 +34,24 @@ pytestmark = pytest.mark.skipif(
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 HOSTS = ("router", "twin1", "twin2", "recorder", "control")
 OPTICS = {"twin1": ("ETMX", "ETMY"), "twin2": ("ITMX", "ITMY")}
+OPEN = {"router": ("-c", str(DEPLOY / "zenoh-router.json5")), "twin": (), "recorder": (),
+        "control": ()}
+"""deploy/'s open layout: what each role adds to its command line."""
+ACL = {"router": ("-c", str(DEPLOY / "acl" / "router.json5"), "--cfg",
+                  "transport/auth/usrpwd/dictionary_file:"
+                  + json.dumps(str(DEPLOY / "acl" / "credentials.example.txt"))),
+       "twin": ("--zenoh-config", str(DEPLOY / "acl" / "twin-client.json5")),
+       "recorder": ("--zenoh-config", str(DEPLOY / "acl" / "recorder.json5")),
+       "control": ("--zenoh-config", str(DEPLOY / "acl" / "operator.json5"))}
+"""deploy/acl: the router checks passwords and rights; each role logs in as itself."""
 
 
 class Lan:
-    """Hosts as network namespaces on one bridge, addressed 10.<net>.0.<k>/24."""
+    """Hosts as network namespaces on one bridge, addressed 10.<net>.0.<k>/24, and the
+    deploy/ layout they run (:data:`OPEN` or :data:`ACL`)."""
 
-    def __init__(self, names: tuple[str, ...]) -> None:
+    def __init__(self, names: tuple[str, ...], layout: dict | None = None) -> None:
+        self.layout = layout or OPEN
         self.tag = f"tw{os.getpid() % 10000}{random.randrange(100)}"
         self.net = random.randrange(100, 250)
         self.addr = {h: f"10.{self.net}.0.{k + 1}" for k, h in enumerate(names)}
@@ -101,8 +115,8 @@ class Lan:
 
 
 @contextmanager
-def lan() -> Iterator[Lan]:
-    net = Lan(HOSTS)
+def lan(layout: dict | None = None) -> Iterator[Lan]:
+    net = Lan(HOSTS, layout)
     try:
         yield net
     finally:
@@ -114,7 +128,8 @@ def _twind(*args: str) -> tuple[str, ...]:
 
 
 def _status(net: Lan, router: str) -> list[dict]:
-    out = net.run("control", *_twind("status", "--json", "--connect", router, "--wait", "60"))
+    out = net.run("control", *_twind("status", "--json", "--connect", router, "--wait", "60",
+                                     *net.layout["control"]))
     assert out.returncode == 0, out.stderr
     status = json.loads(out.stdout)
     return status.get("twins", [status])
@@ -122,8 +137,8 @@ def _status(net: Lan, router: str) -> list[dict]:
 
 def _router(net: Lan) -> subprocess.Popen:
     """deploy/'s router on the router host."""
-    proc = net.start("router", sys.executable, str(DEPLOY / "zenoh-router.py"), "-c",
-                     str(DEPLOY / "zenoh-router.json5"), "--listen", _endpoint(net))
+    proc = net.start("router", sys.executable, str(DEPLOY / "zenoh-router.py"),
+                     *net.layout["router"], "--listen", _endpoint(net))
     time.sleep(1.0)
     return proc
 
@@ -134,7 +149,8 @@ def _endpoint(net: Lan) -> str:
 
 def _twin(net: Lan, host: str) -> subprocess.Popen:
     return net.start(host, *_twind("serve", "--optics", ",".join(OPTICS[host]), "--mode",
-                                   "client", "--connect", _endpoint(net), "--duration", "90"))
+                                   "client", "--connect", _endpoint(net), "--duration", "90",
+                                   *net.layout["twin"]))
 
 
 def _fleet(net: Lan, rec: Path) -> tuple[dict[str, subprocess.Popen], subprocess.Popen]:
@@ -143,7 +159,8 @@ def _fleet(net: Lan, rec: Path) -> tuple[dict[str, subprocess.Popen], subprocess
     twins = {h: _twin(net, h) for h in OPTICS}
     rec.mkdir()
     recorder = net.start("recorder", *_twind("record", "-o", str(rec / "fleet.mcap"),
-                                             "--mode", "client", "--connect", _endpoint(net)))
+                                             "--mode", "client", "--connect", _endpoint(net),
+                                             *net.layout["recorder"]))
     _answering(net, 2)
     assert recorder.poll() is None, recorder.communicate()
     return twins, recorder
@@ -236,3 +253,77 @@ def test_a_twin_host_and_the_router_restarted(tmp_path: Path) -> None:
         restarted = [g for g in gaps if g.restarted]
         assert len(restarted) == ("ETM" in channel), [str(g) for g in gaps]
         assert all(3.0 <= g.gps_end - g.gps_start < 60.0 for g in gaps), [str(g) for g in gaps]
+
+
+def test_the_fleet_behind_the_acl_router(tmp_path: Path) -> None:
+    """deploy/acl on the hosts: the router checks each role's password and rights. The
+    operator in the control room sees both twins and injects; a viewer's injection reaches
+    no twin and is said to be refused by access rights; the recorder, logged in as the
+    recorder, records every optic of both twin hosts."""
+    rec = tmp_path / "rec"
+    with lan(ACL) as net:
+        twins, recorder = _fleet(net, rec)
+        inject = ("inject", "C1:SUS-ETMX_SUSPOS_EXC", "sine", "--freq", "3", "--amp", "0.1",
+                  "--duration", "2", "--connect", _endpoint(net), "--timeout", "2")
+        out = net.run("control", *_twind(*inject, *ACL["control"]))
+        assert out.returncode == 0, out.stderr
+        viewer = net.run("control", *_twind(*inject, "--zenoh-config",
+                                            str(DEPLOY / "acl" / "viewer.json5")))
+        assert viewer.returncode == 2 and "access rights" in viewer.stderr, viewer.stderr
+        time.sleep(3.0)
+        _end(twins, recorder)
+    session = read_session(sorted(rec.glob("*.mcap")))
+    optics = {c.split("-")[1].split("_")[0] for c in session.channels}
+    assert optics == {"ETMX", "ETMY", "ITMX", "ITMY"}
+    assert [e["event"] for e in session.events].count("start") == 1  # the operator's only
+
+
+def test_a_tls_twin_host_and_its_clients_on_other_hosts(tmp_path: Path) -> None:
+    """deploy/tls across hosts: a twin host serving TLS only with client certificates, its
+    server certificate for the host's address; the recorder host records with the
+    "recorder" certificate, the control room's operator sees the twin and injects, a
+    viewer's injection is refused by the rights its certificate has."""
+    pki = tmp_path / "pki"
+    pki.mkdir()
+    with lan() as net:
+        twin_at = f"tls/{net.addr['twin1']}:7447"
+        _pki_cryptography(pki, ("operator", "viewer", "recorder"), (net.addr["twin1"],))
+        tls = {f"transport__link__tls__{k}": str(pki / v) for k, v in
+               (("root_ca_certificate", "ca.pem"), ("listen_certificate", "twin.pem"),
+                ("listen_private_key", "twin.key"))}
+        twin = materialise(config(DEPLOY / "tls" / "twin.json5", **tls), tmp_path / "twin.json5")
+
+        def client(cn: str) -> str:
+            return materialise(config(
+                DEPLOY / "tls" / "client.json5",
+                transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
+                transport__link__tls__connect_certificate=str(pki / f"{cn}.pem"),
+                transport__link__tls__connect_private_key=str(pki / f"{cn}.key")),
+                tmp_path / f"{cn}.json5")
+
+        serve = net.start("twin1", *_twind("serve", "--optics", "ETMX", "--zenoh-config", twin,
+                                           "--listen", twin_at, "--duration", "90"))
+        status = net.run("control", *_twind("status", "--json", "--wait", "60", "--connect",
+                                            twin_at, "--zenoh-config", client("operator")))
+        assert status.returncode == 0, (status.stderr, serve.poll())
+        assert json.loads(status.stdout)["optics"] == ["ETMX"]
+        rec = tmp_path / "rec"
+        rec.mkdir()
+        recorder = net.start("recorder", *_twind("record", "-o", str(rec / "tls.mcap"),
+                                                 "--mode", "client", "--connect", twin_at,
+                                                 "--zenoh-config", client("recorder")))
+        deadline = time.monotonic() + 30
+        while not list(rec.glob("*.mcap")):  # subscribed: its first file made
+            assert recorder.poll() is None and time.monotonic() < deadline, \
+                recorder.communicate()
+            time.sleep(0.2)
+        inject = ("inject", "C1:SUS-ETMX_SUSPOS_EXC", "sine", "--freq", "3", "--amp", "0.1",
+                  "--duration", "2", "--connect", twin_at, "--timeout", "2", "--zenoh-config")
+        assert net.run("control", *_twind(*inject, client("operator"))).returncode == 0
+        viewer = net.run("control", *_twind(*inject, client("viewer")))
+        assert viewer.returncode == 2 and "access rights" in viewer.stderr, viewer.stderr
+        time.sleep(3.0)
+        _end({"twin1": serve}, recorder)
+    session = read_session(sorted(rec.glob("*.mcap")))
+    assert "C1:SUS-ETMX_SUSPOS_IN1" in session.channels
+    assert [e["event"] for e in session.events].count("start") == 1

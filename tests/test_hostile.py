@@ -3,6 +3,7 @@ answered with an id or a reason, and the loop goes on computing finite blocks.""
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import signal
@@ -10,7 +11,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stdout
 from dataclasses import replace
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from twind import DOFS
 from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
 from twind.cli import main
+from twind.cli.twin import print_status
 from twind.client import InjectionRefused, SeveralTwins, TwinClient, TwinUnreachable
 from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
@@ -409,6 +411,10 @@ def _trip_and_rearm(svc: TwinService) -> None:
     for _ in range(16):
         _step_is_finite(svc)
     assert _ask(svc, "status", {})["watchdogs"] == {"ETMX": "tripped"}
+    out = io.StringIO()
+    with redirect_stdout(out):  # what twind status prints of it
+        print_status(svc.status())
+    assert "watchdog TRIPPED: ETMX" in out.getvalue()
     tripped = _event(events, "tripped")
     assert "service.watchdog_um" in tripped["reason"] and tripped["optic"] == "ETMX"
     _step_is_finite(svc)

@@ -94,19 +94,23 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(f"{len(replies)} twins answer:")
     for status in replies:
         try:
-            _print_status(status)
+            print_status(status)
         except (KeyError, TypeError, ValueError) as err:
             print(f"twin {status['twin']}: a status twind cannot read ({err!r} missing or "
                   "not a number)")
     return 0
 
 
-def _print_status(status: dict) -> None:
+def print_status(status: dict) -> None:
+    """One twin's status as ``twind status`` prints it."""
     print(f"{status['ifo']} twin of {', '.join(status['optics'])} ({status['twin']}): GPS "
           f"{status['gps']:.3f}, up {status['uptime_s']:.1f} s, "
           f"{status['real_time_factor']:.3f} x real time (speed {status['speed']:g}), lag "
           f"{1e3 * status['lag_s']:.1f} ms (max {1e3 * status['max_lag_s']:.1f}), "
           f"{status['late_blocks']} late blocks, busy {100 * status['cpu_fraction']:.1f} %")
+    tripped = [o for o, w in (status.get("watchdogs") or {}).items() if w != "armed"]
+    if tripped:
+        print(f"  watchdog TRIPPED: {', '.join(tripped)} (outputs zeroed until re-armed)")
     rec = status.get("recorder")
     if rec:
         again = f", restarted {rec['restarts']} time(s)" if rec["restarts"] else ""
