@@ -420,6 +420,25 @@ def _pki_openssl(folder: Path, common_names: tuple[str, ...]) -> None:
                     "localhost,127.0.0.1", *common_names], check=True, capture_output=True)
 
 
+def tls_twin(pki: Path, folder: Path) -> str:
+    """deploy/tls/twin.json5 with the certificates of `pki`, written to `folder`."""
+    return materialise(config(DEPLOY / "tls" / "twin.json5",
+                              transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
+                              transport__link__tls__listen_certificate=str(pki / "twin.pem"),
+                              transport__link__tls__listen_private_key=str(pki / "twin.key")),
+                       folder / "twin.json5")
+
+
+def tls_client(pki: Path, cn: str, folder: Path) -> str:
+    """deploy/tls/client.json5 with the certificate of `cn`, written to `folder`."""
+    return materialise(config(
+        DEPLOY / "tls" / "client.json5",
+        transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
+        transport__link__tls__connect_certificate=str(pki / f"{cn}.pem"),
+        transport__link__tls__connect_private_key=str(pki / f"{cn}.key")),
+        folder / f"{cn}.json5")
+
+
 def _have_cryptography() -> bool:
     try:
         import cryptography  # noqa: F401
@@ -517,19 +536,10 @@ def test_serve_record_over_tls_with_the_recorders_certificate(tmp_path: Path) ->
     pki.mkdir()
     make(pki, ("operator", "recorder"))
     endpoint = f"tls/localhost:{free_port()}"
-    twin = materialise(config(DEPLOY / "tls" / "twin.json5",
-                              transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
-                              transport__link__tls__listen_certificate=str(pki / "twin.pem"),
-                              transport__link__tls__listen_private_key=str(pki / "twin.key")),
-                       tmp_path / "twin.json5")
+    twin = tls_twin(pki, tmp_path)
 
     def client(cn: str) -> str:
-        return materialise(config(
-            DEPLOY / "tls" / "client.json5",
-            transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
-            transport__link__tls__connect_certificate=str(pki / f"{cn}.pem"),
-            transport__link__tls__connect_private_key=str(pki / f"{cn}.key")),
-            tmp_path / f"{cn}.json5")
+        return tls_client(pki, cn, tmp_path)
 
     recordings = tmp_path / "recordings"
     with serving("--zenoh-config", twin, "--listen", endpoint, "--record", str(recordings),

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from test_deploy_acl import _pki_cryptography, config, materialise
+from test_deploy_acl import _pki_cryptography, tls_client, tls_twin
 
 from twind.recording.reader import read_session
 
@@ -288,18 +288,10 @@ def test_a_tls_twin_host_and_its_clients_on_other_hosts(tmp_path: Path) -> None:
     with lan() as net:
         twin_at = f"tls/{net.addr['twin1']}:7447"
         _pki_cryptography(pki, ("operator", "viewer", "recorder"), (net.addr["twin1"],))
-        tls = {f"transport__link__tls__{k}": str(pki / v) for k, v in
-               (("root_ca_certificate", "ca.pem"), ("listen_certificate", "twin.pem"),
-                ("listen_private_key", "twin.key"))}
-        twin = materialise(config(DEPLOY / "tls" / "twin.json5", **tls), tmp_path / "twin.json5")
+        twin = tls_twin(pki, tmp_path)
 
         def client(cn: str) -> str:
-            return materialise(config(
-                DEPLOY / "tls" / "client.json5",
-                transport__link__tls__root_ca_certificate=str(pki / "ca.pem"),
-                transport__link__tls__connect_certificate=str(pki / f"{cn}.pem"),
-                transport__link__tls__connect_private_key=str(pki / f"{cn}.key")),
-                tmp_path / f"{cn}.json5")
+            return tls_client(pki, cn, tmp_path)
 
         serve = net.start("twin1", *_twind("serve", "--optics", "ETMX", "--zenoh-config", twin,
                                            "--listen", twin_at, "--duration", "90"))
