@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import io
 import math
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -98,3 +100,39 @@ def test_serve_starts_again_a_recorder_that_ends_and_says_so(tmp_path: Path) -> 
     starts = {p.name.rsplit("-", 1)[0] for p in rec.glob("*.mcap")}
     assert len(starts) == 2  # two recordings, one before the outage and one after
     assert read_session(sorted(rec.glob("*.mcap"))[-1]).channels
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small filesystem needs root")
+def test_a_full_disk_is_said_and_what_was_recorded_reads(tmp_path: Path) -> None:
+    """``serve --record`` onto a 4 MB filesystem: the recorder fails when it fills, serve
+    says so and starts another, which fails at once and is not started again; status says
+    NOT RECORDING, the twin serves on, and the file holds what fitted, readable."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)], check=True)
+    try:
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        proc = subprocess.Popen([sys.executable, "-m", "twind", "serve", "--optics", "ETMX",
+                                 "--listen", endpoint, "--speed", "4", "--duration", "200",
+                                 "--record", str(disk)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        with TwinClient.wait([endpoint], alive=lambda: proc.poll() is None) as twin:
+            deadline = time.monotonic() + 120
+            while (state := twin.status()["recorder"])["recording"] or not state["restarts"]:
+                assert time.monotonic() < deadline, state
+                time.sleep(0.5)
+            time.sleep(3.0)  # the watch looks every second: no more restarts
+            status = twin.status()
+            assert status["recorder"]["restarts"] == 1 and status["blocks"] > 0  # serves on
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        assert "starting another" in err and "not started again, it ended again at once" \
+            in err and "No space left on device" in err, err[-2000:]
+        files = sorted(disk.glob("*.mcap"))
+        assert files
+        with pytest.warns(Warning):  # a file cut short by the full disk says so
+            session = read_session(files[0])
+        assert session.channels and len(session[f"{POS}_IN1"].sequences) > 0
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)

@@ -221,7 +221,8 @@ def _recorder(folder: str, endpoints: Sequence[str], ifo: str,
 class Recording:
     """The recorder ``serve --record`` runs beside the twin, watched: one that ends while the
     twin serves (killed, its disk full) is said so on the terminal and in the twin's status,
-    and started again in a file of its own, :data:`RESTARTS` times at most.
+    and started again in a file of its own, :data:`RESTARTS` times at most; one started again
+    that ends within :data:`QUICK_S` (a full disk, a refused login) is not started again.
 
     Parameters
     ----------
@@ -236,12 +237,14 @@ class Recording:
     """
 
     RESTARTS = 5
+    QUICK_S = 10.0
 
     def __init__(self, folder: str, endpoints: Sequence[str], ifo: str,
                  zenoh_config_file: str | None = None) -> None:
         self.folder = folder
         self._args = (folder, endpoints, ifo, zenoh_config_file)
         self.proc: subprocess.Popen | None = _recorder(*self._args)
+        self._started = time.monotonic()
         self.restarts = 0
         self.last_exit: int | None = None
 
@@ -254,16 +257,17 @@ class Recording:
             self.last_exit, self.proc = proc.returncode, None
             if stop.is_set():
                 return
-            again = self.restarts < self.RESTARTS
+            quick = self.restarts and time.monotonic() - self._started < self.QUICK_S
+            why = ("it ended again at once (its error above)" if quick else
+                   f"{self.RESTARTS} restarts" if self.restarts >= self.RESTARTS else "")
             print(f"twind serve: the recorder for {self.folder} ended (exit "
                   f"{proc.returncode}) at {time.strftime('%H:%M:%S')}; "
-                  + ("starting another: the recording has a gap" if again else
-                     f"not started again after {self.RESTARTS} restarts: NOT RECORDING"),
-                  file=sys.stderr, flush=True)
-            if again:
+                  + (f"not started again, {why}: NOT RECORDING" if why else
+                     "starting another: the recording has a gap"), file=sys.stderr, flush=True)
+            if not why:
                 self.restarts += 1
                 try:
-                    self.proc = _recorder(*self._args)
+                    self.proc, self._started = _recorder(*self._args), time.monotonic()
                 except TwindError as err:
                     print(f"twind serve: {err}: NOT RECORDING", file=sys.stderr, flush=True)
 
