@@ -190,10 +190,8 @@ class TwinClient:
 
         Parameters
         ----------
-        verb : str
-            ``status``, ``inject``, ``stop``, ``params`` or ``filter``.
-        request : dict, optional
-            The request's JSON object.
+        verb, request
+            As :meth:`replies`.
 
         Returns
         -------

@@ -52,6 +52,11 @@ class Waveform:
         return min(ends) if ends else None
 
     @property
+    def held_bytes(self) -> int:
+        """Memory the waveform keeps beyond its state (a period, samples), in bytes."""
+        return 0
+
+    @property
     def position(self) -> int:
         """Samples handed out so far (including zeros after the end)."""
         return self._pos
@@ -176,6 +181,10 @@ class MultisineWave(Waveform):
         self._period, self.freqs = plan.period, plan.freqs
         self.period_samples = plan.period.size
 
+    @property
+    def held_bytes(self) -> int:
+        return self._period.nbytes
+
     def _render(self, idx: NDArray[np.int64]) -> NDArray[np.float64]:
         return self.request.amp * self._period[idx % self.period_samples]
 
@@ -186,6 +195,10 @@ class StreamWave(Waveform):
     def __init__(self, req: ExcitationRequest, rate_hz: float) -> None:
         self._samples = np.array(req.samples, dtype=np.float64)
         super().__init__(req, rate_hz, self._samples.size)
+
+    @property
+    def held_bytes(self) -> int:
+        return self._samples.nbytes
 
     def _render(self, idx: NDArray[np.int64]) -> NDArray[np.float64]:
         return self._samples[idx[0]:idx[-1] + 1].copy()

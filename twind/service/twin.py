@@ -407,8 +407,8 @@ class TwinService:
             if crowded:
                 return {"ok": False, "accepted": False, "reason": f"{req.channel}: {crowded}"}
             waveform = make_waveform(req, self.rate)
-            held = _held_bytes(waveform) + sum(_held_bytes(a.waveform)
-                                                for a in self._active.values())
+            held = waveform.held_bytes + sum(a.waveform.held_bytes
+                                             for a in self._active.values())
             if held > self.accepts.waveform_bytes:
                 reason = (f"{req.channel}: the excitations' waveforms would hold "
                           f"{held / 1e6:.0f} MB, beyond the {self.accepts.waveform_bytes / 1e6:.0f}"
@@ -709,13 +709,6 @@ def _check_stable(loop, rate: float) -> None:  # noqa: ANN001 - DampingLoop
 
 def _jsonable(obj: object) -> str:
     return str(obj)
-
-
-def _held_bytes(waveform: object) -> int:
-    """Memory a waveform keeps: a multisine's period, a stream's samples."""
-    held = getattr(waveform, "period_samples", 0)
-    samples = getattr(waveform, "_samples", None)
-    return 8 * (held + (samples.size if samples is not None else 0))
 
 
 def _number(value: object) -> bool:
