@@ -533,11 +533,15 @@ def test_a_wildcard_runs_no_verb_a_refusal_echoes_little_and_zero_amplitude_is_r
 def test_a_misspelt_or_mistyped_field_is_refused_and_a_stop_is_taken_once(
         fresh: TwinService) -> None:
     """``{"sett": ...}`` answered ok and changed nothing; ``{"set": {"mass_kg": true}}`` stored
-    True; ``stop`` with ``"ramp": 0`` ramped over the request's 30 s; a second stop of an
+    True; a Q not of a DOF, or Q as a whole, is not a live parameter; ``stop`` with ``"ramp": 0`` ramped over the request's 30 s; a second stop of an
     excitation still ramping down published a second stop."""
     for request, words in (({"sett": {"mass_kg": 0.25}}, "unknown field(s): 'sett'"),
                            ({"set": {"mass_kg": True}}, "'set' takes numbers"),
-                           ({"set": {"mass_kg": "heavy"}}, "'set' takes numbers")):
+                           ({"set": {"mass_kg": "heavy"}}, "'set' takes numbers"),
+                           ({"set": {"Q.BOGUS": 5.0}}, "cannot change Q.BOGUS"),
+                           ({"set": {"Q_BOGUS": 5.0}}, "cannot change Q_BOGUS"),
+                           ({"set": {"Q": {"BOGUS": 5.0}}}, "cannot change Q live"),
+                           ({"set": {"Q": 5.0}}, "cannot change Q live")):
         reply = _ask(fresh, "params", request)
         assert not reply["ok"] and words in reply["reason"], reply
     assert _ask(fresh, "params", {})["params"]["mass_kg"] != 0.25

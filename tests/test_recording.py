@@ -40,6 +40,7 @@ from twind.recording.mcapfile import JsonDecoderFactory
 from twind.recording.reader import getdata, read_session
 from twind.recording.recorder import Recorder, synthetic_block
 from twind.recording.replay import replay
+from twind.recording.sources import UnservedWarning
 from twind.recording.session import (
     DamagedRecordingWarning,
     GapWarning,
@@ -59,6 +60,8 @@ from twind.timeutil import gps_to_unix_ns
 GPS0 = 1_400_000_000.0
 ROOT = Path(__file__).resolve().parents[1]
 SYNTH = ["C1:SUS-ETMX_SUSPOS_IN1", "C1:SUS-ETMX_SUSPIT_IN1", "C1:SUS-ETMX_ULSEN_OUT"]
+TWIN = "synth/1/abcdef"
+"""The twin the synthetic blocks name; :func:`_answer_as_twin` answers its status."""
 
 
 def _expected(channel: str, seqs) -> np.ndarray:  # noqa: ANN001
@@ -330,10 +333,16 @@ def _start_recorder(out: Path, port: int, *extra: str) -> tuple[subprocess.Popen
 
 
 def _publish_synthetic(pubs: dict, n: int, first: int = 0) -> None:
-    """Blocks ``first .. n-1`` of every channel of `pubs`, block by block."""
+    """Blocks ``first .. n-1`` of every channel of `pubs`, block by block, from :data:`TWIN`."""
     for k in range(first, n):
         for c, pub in pubs.items():
-            pub.put(synthetic_block(c, k))
+            pub.put(synthetic_block(c, k, twin=TWIN))
+
+
+def _answer_as_twin(session: zenoh.Session, status: dict | None = None):  # noqa: ANN202
+    """Answer status queries as :data:`TWIN`, serving ETMX (its queryable, to keep)."""
+    reply = json.dumps(status or {"ok": True, "twin": TWIN, "ifo": "C1", "optics": ["ETMX"]})
+    return session.declare_queryable("twin/@/C1/status", lambda q: q.reply(q.key_expr, reply))
 
 
 def _publishers(session: zenoh.Session, channels: list[str]) -> dict:
@@ -355,17 +364,16 @@ def _matching(pub) -> bool:  # noqa: ANN001
 def test_recorder_sigterm_writes_a_complete_file(tmp_path: Path) -> None:
     port = free_port()
     out = tmp_path / "rec.mcap"
-    status = {"ifo": "C1", "optics": ["ETMX"], "model_rate_hz": 16384}
+    status = {"twin": TWIN, "ifo": "C1", "optics": ["ETMX"], "model_rate_hz": 16384}
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
-        queryable = session.declare_queryable(
-            "twin/@/C1/status", lambda q: q.reply(q.key_expr, json.dumps(status)))
+        queryable = _answer_as_twin(session, status)
         proc, lines = _start_recorder(out, port)
         try:
             pubs = _publishers(session, SYNTH)
             events = session.declare_publisher("twin/@/C1/events")
             for k in range(20):
                 for c in SYNTH:
-                    pubs[c].put(synthetic_block(c, k))
+                    pubs[c].put(synthetic_block(c, k, twin=TWIN))
                 if k == 10:
                     events.put(json.dumps({"event": "start", "id": "inj-1", "gps": GPS0 + 0.6,
                                            "request": {"optic": "ETMX", "dof": "POS"}}))
@@ -510,6 +518,7 @@ def test_rotation_reads_back_seamlessly(tmp_path: Path, rotate: dict) -> None:
     out = tmp_path / "rot.mcap"
     n = 120  # 3 MB of blocks, 7.5 s of data
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        twin = _answer_as_twin(session)  # noqa: F841 - answering while it lives
         rec = Recorder(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), out, **rotate,
                        status_timeout=0.2, log=lambda line: None)
         rec.start()
@@ -681,7 +690,7 @@ def test_the_recorder_marks_a_silent_twin_and_its_restart(tmp_path: Path) -> Non
             _until(lambda: rec.stats.silences == 1)
             for k in range(5):  # the new twin: its blocks from 0, a minute later
                 for c, pub in pubs.items():
-                    pub.put(synthetic_block(c, k, gps0=GPS0 + 60))
+                    pub.put(synthetic_block(c, k, gps0=GPS0 + 60, twin="synth/2/fedcba"))
             _until(lambda: rec.stats.blocks == 15 * len(SYNTH))
         finally:
             stats = rec.stop()
@@ -785,6 +794,7 @@ def test_the_recorder_skips_what_no_twin_sends_and_its_file_stays_whole(tmp_path
     forged_events = [b'{"event": "start", "gps": 1e300}', b"not json",
                      json.dumps({"event": "start", "gps": GPS0, "id": "x", "channel": 5}).encode()]
     with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        twin = _answer_as_twin(session)  # noqa: F841 - answering while it lives
         rec = Recorder(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), out,
                        status_timeout=0.2, log=lines.append)
         rec.start()
@@ -793,8 +803,8 @@ def test_the_recorder_skips_what_no_twin_sends_and_its_file_stays_whole(tmp_path
             _publish_synthetic(pubs, 5)
             for data in forged_blocks:
                 pubs[ch].put(data)
-            pubs[ch].put(synthetic_block(ch, 4))  # the same block twice
-            inside = SampleBlock.decode(synthetic_block(ch, 5))
+            pubs[ch].put(synthetic_block(ch, 4, twin=TWIN))  # the same block twice
+            inside = SampleBlock.decode(synthetic_block(ch, 5, twin=TWIN))
             pubs[ch].put(replace(inside, gps_start=inside.gps_start - 0.01).encode())
             for data in forged_events:
                 session.put(events, data)
@@ -812,3 +822,79 @@ def test_the_recorder_skips_what_no_twin_sends_and_its_file_stays_whole(tmp_path
     with open(out, "rb") as fh:  # the standard reader reads every message
         topics = [channel.topic for _, channel, _ in make_reader(fh).iter_messages()]
     assert topics.count(f"twin/{ch}") == 10 and not any("events" in t for t in topics)
+
+
+def test_a_lower_sequence_from_the_same_twin_is_not_a_restart(tmp_path: Path) -> None:
+    """A forged block numbered below the last one of the twin that publishes the channel (or
+    naming no twin) wrote a false ``twin_restart``: it is skipped. A twin started again (a
+    new identity, numbering from 0) is one restart, marked once for its channels and not for
+    another twin's."""
+    port, out = free_port(), tmp_path / "restart.mcap"
+    mine, theirs = SYNTH[:2], SYNTH[2]
+    a, b, a_again = "host1/100/aaaaaa", "host2/200/bbbbbb", "host1/300/cccccc"
+    later = GPS0 + 100.0
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        rec = Recorder(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), out,
+                       status_timeout=0.2, log=lambda _: None)
+        rec.start()
+        try:
+            pubs = _publishers(session, SYNTH)
+            for k in range(6):
+                for c in mine:
+                    pubs[c].put(synthetic_block(c, k, GPS0, twin=a))
+                pubs[theirs].put(synthetic_block(theirs, k, GPS0, twin=b))
+            pubs[mine[0]].put(synthetic_block(mine[0], 2, GPS0, twin=a))  # lower, same twin
+            pubs[mine[0]].put(synthetic_block(mine[0], 1, later))  # lower, naming no twin
+            pubs[theirs].put(synthetic_block(theirs, 9, GPS0, twin=a))  # the other's channel
+            for k in range(3):
+                for c in mine:
+                    pubs[c].put(synthetic_block(c, k, later, twin=a_again))
+                pubs[theirs].put(synthetic_block(theirs, 6 + k, GPS0, twin=b))
+            _until(lambda: rec.stats.blocks == 27)
+        finally:
+            stats = rec.stop()
+    assert (stats.invalid, stats.restarts) == (3, 1)
+    session = read_session(out)
+    restarts = [e for e in session.events if e["event"] == "twin_restart"]
+    assert len(restarts) == 1 and (restarts[0]["after_twin"], restarts[0]["twin"]) == (a, a_again)
+    assert sorted(g.channel for g in session.gaps) == sorted(mine)
+    assert all(g.restarted for g in session.gaps)
+    np.testing.assert_array_equal(session.channels[theirs].samples,
+                                  _expected(theirs, range(9)))
+
+
+def test_blocks_of_an_optic_no_twin_serves_are_marked_and_warned(tmp_path: Path) -> None:
+    """Blocks of an optic nobody serves read back without a warning: a channel whose blocks
+    come from a twin serving another optic, from a twin that does not answer, or name no
+    twin is marked once by an ``unserved`` event, and reading it warns; a served channel read
+    alone does not."""
+    port, out = free_port(), tmp_path / "unserved.mcap"
+    served, elsewhere = SYNTH[0], "C1:SUS-ITMY_SUSPOS_IN1"
+    silent, nameless = "C1:SUS-ETMY_SUSPOS_IN1", "C1:SUS-ETMX_SUSYAW_IN1"
+    with zenoh.open(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+        twin = _answer_as_twin(session)  # noqa: F841 - answering while it lives
+        rec = Recorder(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]), out,
+                       status_timeout=0.2, log=lambda _: None)
+        rec.start()
+        try:
+            pubs = _publishers(session, [served, elsewhere, silent, nameless])
+            for k in range(200):  # until the silent twin has been asked enough
+                pubs[served].put(synthetic_block(served, k, twin=TWIN))
+                pubs[elsewhere].put(synthetic_block(elsewhere, k, twin=TWIN))
+                pubs[silent].put(synthetic_block(silent, k, twin="gone/9/999999"))
+                pubs[nameless].put(synthetic_block(nameless, k))
+                if rec.stats.unserved == 3:
+                    break
+                time.sleep(0.02)
+        finally:
+            stats = rec.stop()
+    assert stats.unserved == 3 and "3 channel(s) came from no twin" in stats.summary()
+    with pytest.warns(UnservedWarning, match="3 channel"):
+        whole = read_session(out)
+    why = {e["channel"]: e["why"] for e in whole.events if e["event"] == "unserved"}
+    assert sorted(why) == sorted([elsewhere, silent, nameless])
+    assert "serves ETMX, not ITMY" in why[elsewhere] and "does not answer" in why[silent]
+    assert "name no twin" in why[nameless]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_session(out, [served]).channels[served].samples.size > 0

@@ -21,7 +21,8 @@ def _varint(value: int) -> bytes:
 
 @dataclass(frozen=True)
 class SampleBlock:
-    """One block of one channel: GPS start, rate, sequence number, float64 samples."""
+    """One block of one channel: GPS start, rate, sequence number, float64 samples, and the
+    twin that published it (its ``host/pid/tag``; empty from a file writer)."""
 
     channel: str
     gps_start: float
@@ -29,6 +30,7 @@ class SampleBlock:
     sequence: int
     samples: NDArray[np.float64]
     unit: str = ""
+    twin: str = ""
 
     def encode(self) -> bytes:
         """Protobuf ``twind.v1.SampleBlock`` bytes.
@@ -39,7 +41,8 @@ class SampleBlock:
         """
         cls = sample_block_class()
         head = cls(channel=self.channel, gps_start=self.gps_start, rate_hz=self.rate_hz,
-                   sequence=self.sequence, unit=self.unit).SerializeToString()
+                   sequence=self.sequence, unit=self.unit,
+                   twin=self.twin).SerializeToString()
         raw = np.ascontiguousarray(self.samples, dtype="<f8").tobytes()
         tag = (cls.DESCRIPTOR.fields_by_name["samples"].number << 3) | 2  # length-delimited
         return head + _varint(tag) + _varint(len(raw)) + raw
@@ -53,4 +56,4 @@ class SampleBlock:
     def from_proto(cls, msg) -> SampleBlock:  # noqa: ANN001
         """From the protobuf message."""
         return cls(msg.channel, msg.gps_start, msg.rate_hz, msg.sequence,
-                   np.array(msg.samples, dtype=float), msg.unit)
+                   np.array(msg.samples, dtype=float), msg.unit, msg.twin)

@@ -60,6 +60,7 @@ from twind.recording.session import (
     some_names,
     warn_gaps,
 )
+from twind.recording.sources import warn_unserved
 from twind.recording.writer import (
     BLOCK_SCHEMA,
     CONFIG_METADATA,
@@ -890,6 +891,7 @@ def read_channels(path_or_paths: str | Path | Iterable[str | Path],
         joined = {name: joined[name] for name in order}
     complete = not problems  # truncations only: gaps are problems of a complete file
     warn_gaps(joined, problems)
+    warn_unserved(state.events, joined.__contains__, problems)
     return Session(files, joined, state.events, state.configs, complete, problems)
 
 

@@ -46,6 +46,7 @@ from twind.bus.keys import all_data, control_key
 from twind.bus.session import DEFAULT_ENDPOINT, free_port, zenoh_config
 from twind.channels import TEST_POINTS, dof_channel, osem_channel
 from twind.recording.session import RecordingError, rotated_name
+from twind.recording.sources import Roster
 from twind.recording.validate import block_problem, event_problem
 from twind.recording.writer import CHUNK_BYTES, CHUNK_SECONDS, BlockHeader, McapSession, scan_block
 from twind.timeutil import now_gps
@@ -85,6 +86,9 @@ class RecordingStats:
     silences : int
         Times no block came for :attr:`Recorder.silence_s` (the twin stopped or became
         unreachable), each marked by a ``twin_silent`` event.
+    unserved : int
+        Channels whose blocks came from no twin that serves their optic
+        (:mod:`twind.recording.sources`), each marked by an ``unserved`` event.
     """
 
     files: list[Path] = field(default_factory=list)
@@ -99,6 +103,7 @@ class RecordingStats:
     max_backlog_bytes: int = 0
     restarts: int = 0
     silences: int = 0
+    unserved: int = 0
 
     def summary(self) -> str:
         """One line for the user."""
@@ -115,6 +120,9 @@ class RecordingStats:
             line += f"; skipped {self.undecodable} messages that were not SampleBlocks"
         if self.invalid:
             line += f"; skipped {self.invalid} blocks or events no twin sends"
+        if self.unserved:
+            line += (f"; {self.unserved} channel(s) came from no twin that serves them, "
+                     "each marked in the file")
         if self.restarts or self.silences:
             line += (f"; the twin fell silent {self.silences} time(s) and restarted "
                      f"{self.restarts} time(s), each marked in the file")
@@ -208,6 +216,9 @@ class Recorder:
         self.silence_s = silence_s
         self._last_sequence: dict[str, int] = {}  # the writer thread's, as below
         self._ends: dict[str, float] = {}  # GPS where each channel's last block ends
+        self._twin_of: dict[str, str] = {}  # the twin that sent each channel's last block
+        self._roster: Roster | None = None  # which twins serve which optics
+        self._sourced: dict[str, str] = {}  # channel -> its twin, told or marked unserved
         self._last_block: tuple[float, float] | None = None  # (monotonic, GPS end)
         self._silent = False
 
@@ -244,6 +255,7 @@ class Recorder:
                 self._subs.append(self._session.declare_subscriber(
                     control_key(self.ifo, "events"), self._on_event))
             self._config = self._snapshot()
+            self._roster = Roster(self._session, self.ifo, self.status_timeout)
             self._open_file(self._config["gps"])
             self._thread = threading.Thread(target=self._write_loop, name="twind-record",
                                             daemon=True)
@@ -301,6 +313,9 @@ class Recorder:
             self._queue.put(_STOP)
             self._thread.join()
             self._thread = None
+        if self._roster is not None:
+            self._roster.close()
+            self._roster = None
         if self._file is not None:
             try:
                 self._file.close()
@@ -495,17 +510,31 @@ class Recorder:
             self._rotate(header.gps_start)
         self._follow(key, header)
         self._file.write_block(data, header, topic=key)
+        self._check_source(header)
         self.stats.blocks += 1
         self.stats.block_bytes += len(data)
         self.stats.channels.add(key)
 
     def _overlap(self, key: str, header: BlockHeader) -> str | None:
-        """A block of a channel that repeats or overlaps the one before it: not written (a
-        reader takes a file's blocks of a channel to follow one another)."""
+        """A block of a channel that repeats, overlaps or numbers below the one before it from
+        the same twin, or that another twin sends while one publishes the channel: not
+        written (a reader takes a file's blocks of a channel to follow one another)."""
         last = self._last_sequence.get(key)
         end = self._ends.get(key)
-        if last is None or end is None or header.sequence < last:  # the first, or a restart
+        if last is None or end is None:
             return None
+        twin = self._twin_of.get(key, "")
+        if header.twin != twin:
+            if twin and not header.twin:
+                return f"a block naming no twin, while {twin} publishes the channel"
+            if header.sequence <= last:
+                return None  # the channel's twin restarted: a new twin numbers from 0
+            return f"a block from twin {header.twin}, while another publishes the channel"
+        if header.sequence < last:
+            if header.twin:
+                return (f"a block numbered {header.sequence} after {last} from the same twin "
+                        f"{header.twin}: forged or out of order, not a restart")
+            return None  # blocks that do not name their twin: a restart
         if header.sequence == last:
             return "the same block twice"
         if header.gps_start < end - 0.5 / header.rate_hz:
@@ -514,25 +543,46 @@ class Recorder:
 
     def _follow(self, key: str, header: BlockHeader) -> None:
         """Mark the twin's return after a silence and its restarts (a channel's numbering
-        beginning again) in the file, as events."""
+        beginning again, from a new twin when blocks name it) in the file, as events."""
         if self._silent:
             self._silent = False
             self._log(f"twind record: blocks arrive again (GPS {header.gps_start:.3f})")
         last = self._last_sequence.get(key)
-        if last is not None and header.sequence < last:  # equal: the same block twice
+        if last is not None and header.sequence <= last:  # _overlap passed it: a restart
             self.stats.restarts += 1
+            before = self._twin_of.get(key, "")
             self._file.write_event({"event": "twin_restart", "gps": header.gps_start,
                                     "channel": key, "after_sequence": last,
-                                    "sequence": header.sequence})
+                                    "sequence": header.sequence, "twin": header.twin,
+                                    "after_twin": before})
             self.stats.events += 1
             self._log(f"twind record: the twin restarted (its blocks number from "
                       f"{header.sequence} again at GPS {header.gps_start:.3f}); marked in "
                       "the file")
-            self._last_sequence.clear()  # every channel begins again: one mark
+            for k in [k for k, t in self._twin_of.items() if t == before]:  # one mark a twin
+                self._last_sequence.pop(k, None)
         self._last_sequence[key] = header.sequence
+        self._twin_of[key] = header.twin
         end = header.gps_start + header.n_samples / header.rate_hz
         self._ends[key] = end
         self._last_block = (time.monotonic(), end)
+
+    def _check_source(self, header: BlockHeader) -> None:
+        """Mark, once a file, a channel whose blocks come from no twin that serves it."""
+        if self._roster is None or self._sourced.get(header.channel) == header.twin:
+            return
+        known, why = self._roster.verdict(header.twin, header.channel)
+        if not known:
+            return
+        self._sourced[header.channel] = header.twin
+        if why:
+            self.stats.unserved += 1
+            self._file.write_event({"event": "unserved", "gps": header.gps_start,
+                                    "channel": header.channel, "twin": header.twin,
+                                    "why": why})
+            self.stats.events += 1
+            self._log(f"twind record: {header.channel} comes from no twin that serves it "
+                      f"({why}); recorded, and marked in the file")
 
     def _check_silence(self) -> None:
         """Report, once, a twin that sent no block for :attr:`silence_s`."""
@@ -552,6 +602,7 @@ class Recorder:
     def _rotate(self, gps: float) -> None:
         self._file.close()
         self._file = None
+        self._sourced.clear()  # each file marks its own channels
         self._open_file(gps)
 
     def _warn_once(self, key: str, what: str) -> None:
@@ -586,7 +637,7 @@ def record_main(args: argparse.Namespace) -> int:
 
 
 def synthetic_block(channel: str, sequence: int, gps0: float = 1.4e9, n: int = 1024,
-                    rate: float = 16384.0, seed: int | None = None) -> bytes:
+                    rate: float = 16384.0, seed: int | None = None, twin: str = "") -> bytes:
     """The bus bytes of a deterministic SampleBlock (for tests and benchmarks).
 
     Samples are Gaussian noise from a generator seeded by the channel name and sequence
@@ -607,6 +658,8 @@ def synthetic_block(channel: str, sequence: int, gps0: float = 1.4e9, n: int = 1
         Sample rate (Hz).
     seed : int, optional
         Seed of the noise, instead of one from `channel` and `sequence`.
+    twin : str
+        The publishing twin's identity the block names.
 
     Returns
     -------
@@ -616,7 +669,8 @@ def synthetic_block(channel: str, sequence: int, gps0: float = 1.4e9, n: int = 1
 
     s = seed if seed is not None else zlib.crc32(channel.encode()) * 1_000_003 + sequence
     x = np.random.default_rng(s).standard_normal(n)
-    return SampleBlock(channel, gps0 + sequence * n / rate, rate, sequence, x, "um").encode()
+    return SampleBlock(channel, gps0 + sequence * n / rate, rate, sequence, x, "um",
+                       twin).encode()
 
 
 def forty_meter_channels(ifo: str = "C1") -> list[str]:

@@ -118,7 +118,7 @@ def library_label() -> str:
 # by hand finds the packed samples in place, so numpy can view them without a copy.
 
 _DOUBLE = struct.Struct("<d")
-_F_CHANNEL, _F_GPS, _F_RATE, _F_SEQ, _F_SAMPLES, _F_UNIT = 1, 2, 3, 4, 5, 6
+_F_CHANNEL, _F_GPS, _F_RATE, _F_SEQ, _F_SAMPLES, _F_UNIT, _F_TWIN = 1, 2, 3, 4, 5, 6, 7
 
 
 @dataclass(frozen=True)
@@ -126,7 +126,8 @@ class BlockHeader:
     """The scalar fields of a ``twind.v1.SampleBlock`` and where its samples lie.
 
     ``runs`` are ``(offset, n_bytes)`` of the packed (or single) float64 sample fields in the
-    message bytes, in order; one run for every message twind writes.
+    message bytes, in order; one run for every message twind writes. ``twin`` is the
+    publishing twin's identity, empty when the block names none.
     """
 
     channel: str
@@ -135,6 +136,7 @@ class BlockHeader:
     sequence: int
     unit: str
     runs: tuple[tuple[int, int], ...]
+    twin: str = ""
 
     @property
     def n_samples(self) -> int:
@@ -176,7 +178,7 @@ def scan_block(data: bytes | memoryview) -> BlockHeader:
     """
     n = len(data)
     i = 0
-    channel = unit = ""
+    channel = unit = twin = ""
     gps = rate = 0.0
     seq = 0
     runs: list[tuple[int, int]] = []
@@ -206,6 +208,8 @@ def scan_block(data: bytes | memoryview) -> BlockHeader:
                     channel = bytes(data[i:i + length]).decode()
                 elif field == _F_UNIT:
                     unit = bytes(data[i:i + length]).decode()
+                elif field == _F_TWIN:
+                    twin = bytes(data[i:i + length]).decode()
                 elif field == _F_SAMPLES:
                     if length % 8:
                         msg = f"packed samples of {length} bytes, not a multiple of 8"
@@ -224,7 +228,7 @@ def scan_block(data: bytes | memoryview) -> BlockHeader:
     if i != n:
         msg = f"protobuf message overruns its {n} bytes"
         raise ValueError(msg)
-    return BlockHeader(channel, gps, rate, seq, unit, tuple(runs))
+    return BlockHeader(channel, gps, rate, seq, unit, tuple(runs), twin)
 
 
 # --- the file ------------------------------------------------------------------------------

@@ -43,9 +43,9 @@ from twind.timeutil import now_gps
 
 VERBS = ("status", "inject", "stop", "params", "filter")
 # parameters a running twin may change (rate, delay and identity need a restart); a DOF's
-# Q also under the name twind fit reports (Q_POS)
+# Q by the name twind fit reports (Q_POS), one number each
 LIVE_PARAMS = (frozenset(f.name for f in fields(SOSParams))
-               - {"name", "sample_rate_hz", "loop_delay_s"}) | {f"Q_{d}" for d in DOFS}
+               - {"name", "sample_rate_hz", "loop_delay_s", "Q"}) | {f"Q_{d}" for d in DOFS}
 
 
 @dataclass
@@ -135,7 +135,7 @@ class TwinService:
         self._unpublished: dict[str, Active] = {}  # accepted, first sample not yet published
         tag = uuid.uuid4().hex[:6]  # ids stay unique when several twins share a router
         self._ids = (f"exc-{tag}-{i}" for i in itertools.count(1))
-        self.twin_id = f"{socket.gethostname()}/{os.getpid()}/{tag}"  # in every reply, event
+        self.twin_id = f"{socket.gethostname()}/{os.getpid()}/{tag}"  # in every reply, event, block
         self._ended: set[str] = set()
         self._started = self._t0 = time.monotonic()
         self._end: int | None = None  # the sample the service stops at, when it is to stop
@@ -235,8 +235,8 @@ class TwinService:
         seq = self.stats.blocks
         for name, unit, samples in self._channels:
             try:
-                self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples,
-                                                 unit).encode())
+                self._pubs[name].put(SampleBlock(name, gps, self.rate, seq, samples, unit,
+                                                 self.twin_id).encode())
             except zenoh.ZError:  # the session is closing or the transport failed: counted
                 self.stats.dropped_blocks += 1
             for act in starting.pop(name, ()):
