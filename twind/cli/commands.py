@@ -443,6 +443,21 @@ def _soak(p: argparse.ArgumentParser) -> None:
                    help="N busy processes share the cores with the twin (2: both cores)")
     p.add_argument("--suspend", type=positive, default=6.0, metavar="S",
                    help="seconds a second subscriber is suspended (SIGSTOP) at the end")
+    fleet = p.add_argument_group("a fleet (several twins behind a router)")
+    fleet.add_argument("--connect", metavar="ENDPOINT",
+                       help="soak the twins already serving behind ENDPOINT instead of "
+                            "starting one: per twin, its CPU, lag, losses and latency")
+    fleet.add_argument("--zenoh-config", metavar="FILE",
+                       help="with --connect: Zenoh configuration (credentials, TLS)")
+    fleet.add_argument("--json", action="store_true", help="with --connect: print JSON")
+    fleet.add_argument("--fleet", action="store_true",
+                       help="build hosts as network namespaces (root) running deploy/: a "
+                            "router, twin hosts splitting the ten optics, a recorder and a "
+                            "control room, and soak them from the control room")
+    fleet.add_argument("--layout", choices=("acl", "open"), default="acl",
+                       help="with --fleet: deploy/acl (default) or the open layout")
+    fleet.add_argument("--twin-hosts", type=positive_int, default=2,
+                       help="with --fleet: twin hosts the optics are split between")
 
 
 COMMANDS: tuple[Command, ...] = (

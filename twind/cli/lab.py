@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 from twind import DOFS
@@ -32,16 +33,26 @@ from twind.lab.rates import (
     report,
     settings_report,
 )
-from twind.lab.soak import soak
+from twind.lab.fleet import soak_fleet, twin_line
+from twind.lab.soak import soak, soak_connected
 from twind.lab.tf_speed import run_tf_benchmark
 
 
 def cmd_soak(args: argparse.Namespace) -> int:
-    """Serve, record, inject and attack for a while; print the service figures."""
+    """Serve, record, inject and attack for a while; print the service figures. With
+    ``--connect``, soak a running fleet; with ``--fleet``, build one on namespaced hosts."""
 
-    report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config,
-                  load=args.load, suspend=args.suspend)
-    print("\n".join(report.lines()))
+    if args.fleet:
+        report = soak_fleet(args.duration, args.layout, args.twin_hosts, args.hostile)
+        print("\n".join(report.lines()))
+    elif args.connect:
+        figures = soak_connected(args.connect, args.duration, args.zenoh_config, args.hostile)
+        print(json.dumps(figures, indent=1) if args.json else
+              "\n".join(twin_line(t) for t in figures["twins"]))
+    else:
+        report = soak(args.duration, args.optics, args.hostile, args.port, config=args.config,
+                      load=args.load, suspend=args.suspend)
+        print("\n".join(report.lines()))
     return 0
 
 

@@ -20,7 +20,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,6 +30,7 @@ import zenoh
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
 from twind.bus.session import zenoh_config
+from twind.channels import POINT_NAME, dof_channel
 from twind.client import TwinClient
 from twind.config import DEFAULT_CONFIG, load_config
 from twind.errors import TwindError
@@ -114,14 +115,16 @@ def _ms(latency: dict) -> str:
 class _Watcher:
     """Counts every block per channel and notes when excitation blocks arrive."""
 
-    def __init__(self, endpoint: str) -> None:
+    def __init__(self, endpoint: str, config_file: str | None = None) -> None:
         self.last: dict[str, int] = {}
+        self.per_channel: dict[str, Counter] = defaultdict(Counter)  # blocks, lost, ...
         self.blocks = self.lost = self.out_of_order = self.corrupt = self.misdelivered = 0
         self.anomalies: list[str] = []  # the first few, with when and what
         self._t0 = time.monotonic()
         self.first_nonzero: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
         self._lock = threading.Lock()
-        self.session = zenoh.open(zenoh_config(connect=[endpoint], mode="client"))
+        self.session = zenoh.open(zenoh_config(connect=[endpoint], mode="client",
+                                               config_file=config_file))
         self.sub = self.session.declare_subscriber(all_data(), self._on)
 
     def _on(self, sample: zenoh.Sample) -> None:
@@ -138,6 +141,8 @@ class _Watcher:
             return
         with self._lock:
             self.blocks += 1
+            counts = self.per_channel[block.channel]
+            counts["blocks"] += 1
             if not key.endswith(block.channel):
                 self.misdelivered += 1
                 self._note(f"{key} delivered a block of {block.channel} (sequence "
@@ -146,8 +151,10 @@ class _Watcher:
             if last is not None and block.sequence != last + 1:
                 if block.sequence > last + 1:
                     self.lost += block.sequence - last - 1
+                    counts["lost"] += block.sequence - last - 1
                 else:
                     self.out_of_order += 1
+                    counts["out_of_order"] += 1
                 self._note(f"{block.channel}: sequence {block.sequence} after {last}")
             self.last[block.channel] = block.sequence
             if block.channel.endswith("_EXC"):
@@ -226,14 +233,16 @@ HOSTILE_CONTROL = [
 """Hostile requests of the other verbs (poisoned gains, an unstable optic...)."""
 
 
-def _hostile(endpoint: str, n: int, ifo: str) -> tuple[dict[str, int], dict[str, int], int]:
+def _hostile(endpoint: str, n: int, ifo: str, config_file: str | None = None,
+             ) -> tuple[dict[str, int], dict[str, int], int]:
     """Send `n` hostile requests, inject's and the other verbs' in turn: (sent and refused
     with a reason, per verb; unanswered)."""
     attacks = [("inject", p) for p in HOSTILE] + HOSTILE_CONTROL
     sent: dict[str, int] = defaultdict(int)
     refused: dict[str, int] = defaultdict(int)
     unanswered = 0
-    with zenoh.open(zenoh_config(connect=[endpoint], mode="client")) as s:
+    with zenoh.open(zenoh_config(connect=[endpoint], mode="client",
+                                 config_file=config_file)) as s:
         for i in range(n):
             verb, payload = attacks[i % len(attacks)]
             sent[verb] += 1
@@ -304,8 +313,10 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             attack = threading.Thread(target=lambda: hostile_result.append(
                 _hostile(endpoint, hostile, status0["ifo"])), daemon=True)
             attack.start()
-            latencies = _inject_periodically(client, watcher, status0, t0 + duration,
-                                             injections_every)
+            latencies = _inject_periodically(client, watcher, _targets([status0]),
+                                             status0["rate_hz"],
+                                             t0 + duration, injections_every)[status0["twin"]]
+            latencies = [t for t in latencies if t is not None]
             attack.join(timeout=max(1.0, t0 + duration - time.monotonic() + 30))
             watchdog = _trip_and_rearm(client, status0)
             cpu = (_cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - t0)
@@ -321,7 +332,8 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             proc.wait(timeout=60)
             log.close()
             log_tail = log_path.read_text()[-3000:] if crashed else ""
-        mcap_blocks, mcap_gaps = _scan_recording(sorted(Path(tmp).glob("*.mcap")))
+        topics = scan_recording(sorted(Path(tmp).glob("*.mcap"))).values()
+        mcap_blocks, mcap_gaps = sum(n for n, _ in topics), sum(g for _, g in topics)
     sent, refused, unanswered = hostile_result[0] if hostile_result else ({}, {}, hostile)
     return SoakReport(
         duration_s=duration, optics=", ".join(status["optics"]), cpu_fraction=cpu,
@@ -406,40 +418,141 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float, pau
             "wait_s": load_config(config, []).service.subscriber_wait_s}
 
 
-def _scan_recording(files: list[Path]) -> tuple[int, int]:
-    """Blocks and sequence gaps of a recording, read as a stream: an hour of the 40m is
-    ~50 GB, far more than memory holds."""
+def scan_recording(files: list[Path]) -> dict[str, tuple[int, int]]:
+    """Blocks and sequence gaps of a recording per topic, read as a stream: an hour of the
+    40m is ~50 GB, far more than memory holds.
 
+    Parameters
+    ----------
+    files : list of Path
+        The recording's files, in order.
+
+    Returns
+    -------
+    dict of str to (int, int)
+        ``(blocks, gaps)`` by data topic.
+    """
     last: dict[str, int] = {}
-    blocks = gaps = 0
+    counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
     for path in files:
         for m in iter_raw_messages(path, topics=lambda t: not t.startswith("twin/@")):
-            blocks += 1
+            counts[m.topic][0] += 1
             prev = last.get(m.topic)
             if prev is not None and m.sequence != prev + 1:
-                gaps += 1
+                counts[m.topic][1] += 1
             last[m.topic] = m.sequence
-    return blocks, gaps
+    return {topic: (n, gaps) for topic, (n, gaps) in counts.items()}
 
 
-def _inject_periodically(client: TwinClient, watcher: _Watcher, status: dict, until: float,
-                         every: float) -> list[float]:
-    optic = status["optics"][0]
-    channels = [f"{status['ifo']}:SUS-{optic}_SUS{d}_EXC" for d in ("POS", "PIT", "YAW", "SIDE")]
-    latencies = []
+def _targets(status: dict) -> list[tuple[str, str]]:
+    """(twin, EXC channel) of the POS, PIT, YAW and SIDE test points of each twin's first
+    optic, the twins taken in turn."""
+    return [(st["twin"], dof_channel(st["ifo"], st["optics"][0], dof, "EXC"))
+            for dof in ("POS", "PIT", "YAW", "SIDE") for st in status]
+
+
+def _inject_periodically(client: TwinClient, watcher: _Watcher, targets: list[tuple[str, str]],
+                         rate_hz: float, until: float, every: float,
+                         ) -> dict[str, list[float | None]]:
+    """Short sines on `targets` in turn until `until`: each twin's latencies from request to
+    the first non-zero excitation sample at `watcher` (None for one accepted but not seen)."""
+    latencies: dict[str, list[float | None]] = {twin: [] for twin, _ in targets}
     rng = np.random.default_rng(0)
     k = 0
     while time.monotonic() + every < until:
-        channel = channels[k % len(channels)]
+        twin, channel = targets[k % len(targets)]
         k += 1
         t_req = time.monotonic()
         reply = client.query("inject", {"channel": channel, "waveform": "sine", "freq": 5.0,
                                         "amp": 0.01, "duration": 0.5})
         if reply.get("accepted"):
             # a sine starts at zero: its first non-zero sample is the one after the start
-            arrived = watcher.arrival_of(channel, reply["start_gps"] + 1 / status["rate_hz"])
-            if arrived is not None:
-                latencies.append(arrived - t_req)
+            arrived = watcher.arrival_of(channel, reply["start_gps"] + 1 / rate_hz)
+            latencies[twin].append(None if arrived is None else arrived - t_req)
         # random intervals, so requests fall at every phase of the block clock
         time.sleep(max(0.0, rng.uniform(0.5, 1.5) * every - (time.monotonic() - t_req)))
     return latencies
+
+
+def soak_connected(endpoint: str, duration: float = 60.0, config_file: str | None = None,
+                   hostile: int = 100, injections_every: float = 2.0) -> dict:
+    """Soak the twins already serving behind `endpoint` (a fleet's router): subscribe to
+    every channel, inject short sines on each twin in turn and send hostile requests, then
+    ask every twin what it cost.
+
+    Parameters
+    ----------
+    endpoint : str
+        The router or twin to connect to.
+    duration : float
+        Seconds of injections and hostile requests.
+    config_file : str, optional
+        Zenoh configuration (credentials, TLS), e.g. deploy/acl/operator.json5.
+    hostile : int
+        Malformed requests sent meanwhile.
+    injections_every : float
+        Mean seconds between injections.
+
+    Returns
+    -------
+    dict
+        ``duration_s``, ``hostile`` (sent, refused, unanswered), ``undecodable`` (blocks
+        this subscriber could not decode) and ``twins``: per twin its identity, optics, CPU
+        over the soak, late blocks, max lag, dropped blocks, the blocks of its optics this
+        subscriber saw, lost and out of order, and the injection latency (ms).
+
+    Raises
+    ------
+    TwindError
+        If no twin answers.
+    """
+    with TwinClient([endpoint], config_file=config_file) as client:
+        before = {st["twin"]: st for st in client.replies("status")}
+        if not before:
+            msg = f"no twin answers status at {endpoint}"
+            raise TwindError(msg)
+        watcher = _Watcher(endpoint, config_file)
+        t0 = time.monotonic()
+        first = next(iter(before.values()))
+        attack: list = []
+        thread = threading.Thread(target=lambda: attack.append(
+            _hostile(endpoint, hostile, first["ifo"], config_file)), daemon=True)
+        thread.start()
+        latencies = _inject_periodically(client, watcher, _targets(list(before.values())),
+                                         first["rate_hz"], t0 + duration, injections_every)
+        thread.join(timeout=max(1.0, t0 + duration - time.monotonic() + 30))
+        after = {st["twin"]: st for st in client.replies("status")}
+        watcher.close()
+    twins = [_twin_figures(b, after.get(twin), watcher, latencies.get(twin, []))
+             for twin, b in before.items()]
+    sent, refused, unanswered = attack[0] if attack else ({}, {}, hostile)
+    return {"duration_s": duration, "twins": twins, "undecodable": watcher.corrupt,
+            "hostile": {"sent": sent, "refused": refused, "unanswered": unanswered}}
+
+
+def _twin_figures(before: dict, after: dict | None, watcher: _Watcher,
+                  latencies: list[float | None]) -> dict:
+    """One twin's figures over the soak, from its status before and after (None: it did not
+    answer at the end) and what the subscriber counted of its optics' channels."""
+    optics = set(before["optics"])
+    seen = Counter()
+    for channel, counts in watcher.per_channel.items():
+        match = POINT_NAME.match(channel)
+        if match and match["optic"] in optics:
+            seen.update(counts)
+    lat = np.array([t for t in latencies if t is not None]) * 1e3
+    figures = {"twin": before["twin"], "optics": before["optics"], "answered_at_end": bool(after),
+               "injected": len(latencies),
+               "blocks": seen["blocks"], "lost": seen["lost"],
+               "out_of_order": seen["out_of_order"],
+               "latency_ms": {"n": int(lat.size),
+                              "median": float(np.median(lat)) if lat.size else None,
+                              "p99": float(np.percentile(lat, 99)) if lat.size else None}}
+    after = after or before
+    busy = after["cpu_fraction"] * after["uptime_s"] - before["cpu_fraction"] * before["uptime_s"]
+    elapsed = after["uptime_s"] - before["uptime_s"]
+    figures.update(cpu_fraction=busy / elapsed if elapsed > 0 else 0.0,
+                   late_blocks=after["late_blocks"] - before["late_blocks"],
+                   max_lag_s=after["max_lag_s"],
+                   dropped_blocks=after["dropped_blocks"] - before["dropped_blocks"])
+    return figures

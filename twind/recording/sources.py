@@ -3,8 +3,9 @@
 Every block names the twin that published it (``host/pid/tag``). A recorder asks the twins on
 the bus for their status (``twin/@/<IFO>/status``), which lists each twin's identity and
 optics, the first time a twin's name appears and again while the answer is missing; a block
-whose twin does not answer, does not serve the block's optic, or that names no twin, is from
-no twin that serves it (a forgery, a replay, a script). The recorder keeps such blocks and
+whose twin does not answer (while others do: the bus works), does not serve the block's
+optic, or that names no twin, is from no twin that serves it (a forgery, a replay, a
+script). The recorder keeps such blocks and
 marks the channel with an ``unserved`` event; readers warn of it.
 """
 
@@ -29,6 +30,8 @@ __all__ = ["Roster", "UnservedWarning", "warn_unserved"]
 
 ASKS = 3
 """Times a twin that has not answered is asked before its blocks are called unserved."""
+PACE_S = 2.0
+"""Least seconds between two queries: a twin just started, busy, is given time."""
 MOST_TWINS = 64
 """Twin names asked after at most; beyond them (a forger's many names) blocks are unserved."""
 
@@ -48,10 +51,14 @@ class Roster:
         Interferometer prefix of the status key.
     timeout : float
         Seconds each status query waits for replies.
+    pace_s : float
+        Least seconds between two queries.
     """
 
-    def __init__(self, session: zenoh.Session, ifo: str, timeout: float = 2.0) -> None:
+    def __init__(self, session: zenoh.Session, ifo: str, timeout: float = 2.0,
+                 pace_s: float = PACE_S) -> None:
         self.session, self.key, self.timeout = session, control_key(ifo, "status"), timeout
+        self.pace_s = max(pace_s, timeout)
         self._serves: dict[str, frozenset[str]] = {}  # twin -> optics, from its replies
         self._asked: dict[str, int] = {}  # twin -> queries it was missing from
         self._pending: set[str] = set()
@@ -111,7 +118,7 @@ class Roster:
             answers = {} if known else self._ask()
             with self._lock:
                 self._serves.update(answers)
-                if twin not in self._serves:
+                if answers and twin not in self._serves:  # others answered: the bus works
                     self._asked[twin] = self._asked.get(twin, 0) + 1
                 self._pending.discard(twin)
 
@@ -125,7 +132,7 @@ class Roster:
                     answers[status["twin"]] = frozenset(status["optics"])
         except zenoh.ZError:
             pass  # the session is closing, or the router is away: asked again
-        self._closed.wait(max(0.0, self.timeout - (time.monotonic() - started)))  # paced
+        self._closed.wait(max(0.0, self.pace_s - (time.monotonic() - started)))
         return answers
 
 
