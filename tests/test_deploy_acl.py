@@ -245,6 +245,13 @@ def test_deploy_configurations_load() -> None:
     units = {p.name: p.read_text() for p in DEPLOY.glob("*.service")}
     assert set(units) == {"twind-router.service", "twind@.service", "twind-recorder.service"}
     assert "--optics %i" in units["twind@.service"]
+    # beyond one host access control is the default: the router checks, each role logs in
+    assert "ExecStart=/usr/bin/zenohd -c /etc/twind/acl/router.json5" in \
+        units["twind-router.service"]
+    env = dict(line.split("=", 1) for line in (DEPLOY / "twind.env.example").read_text()
+               .splitlines() if line and not line.startswith("#"))
+    assert env["TWIND_ZENOH_CONFIG"] == "/etc/twind/acl/twin-client.json5"
+    assert env["TWIND_RECORDER_ZENOH_CONFIG"] == "/etc/twind/acl/recorder.json5"
 
 
 # ------------------------------------------------------------------------------ user/password

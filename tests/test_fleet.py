@@ -24,6 +24,7 @@ from test_deploy_acl import _pki_cryptography, tls_client, tls_twin
 
 from twind.lab.fleet import ACL, DEPLOY, Fleet, lan, twind
 from twind.recording.reader import read_session
+from twind.recording.session import TruncatedRecordingWarning
 
 pytestmark = pytest.mark.skipif(
     not os.environ.get("TWIND_REQUIRE_NETNS") and (os.geteuid() != 0 or not shutil.which("ip")),
@@ -112,9 +113,16 @@ def test_the_fleet_behind_the_acl_router(tmp_path: Path) -> None:
     operator in the control room sees both twins and injects; a viewer's injection reaches
     no twin and is said to be refused by access rights; the recorder, logged in as the
     recorder, records every optic of both twin hosts. ``twind soak --connect`` from the
-    control room gives each twin host's figures."""
+    control room gives each twin host's figures. The recorder killed and started again 5 s
+    later (deploy/twind-recorder.service's RestartSec) into files of its own: the files
+    read together lose only the outage, a gap with its GPS span."""
     rec = tmp_path / "rec"
     with fleet(rec, ACL) as f:
+        time.sleep(2.0)
+        f.recorder.kill()
+        f.recorder.communicate()
+        time.sleep(5.0)
+        f.record("restarted")
         inject = ("inject", "C1:SUS-ETMX_SUSPOS_EXC", "sine", "--freq", "3", "--amp", "0.1",
                   "--duration", "2", "--timeout", "2")
         out = f.control(*inject)
@@ -131,9 +139,15 @@ def test_the_fleet_behind_the_acl_router(tmp_path: Path) -> None:
     for t in figures["twins"]:
         assert t["answered_at_end"] and t["blocks"] > 100 and t["latency_ms"]["n"] >= 1, t
     assert sum(figures["hostile"]["refused"].values()) == 20, figures["hostile"]
-    session = read_session(sorted(rec.glob("*.mcap")))
+    files = sorted(rec.glob("*.mcap"))
+    assert [p.name for p in files] == ["fleet-0001.mcap", "restarted-0001.mcap"]
+    with pytest.warns(TruncatedRecordingWarning):
+        session = read_session(files)
     optics = {c.split("-")[1].split("_")[0] for c in session.channels}
     assert optics == {"ETMX", "ETMY", "ITMX", "ITMY"}
+    assert len(session.gaps) == 84, [str(g) for g in session.gaps]  # each channel, once
+    for g in session.gaps:
+        assert 5.0 <= g.gps_end - g.gps_start < 15.0, str(g)  # the outage and a chunk
     starts = [e for e in session.events if e["event"] == "start"]
     assert len(starts) == 1 + sum(t["injected"] for t in figures["twins"]), starts
 

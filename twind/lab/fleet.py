@@ -27,7 +27,7 @@ from pathlib import Path
 from twind.channels import POINT_NAME
 from twind.config import load_config
 from twind.errors import TwindError
-from twind.lab.soak import scan_recording
+from twind.lab.soak import cpu_seconds, scan_recording
 from twind.recording.writer import TOPIC_ROOT
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
@@ -198,14 +198,29 @@ class Fleet:
         self.router()
         for host in self.optics:
             self.twin(host)
-        self.recording.mkdir(exist_ok=True)
-        self.recorder = self.net.start("recorder", *twind(
-            "record", "-o", str(self.recording / "fleet.mcap"), "--rotate-s", "60", "--mode",
-            "client", "--connect", self.endpoint, *self.net.layout["recorder"]))
+        self.record("fleet")
         self.answering(len(self.optics))
         if self.recorder.poll() is not None:
             msg = f"the recorder host's twind record ended: {self.recorder.communicate()[1]}"
             raise TwindError(msg)
+
+    def record(self, name: str) -> subprocess.Popen:
+        """``twind record`` on the recorder host into ``NAME-0001.mcap``, ... (a new file a
+        minute), as deploy/twind-recorder.service runs it; returned once subscribed (its
+        first file made)."""
+        self.recording.mkdir(exist_ok=True)
+        self.recorder = self.net.start("recorder", *twind(
+            "record", "-o", str(self.recording / f"{name}.mcap"), "--rotate-s", "60", "--mode",
+            "client", "--connect", self.endpoint, *self.net.layout["recorder"]))
+        deadline = time.monotonic() + 60.0
+        while not (self.recording / f"{name}-0001.mcap").exists():
+            if self.recorder.poll() is not None or time.monotonic() > deadline:
+                self.recorder.kill()
+                msg = (f"twind record on the recorder host made no file: "
+                       f"{self.recorder.communicate()[1].strip()[-500:]}")
+                raise TwindError(msg)
+            time.sleep(0.1)
+        return self.recorder
 
     def control(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
         """``twind ARGS`` in the control room, connected to the router as the operator."""
@@ -263,6 +278,7 @@ class FleetSoakReport:
     hosts: dict[str, tuple[str, ...]]
     soak: dict  # twind soak --connect --json, from the control room
     recorded: dict[str, dict] = field(default_factory=dict)  # per twin host: blocks, gaps
+    cpu: dict[str, float] = field(default_factory=dict)  # per host: of one core, over the soak
 
     def lines(self) -> list[str]:
         """Human-readable figures, a line per twin host."""
@@ -273,9 +289,12 @@ class FleetSoakReport:
         for host, optics in self.hosts.items():
             t, r = by_optics.get(optics), self.recorded.get(host, {})
             out.append(f"{host} ({', '.join(optics)}):")
-            out.append("  " + (twin_line(t) if t else "no figures: it did not answer"))
+            out.append(f"  process CPU {100 * self.cpu.get(host, float('nan')):.1f} % of one "
+                       "core; " + (twin_line(t) if t else "no figures: it did not answer"))
             out.append(f"  recorded on the recorder host: {r.get('blocks', 0)} blocks, "
                        f"{r.get('gaps', 0)} gaps")
+        out.append(f"router CPU {100 * self.cpu.get('router', float('nan')):.1f} %, recorder "
+                   f"CPU {100 * self.cpu.get('recorder', float('nan')):.1f} % of one core")
         hostile = self.soak["hostile"]
         out.append(f"undecodable blocks at the control room: {self.soak['undecodable']}; "
                    f"hostile requests refused with a reason: "
@@ -289,7 +308,8 @@ def twin_line(t: dict) -> str:
     lat = t["latency_ms"]
     injections = (f"{lat['n']} injections, latency median {lat['median']:.1f} ms, p99 "
                   f"{lat['p99']:.1f} ms" if lat["n"] else "no injection measured")
-    return (f"twin {t['twin']}: CPU {100 * t['cpu_fraction']:.1f} % of one core, "
+    return (f"twin {t['twin']}: busy {100 * t['cpu_fraction']:.1f} % of the time computing "
+            f"and publishing, "
             f"{t['late_blocks']} late blocks, max lag {1e3 * t['max_lag_s']:.1f} ms, "
             f"{t['dropped_blocks']} dropped; at the control room {t['blocks']} blocks, "
             f"{t['lost']} lost, {t['out_of_order']} out of order; {injections}")
@@ -330,8 +350,12 @@ def soak_fleet(duration: float = 60.0, layout: str = "acl", twin_hosts: int = 2,
             lan(LAYOUTS[layout], names) as net:
         fleet = Fleet(net, hosts, Path(tmp) / "rec", serve_s=duration + 120.0)
         fleet.start()
+        procs = {**fleet.twins, "router": fleet.router_proc, "recorder": fleet.recorder}
+        cpu0, t0 = {h: cpu_seconds(p.pid) for h, p in procs.items()}, time.monotonic()
         out = fleet.control("soak", "--duration", f"{duration:g}", "--hostile", str(hostile),
                             "--json", timeout=duration + 120.0)
+        cpu = {h: (cpu_seconds(p.pid) - cpu0[h]) / (time.monotonic() - t0)
+               for h, p in procs.items()}
         fleet.end()
         if out.returncode != 0:
             msg = f"twind soak --connect in the control room failed: {out.stderr.strip()}"
@@ -340,7 +364,7 @@ def soak_fleet(duration: float = 60.0, layout: str = "acl", twin_hosts: int = 2,
     recorded = {host: {"blocks": sum(n for t, (n, _) in topics.items() if _optic(t) in optics),
                        "gaps": sum(g for t, (_, g) in topics.items() if _optic(t) in optics)}
                 for host, optics in hosts.items()}
-    return FleetSoakReport(duration, layout, hosts, json.loads(out.stdout), recorded)
+    return FleetSoakReport(duration, layout, hosts, json.loads(out.stdout), recorded, cpu)
 
 
 def _optic(topic: str) -> str | None:

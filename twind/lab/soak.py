@@ -8,6 +8,9 @@ does), and at the end reads the recording back. Printed: CPU use of the service,
 blocks, lost or out-of-order blocks on the bus and in the MCAP files, latency percentiles,
 how many hostile requests were refused with a reason, and what the suspended subscriber
 cost the twin and found when it ran again.
+
+:func:`soak_connected` (``twind soak --connect``) soaks twins already serving behind a router
+instead, and gives each twin's figures; :mod:`twind.lab.fleet` builds such a fleet.
 """
 
 from __future__ import annotations
@@ -167,6 +170,17 @@ class _Watcher:
         if len(self.anomalies) < 8:
             self.anomalies.append(f"t = {time.monotonic() - self._t0:.1f} s: {what}")
 
+    def wait_for(self, optics: set[str], timeout: float = 20.0) -> None:
+        """Return once blocks of every optic of `optics` arrive (the subscription has
+        reached every twin, through a router too), or after `timeout`."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                seen = {m["optic"] for c in self.per_channel if (m := POINT_NAME.match(c))}
+            if optics <= seen:
+                return
+            time.sleep(0.05)
+
     def arrival_of(self, channel: str, start_gps: float, timeout: float = 5.0) -> float | None:
         """Monotonic time at which the block holding `start_gps` of `channel` arrived."""
         deadline = time.monotonic() + timeout
@@ -256,7 +270,8 @@ def _hostile(endpoint: str, n: int, ifo: str, config_file: str | None = None,
     return dict(sent), dict(refused), unanswered
 
 
-def _cpu_seconds(pid: int) -> float:
+def cpu_seconds(pid: int) -> float:
+    """CPU seconds (user and system) process `pid` has used."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
@@ -308,7 +323,7 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             client = TwinClient.wait([endpoint], timeout=90, alive=lambda: proc.poll() is None)
             watcher = _Watcher(endpoint)
             status0 = client.status()
-            cpu0, t0 = _cpu_seconds(proc.pid), time.monotonic()
+            cpu0, t0 = cpu_seconds(proc.pid), time.monotonic()
             hostile_result: list[tuple[int, int]] = []
             attack = threading.Thread(target=lambda: hostile_result.append(
                 _hostile(endpoint, hostile, status0["ifo"])), daemon=True)
@@ -319,7 +334,7 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             latencies = [t for t in latencies if t is not None]
             attack.join(timeout=max(1.0, t0 + duration - time.monotonic() + 30))
             watchdog = _trip_and_rearm(client, status0)
-            cpu = (_cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - t0)
+            cpu = (cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - t0)
             status = client.status()
             suspended = _suspend_a_subscriber(client, endpoint, suspend, pauses, config)
             client.close()
@@ -512,6 +527,7 @@ def soak_connected(endpoint: str, duration: float = 60.0, config_file: str | Non
             msg = f"no twin answers status at {endpoint}"
             raise TwindError(msg)
         watcher = _Watcher(endpoint, config_file)
+        watcher.wait_for({o for st in before.values() for o in st["optics"]})
         t0 = time.monotonic()
         first = next(iter(before.values()))
         attack: list = []
