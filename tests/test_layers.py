@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 from importlinter.cli import lint_imports
 
+from twind.model.effects import CATALOGUE, CHANNEL_FILTERS, FAMILIES
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -49,3 +51,28 @@ def test_no_function_is_longer_than_a_screenful_or_two() -> None:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
             and node.end_lineno - node.lineno + 1 > 100]
     assert not long, long
+
+
+def _branches_on_effect_names() -> list[tuple[str, int, str]]:
+    """Comparisons with a catalogue entry's name (``effect == "bounce_roll"``, ``in (...)``)
+    in the package's modules that use the catalogue, outside its own module and the proof
+    harness (whose independent physics knows each effect by name)."""
+    names = {*CATALOGUE, *CHANNEL_FILTERS, *FAMILIES}
+    found = []
+    for path in sorted((ROOT / "twind").rglob("*.py")):
+        rel = path.relative_to(ROOT)
+        text = path.read_text()
+        if rel.parts[1] == "lab" or rel == Path("twind/model/effects.py") \
+                or "twind.model.effects" not in text:
+            continue
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.Compare):
+                for const in ast.walk(node):
+                    if isinstance(const, ast.Constant) and const.value in names:
+                        found.append((str(rel), node.lineno, const.value))
+    return found
+
+
+def test_an_effect_s_traits_are_its_fields_not_branches_on_its_name() -> None:
+    found = _branches_on_effect_names()
+    assert not found, f"branches on an effect's name outside twind/model/effects.py: {found}"

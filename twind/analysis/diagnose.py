@@ -56,9 +56,6 @@ from twind.model.effects import (
     BODY_DOFS,
     CATALOGUE,
     FAMILIES,
-    NARROW,
-    REPEATABLE,
-    SEARCHED,
     entry,
     model_names,
     own_values,
@@ -158,10 +155,9 @@ class EffectFit:
                "delta_bic": self.delta_bic, "p_value": self.p_value,
                "equivalent": self.equivalent, "rival_of": self.rival_of,
                "partial": self.partial, "p_given_others": self.p_given_others}
-        family = next((f for f, members in FAMILIES.items() if self.effect in members), None)
-        if family:
-            out["family"] = family
-        if _base(self.effect) == "resonance":
+        if entry(self.effect).family:
+            out["family"] = entry(self.effect).family
+        if entry(self.effect).body:
             out["reading"] = body_reading(values, sigmas, self.radius_m)
             out["reading"]["f_hz_ranges"] = [list(r) for r in self._f_ranges(values, sigmas)]
         return out
@@ -610,10 +606,10 @@ def _candidates(chosen: Sequence[str]) -> list[str]:
     list (``resonance#2``) once one is."""
     left = [e for e in CATALOGUE if e not in chosen]
     left += [f for f, members in FAMILIES.items() if set(members) - set(chosen)]
-    for family in REPEATABLE:
-        taken = sum(_base(c) == family for c in chosen)
+    for repeatable in (e.id for e in CATALOGUE.values() if e.repeatable):
+        taken = sum(_base(c) == repeatable for c in chosen)
         if taken:
-            left.append(f"{family}#{taken + 1}")
+            left.append(f"{repeatable}#{taken + 1}")
     return left
 
 
@@ -713,13 +709,13 @@ def _try(tfs: TFSet | Sequence[TFSet], cfg: OpticConfig, params: Sequence[str],
     scan = None
     try:
         reference = current
-        if effect == "bounce_roll":
+        if entry(effect).search == "model_modes":  # fitted on bands around those modes
             first = _sets(tfs)[0]
             res = FitData.from_tfset(first, current.min_coherence).resolution_hz
             whole = tuple(narrow.bands(start, res))
             reference = fit(tfs, start, free, current.min_coherence, effect=current.effect,
                             effect_start=current.as_dict(), whole=whole)
-        if _base(effect) in NARROW:
+        if entry(effect).narrow:
             found, paths, scan = _search(tfs, start, free, reference, effect, whole, unit)
             held.update({param_name(combo, effect, n): v for n, v in found.items()})
         result = fit(tfs, start, free, current.min_coherence, effect=combo,
@@ -865,7 +861,7 @@ def _unseen(tfs: TFSet | Sequence[TFSet], combo: str) -> list[str]:
     from a drift of the nominal model, so they are held at zero."""
     excited = {d for t in _sets(tfs) for d in t.excited}
     return [param_name(combo, e, f"g_{d}") for e in parts(combo)
-            if _base(e) == "resonance" for d in BODY_DOFS if d not in excited]
+            if entry(e).body for d in BODY_DOFS if d not in excited]
 
 
 def _p_value(lr: float, k: int, paths: Sequence[float], searched: int) -> float:
@@ -879,9 +875,8 @@ def _p_value(lr: float, k: int, paths: Sequence[float], searched: int) -> float:
 
 def _searched(result: FitResult, combo: str, effect: str) -> int:
     """How many of `effect`'s searched parameters `result` determined."""
-    base = _base(effect)
-    names = {param_name(combo, effect, n) for n in (*NARROW.get(base, ()),
-                                                    *SEARCHED.get(base, ()))}
+    names = {param_name(combo, effect, n) for n in (*entry(effect).narrow,
+                                                    *entry(effect).searched)}
     return sum(math.isfinite(s) for n, s in zip(result.names, result.sigma, strict=True)
                if n in names)
 
@@ -895,7 +890,7 @@ def _search(tfs: TFSet | Sequence[TFSet], start: OpticConfig, free: list[str],
     first = _sets(tfs)[0]
     data = FitData.from_tfset(first, reference.min_coherence, whole=whole).span()
     values = reference.as_dict()
-    if effect == "bounce_roll":
+    if entry(effect).search == "model_modes":
         found, path = narrow.search(data, start, values, free, unit, reference.effect)
         return found, [path], None
     return narrow.search_resonance(data, start, values, free, reference.effect)

@@ -78,6 +78,23 @@ class Effect:
         ``(plant, sus, values) -> plant`` with the effect in.
     scale : dict of str to float
         A typical size of each parameter, for finite differences and starting steps.
+    narrow : tuple of str
+        Frequency parameters of modes that can be narrower than a spectral bin: a fit starts
+        them where a search put them.
+    search : str
+        Where that search looks: ``"model_modes"`` near the model's own modes (on bands
+        around them, :func:`mode_bands`), ``"band"`` over the whole band; empty for none.
+    searched : tuple of str
+        Parameters a search over the whole band sets beside the couplings: paid for in the
+        p-value, not counted as parameters.
+    repeatable : bool
+        Whether a combination may hold it more than once (``resonance#2``).
+    family : str
+        The family it is one member of (the data choosing among the members, paid for as a
+        search), or empty.
+    body : bool
+        Whether it is a body on a spring pulling on the optic's coordinates through its
+        ``g_<DOF>`` couplings: read as a body's mass and place.
     """
 
     id: str
@@ -85,6 +102,12 @@ class Effect:
     physics: str
     apply: Callable[[Plant, SOSParams, Mapping[str, float]], Plant]
     scale: dict[str, float]
+    narrow: tuple[str, ...] = ()
+    search: str = ""
+    searched: tuple[str, ...] = ()
+    repeatable: bool = False
+    family: str = ""
+    body: bool = False
 
 
 MODE_SEARCH = {"f_vertical_hz": ("VERT", 0.92, 1.08), "f_roll_hz": ("ROLL", 0.92, 1.08)}
@@ -240,11 +263,14 @@ CATALOGUE: dict[str, Effect] = {e.id: e for e in (
            # whose sigma exceeds its scale (a mode's frequency, seen only through its
            # compliance below resonance) where it started
            _bounce_roll, {"vertical": 1.0, "roll": 1.0, "f_vertical_hz": 1.0,
-                          "f_roll_hz": 1.0, "roll_angle": 1.0}),
+                          "f_roll_hz": 1.0, "roll_angle": 1.0},
+           narrow=("f_vertical_hz", "f_roll_hz"), search="model_modes"),
     Effect("resonance", ("f_hz", "q", *(f"g_{d}" for d in BODY_DOFS)),
            "a body on a spring at a point of the optic: a mode at f_hz, q, pulling along g",
            _resonance, {"f_hz": 1.0, "q": 10.0, "g_POS": 0.01, "g_PIT": 1e-4, "g_YAW": 1e-4,
-                        "g_SIDE": 0.01}),
+                        "g_SIDE": 0.01},
+           narrow=("f_hz",), search="band", searched=("f_hz", "q"), repeatable=True,
+           body=True),
 )}
 
 
@@ -265,22 +291,16 @@ CHANNEL_FILTERS: dict[str, Effect] = {e.id: e for e in (
     Effect(f"{kind}_filter_{name}", ("inv_pole_hz", "inv_zero_hz"),
            f"the {name} {kind} {'driver' if kind == 'coil' else 'readback'} has its own "
            "pole/zero pair: (1 + s/2 pi zero) / (1 + s/2 pi pole)",
-           _channel_filter(kind, k), {"inv_pole_hz": 1e-2, "inv_zero_hz": 1e-2})
+           _channel_filter(kind, k), {"inv_pole_hz": 1e-2, "inv_zero_hz": 1e-2},
+           family="channel_filter")
     for kind in ("coil", "osem") for k, name in enumerate(OSEMS))}
 """One coil driver or one OSEM readback with a stage the others lack: the
 ``channel_filter`` family, one entry per channel (``coil_filter_UL`` ...
 ``osem_filter_SIDE``), whose channel a diagnosis searches."""
-FAMILIES = {"channel_filter": tuple(CHANNEL_FILTERS)}
-"""Hypotheses made of several entries, the data choosing among them (paid for as a search)."""
-
-NARROW = {"bounce_roll": ("f_vertical_hz", "f_roll_hz"), "resonance": ("f_hz",)}
-"""Effects whose modes can be narrower than a spectral bin, and their frequency parameters:
-a fit starts them where a search put them."""
-SEARCHED = {"resonance": ("f_hz", "q")}
-"""Effects whose mode is searched for over the whole band, and the parameters the search
-sets beside the couplings: they are paid for in the p-value, not counted as parameters."""
-REPEATABLE = ("resonance",)
-"""Entries a combination may hold more than once, as ``resonance#2``, ``resonance#3``."""
+FAMILIES = {f: tuple(e.id for e in CHANNEL_FILTERS.values() if e.family == f)
+            for f in dict.fromkeys(e.family for e in CHANNEL_FILTERS.values())}
+"""Hypotheses made of several entries (:attr:`Effect.family`), the data choosing among them
+(paid for as a search)."""
 
 
 def entry(name: str) -> Effect:
@@ -288,7 +308,7 @@ def entry(name: str) -> Effect:
     base, _, k = name.partition("#")
     if name in CHANNEL_FILTERS:
         return CHANNEL_FILTERS[name]
-    if base not in CATALOGUE or (k and (base not in REPEATABLE or not k.isdigit())):
+    if base not in CATALOGUE or (k and (not CATALOGUE[base].repeatable or not k.isdigit())):
         msg = (f"unknown effect {name!r}; the catalogue has {', '.join(CATALOGUE)} and "
                f"{', '.join(CHANNEL_FILTERS)}")
         raise EffectError(msg)
