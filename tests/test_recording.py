@@ -34,7 +34,8 @@ from twind.bus.keys import control_key
 from twind.bus.session import zenoh_config
 from twind.channels import block_channels
 from twind.cli import build_parser, main
-from twind.recording.export import export, export_main
+from twind.cli.recording import cmd_export
+from twind.recording.export import export
 from twind.recording.fastread import read_channels
 from twind.recording.mcapfile import JsonDecoderFactory
 from twind.recording.reader import getdata, read_session
@@ -163,7 +164,7 @@ def test_export_npz_and_hdf5(engine_session: tuple[Path, dict], tmp_path: Path) 
     out = tmp_path / "cli.hdf5"
     args = build_parser().parse_args(["export", str(path), "-o", str(out), "--channels",
                                       ",".join(some)])
-    assert export_main(args) == 0
+    assert cmd_export(args) == 0
     with h5py.File(out, "r") as f:
         assert sorted(f.keys()) == sorted(some)
 

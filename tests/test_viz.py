@@ -27,7 +27,7 @@ from twind.recording.session import TruncatedRecordingWarning
 from twind.recording.writer import SessionWriter
 from twind.simulation.engine import Engine
 from twind.viz import live
-from twind.viz.commands import rrd_main, view_main
+from twind.cli.view import cmd_rrd, cmd_view
 from twind.viz.decimate import NS, Decimator
 from twind.viz.entities import entity_path, matcher
 from twind.viz.rerun_export import mcap_to_rrd
@@ -169,7 +169,7 @@ def test_rrd_command_selects_channels_and_never_overwrites(session: Path, tmp_pa
                                       "--no-bode"])
     text = io.StringIO()
     with redirect_stdout(text):
-        assert rrd_main(args) == 0
+        assert cmd_rrd(args) == 0
     assert f"wrote {out}: 3 channels at 64 Hz ({3 * DURATION * 64} points), 2 events, 0 " \
            "transfer functions" in text.getvalue()
     chunks = read_rrd(out)
@@ -177,7 +177,7 @@ def test_rrd_command_selects_channels_and_never_overwrites(session: Path, tmp_pa
         "/sus/ETMX/POS/IN1", "/sus/ETMX/POS/IN2", "/sus/ETMX/OSEM/UL"}
     assert not any(e.startswith("/bode/") for e in chunks)
     with pytest.raises(TwindError, match="does not overwrite"):
-        rrd_main(args)
+        cmd_rrd(args)
     with pytest.raises(TwindError, match="no such file"):
         mcap_to_rrd(tmp_path / "missing.mcap", tmp_path / "x.rrd")
 
@@ -247,7 +247,7 @@ def test_view_streams_the_live_channels_into_a_recording(tmp_path: Path) -> None
                                       "--rate", "64", "--duration", "2.5", "--save", str(out)])
     try:
         with redirect_stdout(io.StringIO()):
-            assert view_main(args) == 0
+            assert cmd_view(args) == 0
     finally:
         stop.set()
         thread.join()
@@ -262,7 +262,7 @@ def test_view_streams_the_live_channels_into_a_recording(tmp_path: Path) -> None
     texts = column(chunks["/events"], "TextLog:text")
     assert texts == [["start exc-7: sine on C1:SUS-ETMX_SUSPOS_EXC (freq 2.0 Hz)"]]
     with pytest.raises(TwindError, match="does not overwrite"):
-        view_main(args)
+        cmd_view(args)
 
 
 def test_view_explains_what_to_do_without_a_display(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -271,7 +271,7 @@ def test_view_explains_what_to_do_without_a_display(monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr("sys.platform", "linux")
     parser = build_parser()
     with pytest.raises(TwindError, match="--viewer URL .* --web .* --save FILE.rrd"):
-        view_main(parser.parse_args(["view", "--connect", "tcp/127.0.0.1:1"]))
+        cmd_view(parser.parse_args(["view", "--connect", "tcp/127.0.0.1:1"]))
     with pytest.raises(SystemExit):  # one sink at a time
         with redirect_stdout(io.StringIO()), pytest.MonkeyPatch.context() as m:
             m.setattr("sys.stderr", io.StringIO())
@@ -306,8 +306,8 @@ def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> 
         subscribed = threading.Event()
         viewing = functools.partial(live.stream, subscribed=subscribed)
         with pytest.MonkeyPatch.context() as m:
-            m.setattr("twind.viz.commands.stream", viewing)
-            viewer = threading.Thread(target=lambda: codes.append(view_main(args)))
+            m.setattr("twind.cli.view.stream", viewing)
+            viewer = threading.Thread(target=lambda: codes.append(cmd_view(args)))
             viewer.start()
             assert subscribed.wait(60), "the viewer never subscribed"
         with TwinClient(connect=[endpoint]) as twin:

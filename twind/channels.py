@@ -22,6 +22,18 @@ OSEM_CHANNEL = re.compile(
 """An OSEM reading's name (:func:`osem_channel`), parsed into ``ifo``, ``optic`` and ``osem``."""
 
 
+EXC_POINT = re.compile(r"(?P<ifo>[A-Z][A-Z0-9]*):(?P<system>[A-Z][A-Z0-9]*)-"
+                       r"(?P<optic>[A-Z][A-Z0-9]*)_(?P<point>[A-Z0-9_]+)_EXC")
+"""An excitation test point of any site, upper case as in the CDS models (which of them a
+twin has, the twin says): ``C1:SUS-ETMX_SUSPOS_EXC``, ``K1:VIS-SRM_TM_TEST_P_EXC``."""
+
+
+def parse_dof_channel(channel: str) -> tuple[str, str, str, str] | None:
+    """``(ifo, optic, dof, point)`` of a damping test point (:data:`DOF_CHANNEL`), or None."""
+    m = DOF_CHANNEL.match(channel)
+    return (m["ifo"], m["optic"], m["dof"], m["point"]) if m else None
+
+
 POINT_NAME = re.compile(r"^(?P<ifo>[A-Za-z0-9]+):(?P<system>[A-Za-z0-9]+)-(?P<optic>[A-Za-z0-9]+)_"
                         r"(?P<suffix>\w+)$")
 """Any CDS test point's name: interferometer, system, optic, and what follows the optic."""

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from twind.channels import EXC_POINT
 from twind.errors import TwindError
 
 WAVEFORMS: tuple[str, ...] = ("sine", "sweep", "noise", "multisine", "stream")
@@ -31,10 +32,6 @@ MAX_FINITE_SAMPLES = 2**53
 """Longest finite excitation or ramp (samples, ~17000 years at 16384 Hz; every sample index
 an int64 and a float64 hold exactly); beyond, use duration inf."""
 
-# IFO:SYSTEM-OPTIC_<point>_EXC, e.g. C1:SUS-ETMX_SUSPOS_EXC or K1:VIS-SRM_TM_TEST_P_EXC;
-# upper case as in the CDS models (which of them a twin has, the twin says)
-CHANNEL_RE = re.compile(r"(?P<ifo>[A-Z][A-Z0-9]*):(?P<system>[A-Z][A-Z0-9]*)-"
-                        r"(?P<optic>[A-Z][A-Z0-9]*)_(?P<point>[A-Z0-9_]+)_EXC")
 
 
 class ExcitationError(TwindError):
@@ -332,7 +329,7 @@ _COERCE = {
 
 
 def _channel_match(channel: object) -> re.Match[str]:
-    m = CHANNEL_RE.fullmatch(channel) if isinstance(channel, str) else None
+    m = EXC_POINT.fullmatch(channel) if isinstance(channel, str) else None
     if m is None:
         raise ExcitationError(f"{channel!r:.60} is not an excitation test point; expected "
                               "IFO:SYSTEM-OPTIC_<point>_EXC, e.g. C1:SUS-ETMX_SUSPOS_EXC or "

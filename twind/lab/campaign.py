@@ -11,7 +11,6 @@ real optic.
 from __future__ import annotations
 
 import math
-import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -22,18 +21,18 @@ from typing import Protocol
 import numpy as np
 from matplotlib.figure import Figure
 
-from twind import progress, strictjson
+from twind import progress
 from twind.analysis.estimation.tf import TFSet, from_session
 from twind.analysis.identification.fit import fit
-from twind.analysis.identification.params import FIT_PARAMS, param_value, with_params
+from twind.analysis.identification.params import FIT_PARAMS, with_params
 from twind.analysis.identification.result import FitResult
 from twind.bus.keys import data_key
 from twind.bus.session import zenoh_config
 from twind.client import TwinClient
-from twind.config import OpticConfig, load_config
+from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.excitation.information import InformationDesign, design_information
-from twind.lab.measurement import DRIFT, SETTLE_S, measure_tfs
+from twind.lab.measurement import SETTLE_S, measure_tfs
 from twind.recording.recorder import Recorder
 
 MIN_AVERAGES = 4
@@ -304,43 +303,3 @@ def plot_rounds(rounds: list[Round], target: float, path: str | Path) -> Path:
     path = Path(path)
     fig.savefig(path, dpi=90)
     return path
-
-
-# ------------------------------------------------------------------------------ command line
-
-
-def campaign_main(args) -> int:  # noqa: ANN001 - argparse.Namespace
-    """``twind campaign``: run rounds until the target; print each round and the result."""
-
-    nominal = load_config(args.config, [args.optic]).select([args.optic])[0]
-    if args.connect:
-        twin: Twin = BusTwin(args.connect, args.optic, args.ifo, args.update, args.workdir)
-        truth = None
-    else:
-        truth = {k: param_value(nominal.sus, k) * (1 + args.drift * (f - 1))
-                 for k, f in DRIFT.items()}
-        twin = LocalTwin(replace(nominal, sus=with_params(nominal.sus, truth)), args.seed)
-    rounds = run_campaign(nominal, twin, args.dof or ["POS", "PIT", "YAW"], tuple(args.band),
-                          args.rms, args.period, args.averages, args.params or FIT_PARAMS,
-                          args.target, args.max_rounds)
-    last = rounds[-1]
-    if args.json:
-        out = {"rounds": [{"round": r.index, "twin_s": r.twin_s,
-                           "relative_sigma": r.relative_sigma} for r in rounds],
-               "fit": last.fit.to_json(), "reached": last.worst[1] <= args.target}
-        if truth:
-            out["truth"] = truth
-        print(strictjson.dumps(out))
-    else:
-        for r in rounds:
-            name, worst = r.worst
-            print(f"round {r.index}: twin {r.twin_s / 60:.1f} min, chi2/nu "
-                  f"{r.fit.chi2_nu:.3f}, worst {name} {100 * worst:.3g} %")
-        print("\n".join(last.fit.lines()))
-        if truth:
-            print(f"  (fitted - truth) / sigma: {last.fit.pulls(truth)}")
-        print(("reached" if last.worst[1] <= args.target else "did not reach")
-              + f" {100 * args.target:g} % in {last.twin_s / 60:.1f} min of twin time")
-    if args.output:
-        print(f"wrote {plot_rounds(rounds, args.target, args.output)}", file=sys.stderr)
-    return 0

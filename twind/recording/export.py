@@ -15,9 +15,6 @@ listed in :attr:`ExportResult.gaps` and in the file.
 
 from __future__ import annotations
 
-import argparse
-import sys
-import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,25 +135,3 @@ def _write_hdf5(channels: dict, path: Path, sources: list[Path]) -> None:
     except BaseException:
         path.unlink(missing_ok=True)
         raise
-
-
-# --- command line ----------------------------------------------------------------------------
-
-
-def export_main(args: argparse.Namespace) -> int:
-    """``twind export``: write the file, print what it holds, report gaps on stderr."""
-
-    channels = None
-    if args.channels:
-        channels = [c for item in args.channels for c in item.split(",") if c]
-    with warnings.catch_warnings():
-        # reported below, once, without a Python source line
-        warnings.simplefilter("ignore")
-        result = export(args.inputs if len(args.inputs) > 1 else args.inputs[0], args.output,
-                        channels)
-    for problem in result.problems:
-        print(f"twind export: warning: {problem}", file=sys.stderr)
-    n_gaps = sum(len(g) for g in result.gaps.values())
-    print(f"wrote {result.path} ({result.format}): {len(result.channels)} channel(s)"
-          + (f", {n_gaps} gap(s) NaN-filled" if n_gaps else ""))
-    return 0

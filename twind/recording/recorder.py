@@ -17,7 +17,6 @@ exactly ``out``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -43,7 +42,7 @@ import twind
 from twind import DOFS, OSEMS
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key
-from twind.bus.session import DEFAULT_ENDPOINT, free_port, zenoh_config
+from twind.bus.session import free_port, zenoh_config
 from twind.channels import TEST_POINTS, dof_channel, osem_channel
 from twind.recording.session import RecordingError, rotated_name
 from twind.recording.sources import Roster
@@ -609,28 +608,6 @@ class Recorder:
         if key not in self._undecodable_keys:
             self._undecodable_keys.add(key)
             self._log(f"twind record: {key}: skipping {what}")
-
-
-# --- command line ----------------------------------------------------------------------------
-
-
-def record_main(args: argparse.Namespace) -> int:
-    """``twind record``: record until --duration, SIGINT or SIGTERM; print a summary."""
-
-    for name in ("duration", "rotate_mb", "rotate_s"):
-        value = getattr(args, name)
-        if value is not None and not (value > 0 and math.isfinite(value)):
-            msg = f"--{name.replace('_', '-')} must be positive, got {value}"
-            raise RecordingError(msg)
-    connect = args.connect or ([] if args.listen or args.zenoh_config else [DEFAULT_ENDPOINT])
-    conf = zenoh_config(listen=args.listen or (), connect=connect, mode=args.mode,
-                        config_file=args.zenoh_config)
-    recorder = Recorder(conf, args.output, args.keyexprs or (all_data(),), ifo=args.ifo,
-                        rotate_bytes=int(args.rotate_mb * 1e6) if args.rotate_mb else None,
-                        rotate_seconds=args.rotate_s, events=not args.no_events)
-    stats = recorder.run(args.duration, parent=args.parent)
-    print(stats.summary(), flush=True)
-    return 0
 
 
 # --- benchmark -------------------------------------------------------------------------------

@@ -5,9 +5,6 @@ file's metadata, written again with a summary and a chunk index, so that any MCA
 
 from __future__ import annotations
 
-import argparse
-import sys
-import warnings
 from pathlib import Path
 
 from mcap.writer import CompressionType, IndexType
@@ -73,15 +70,3 @@ def recover(source: str | Path, out: str | Path) -> tuple[int, list[str]]:
             out.unlink(missing_ok=True)
             raise
     return n, problems
-
-
-def recover_main(args: argparse.Namespace) -> int:
-    """``twind recover``: write the file, say what was lost."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the loss is reported below, once
-        n, problems = recover(args.input, args.output)
-    for problem in problems:
-        print(f"twind recover: {problem}", file=sys.stderr)
-    print(f"wrote {args.output}: {n} message(s)"
-          + ("" if problems else f" ({args.input} was complete)"))
-    return 0

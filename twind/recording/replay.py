@@ -11,22 +11,17 @@ bytes (GPS stamps and sequence numbers repeat).
 
 from __future__ import annotations
 
-import argparse
 import math
-import signal
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import zenoh
 
 from twind.bus.keys import control_key
-from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 from twind.recording.mcapfile import RawMessage, iter_raw_messages
 from twind.recording.session import RecordingError, session_files
 from twind.recording.writer import BLOCK_SCHEMA, CONFIG_TOPIC, EVENTS_TOPIC, scan_block
@@ -57,7 +52,8 @@ class ReplayStats:
     keys: set[str] = field(default_factory=set)
 
 
-def _check_rate(rate: float) -> float:
+def check_rate(rate: float) -> float:
+    """`rate` as :func:`replay` takes it (0 for inf: as fast as possible), checked."""
     if math.isnan(rate) or rate < 0:
         msg = f"replay rate must be >= 0 (0 or inf: as fast as possible), got {rate}"
         raise RecordingError(msg)
@@ -102,7 +98,7 @@ def replay(path: str | Path | Iterable[str | Path], conf: zenoh.Config, rate: fl
     RecordingError
         If the recording is missing or unreadable, or `rate` is negative.
     """
-    rate = _check_rate(rate)
+    rate = check_rate(rate)
     files = session_files(path)
     stop = stop or threading.Event()
     stats = ReplayStats()
@@ -201,37 +197,3 @@ def _wait_for_subscriber(pub: Any, timeout: float, stop: threading.Event) -> Non
             time.sleep(0.05)  # the other subscribers of the session arrive together
             return
         time.sleep(0.01)
-
-
-# --- command line ----------------------------------------------------------------------------
-
-
-def replay_main(args: argparse.Namespace) -> int:
-    """``twind replay``: until the end (or, with --loop, SIGINT/SIGTERM)."""
-
-    rate = _check_rate(args.rate)
-    files = session_files(args.files)
-    connect = args.connect or ([] if args.listen else [DEFAULT_ENDPOINT])
-    conf = zenoh_config(listen=args.listen or (), connect=connect, mode=args.mode)
-    stop = threading.Event()
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        def on_signal(signum: int, frame: FrameType | None) -> None:
-            stop.set()
-
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, on_signal)
-    speed = "as fast as possible" if rate == 0 else f"at {rate:g}x"
-    print(f"twind replay: {files[0]}{f' and {len(files) - 1} more' if len(files) > 1 else ''}"
-          f" {speed}{', looping' if args.loop else ''}", file=sys.stderr, flush=True)
-    try:
-        stats = replay(files, conf, rate, args.loop, ifo=args.ifo, events=not args.no_events,
-                       stop=stop,
-                       log=lambda line: print(line, file=sys.stderr, flush=True))
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    print(f"replayed {stats.messages} messages ({stats.bytes / 1e6:.1f} MB) on "
-          f"{len(stats.keys)} keys in {stats.elapsed_s:.2f} s ({stats.loops} pass(es); "
-          f"recorded span {stats.recorded_span_s:.2f} s)")
-    return 0

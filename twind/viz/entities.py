@@ -15,21 +15,12 @@ from collections.abc import Iterable
 import rerun.blueprint as rrb
 
 from twind import DOFS
-from twind.channels import OSEM_CHANNEL
-
-_OPTIC = r"^(?P<ifo>[^:]+):SUS-(?P<optic>[A-Z0-9]+)_"
-_DOF = re.compile(rf"{_OPTIC}SUS(?P<dof>{'|'.join(DOFS)})_(?P<point>[A-Z0-9]+)$")
-
-
-def parse_dof_channel(channel: str) -> tuple[str, str, str, str] | None:
-    """``(ifo, optic, dof, point)`` of a damping test point, or None."""
-    m = _DOF.match(channel)
-    return (m["ifo"], m["optic"], m["dof"], m["point"]) if m else None
+from twind.channels import DOF_CHANNEL, OSEM_CHANNEL
 
 
 def entity_path(channel: str) -> str:
     """The Rerun entity path of a channel."""
-    if m := _DOF.match(channel):
+    if m := DOF_CHANNEL.match(channel):
         return f"sus/{m['optic']}/{m['dof']}/{m['point']}"
     if m := OSEM_CHANNEL.match(channel):
         return f"sus/{m['optic']}/OSEM/{m['osem']}"

@@ -25,8 +25,9 @@ import zenoh
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import ROOT, all_data, control_key
 from twind.bus.session import zenoh_config
+from twind.channels import parse_dof_channel
 from twind.viz.decimate import NS, Decimated, Decimator
-from twind.viz.entities import blueprint, entity_path, matcher, parse_dof_channel
+from twind.viz.entities import blueprint, entity_path, matcher
 from twind.viz.rerun_export import EVENTS_ENTITY, event_gps, event_text, gps_columns
 
 MAX_BACKLOG = 20_000  # queued blocks: about 6 s of all 210 channels of the 40m

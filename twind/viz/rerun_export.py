@@ -41,12 +41,13 @@ import rerun as rr
 from numpy.typing import NDArray
 
 from twind.bus.codec import SampleBlock
+from twind.channels import parse_dof_channel
 from twind.errors import TwindError
 from twind.recording.mcapfile import iter_raw_messages
 from twind.timeutil import GPS_EPOCH_UNIX, LEAP_SECONDS
 from twind.viz.bode import measure
 from twind.viz.decimate import NS, Decimated, Decimator
-from twind.viz.entities import blueprint, entity_path, matcher, parse_dof_channel
+from twind.viz.entities import blueprint, entity_path, matcher
 
 GPS_TIMELINE = "gps"
 UTC_TIMELINE = "utc"

@@ -31,7 +31,7 @@ def _can_open_window() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def view_main(args: argparse.Namespace) -> int:
+def cmd_view(args: argparse.Namespace) -> int:
     """Stream the live twin to a Rerun viewer (spawned, given by --viewer, --web or --save)."""
 
     if not (args.rate > 0):
@@ -75,7 +75,7 @@ def view_main(args: argparse.Namespace) -> int:
     return 0
 
 
-def rrd_main(args: argparse.Namespace) -> int:
+def cmd_rrd(args: argparse.Namespace) -> int:
     """Convert an MCAP session into a Rerun .rrd; prints what it holds."""
 
     out = Path(args.output) if args.output else Path(args.mcap).with_suffix(".rrd")
