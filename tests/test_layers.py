@@ -76,3 +76,13 @@ def _branches_on_effect_names() -> list[tuple[str, int, str]]:
 def test_an_effect_s_traits_are_its_fields_not_branches_on_its_name() -> None:
     found = _branches_on_effect_names()
     assert not found, f"branches on an effect's name outside twind/model/effects.py: {found}"
+
+
+def test_only_cli_parses_a_command_line() -> None:
+    """Domain functions take typed arguments: argparse is imported in cli/ alone."""
+    outside = [str(p.relative_to(ROOT)) for p in sorted((ROOT / "twind").rglob("*.py"))
+               if p.relative_to(ROOT).parts[1] != "cli" and any(
+                   isinstance(n, (ast.Import, ast.ImportFrom)) and "argparse" in
+                   ([a.name for a in n.names] if isinstance(n, ast.Import) else [n.module])
+                   for n in ast.walk(ast.parse(p.read_text())))]
+    assert not outside, f"modules outside cli/ that import argparse: {outside}"
