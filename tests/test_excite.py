@@ -20,7 +20,7 @@ from twind.analysis.noise import in1_noise_asd
 from twind.cli import main
 from twind.config import load_config
 from twind.excitation import ExcitationRequest, Limits, check, make_waveform
-from twind.excitation.coherence import (
+from twind.analysis.design.coherence import (
     ExcitationDesignError,
     coherence_cdf,
     design_coherence,

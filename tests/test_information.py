@@ -15,8 +15,8 @@ from servicekit import serving
 from twind.analysis.identification.params import param_value, with_params
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_config, load_optic
-from twind.excitation.coherence import ExcitationDesignError
-from twind.excitation.information import design_information, tone_fisher
+from twind.analysis.design.coherence import ExcitationDesignError
+from twind.analysis.design.information import design_information, tone_fisher
 from twind.lab.calibration import DRIFT
 from twind.lab.campaign import BusTwin, LocalTwin, run_campaign
 

@@ -9,12 +9,12 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from servicekit import serving
+from servicekit import free_port, serving
 
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data
 from twind.bus.session import zenoh_config
-from twind.client import InjectionRefused, TwinClient
+from twind.client import InjectionRefused, TwinClient, TwinUnreachable
 from twind.config import CONFIG_DIR, load_config
 
 POS = "C1:SUS-ETMX_SUSPOS"
@@ -176,3 +176,20 @@ def test_a_state_space_optic_is_served_under_its_site_names() -> None:
     # ... and a TEST point drives the plant: the optical lever reads the 3 Hz line (beside
     # it, the ringing of modes the injections' start excited: ~1 % of the line)
     assert abs(phasor(oplev, 3.0)) > 20 * abs(phasor(oplev, 3.3))
+
+
+def test_the_client_checks_a_request_before_sending_it() -> None:
+    """A request with a field of the wrong type or an unknown field is refused by the client,
+    naming the field, before anything is sent: with no twin on the bus, it is refused
+    rather than unanswered; a well-formed one goes out and finds nobody."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with zenoh.open(zenoh_config(listen=[endpoint])), \
+            TwinClient(connect=[endpoint], timeout=0.5) as client:
+        for bad, field in (({"amp": "loud"}, "amp"), ({"ampl": 1.0}, "ampl"),
+                           ({"freq": [3.0]}, "freq")):
+            with pytest.raises(InjectionRefused, match=field):
+                client.inject(f"{POS}_EXC", "sine", **bad)
+        with pytest.raises(InjectionRefused, match="excitation test point"):
+            client.inject("C1:SUS-ETMX_SUSPOS_IN1", "sine", freq=3.0, amp=0.1)
+        with pytest.raises(TwinUnreachable):
+            client.inject(f"{POS}_EXC", "sine", freq=3.0, amp=0.1)

@@ -18,6 +18,7 @@ import zenoh
 from twind.bus.keys import ROOT, control_key
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config, zenoh_message
 from twind.errors import TwindError
+from twind.excitation.request import ExcitationError, ExcitationRequest
 
 
 class InjectionRefused(TwindError):
@@ -245,11 +246,18 @@ class TwinClient:
         Raises
         ------
         InjectionRefused
-            With the twin's reason (over a limit, a bad field...): never clipped.
+            With the reason: a field of the wrong type or unknown, found before sending, or
+            the twin's (over a limit, a test point it does not serve...); never clipped.
         """
         if "samples" in settings and settings["samples"] is not None:
             settings["samples"] = [float(x) for x in settings["samples"]]  # type: ignore[union-attr]
-        reply = self.query("inject", {"channel": channel, "waveform": waveform, **settings})
+        try:  # typed and its fields checked here; its limits are the twin's to judge
+            request = ExcitationRequest.from_json({"channel": channel, "waveform": waveform,
+                                                   **settings})
+            request.optic  # noqa: B018 - the channel's form: IFO:SYSTEM-OPTIC_<point>_EXC
+        except ExcitationError as err:
+            raise InjectionRefused(str(err)) from None
+        reply = self.query("inject", request.to_json())
         if not reply.get("accepted"):
             raise InjectionRefused(reply.get("reason", "refused"))
         return reply["id"]

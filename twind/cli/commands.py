@@ -104,7 +104,8 @@ def _inject(p: argparse.ArgumentParser) -> None:
     p.add_argument("--amp", type=float, help="peak amplitude (noise: RMS)")
     p.add_argument("--duration", type=float, help="seconds (inf: until stopped)")
     p.add_argument("--ramp", type=float, help="taper seconds at start and end")
-    p.add_argument("--start", type=float, help="GPS start (default: next block)")
+    p.add_argument("--start", type=float, dest="start_gps", metavar="GPS",
+                   help="GPS start (default: next block)")
     p.add_argument("--shape", help="noise: foton design shaping white noise")
     p.add_argument("--file", help="stream: text file of samples at the model rate")
     p.add_argument("--seed", type=seed, help="noise: the seed of its random numbers")

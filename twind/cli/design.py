@@ -4,11 +4,11 @@ Modes (``--mode``):
 
 - ``coherence``: the noise ASD that makes ``IN1`` coherent with ``EXC`` (>= ``--coherence``)
   in every bin of ``--band`` at ``--bw`` resolution and ``--averages`` averages, given the
-  model and its noise, within the ``_EXC`` limits (:mod:`twind.excitation.coherence`).
+  model and its noise, within the ``_EXC`` limits (:mod:`twind.analysis.design.coherence`).
 
 - ``information``: D-optimal multisines (Pintelon-Schoukens) maximising det(Fisher) of
   ``--params`` at ``--rms`` per DOF over ``--duration`` seconds of measurement, with the
-  uncertainty they predict next to white noise's (:mod:`twind.excitation.information`).
+  uncertainty they predict next to white noise's (:mod:`twind.analysis.design.information`).
 
 Each mode returns a design with ``summary()`` (lines for a person), ``to_json()`` and a plot;
 a new mode is one more entry in :data:`MODES`. ``twind campaign`` designs, injects,
@@ -30,8 +30,8 @@ from twind.analysis.identification.params import FIT_PARAMS, param_value, with_p
 from twind.config import load_config
 from twind.errors import TwindError
 from twind.excitation.checks import Limits
-from twind.excitation.coherence import design_coherent
-from twind.excitation.information import design_information
+from twind.analysis.design.coherence import design_coherent
+from twind.analysis.design.information import design_information
 from twind.lab.campaign import BusTwin, LocalTwin, Twin, plot_rounds, run_campaign
 from twind.lab.measurement import DRIFT
 from twind.viz.design import plot_coherence, plot_information

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from dataclasses import fields
 
 import numpy as np
 
@@ -13,6 +14,7 @@ from twind import strictjson
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 from twind.client import TwinClient
 from twind.errors import TwindError
+from twind.excitation.request import ExcitationRequest
 
 
 def _endpoints(args: argparse.Namespace) -> tuple[list[str], list[str]]:
@@ -56,11 +58,9 @@ def client(args: argparse.Namespace, channel: str = "") -> TwinClient:
 
 def cmd_inject(args: argparse.Namespace) -> int:
     """Start an excitation on a running twin; prints its id, or the reason it was refused."""
-    settings = {k: getattr(args, k) for k in ("freq", "amp", "duration", "ramp", "f_stop",
-                                              "n_tones", "shape", "seed")
-                if getattr(args, k) is not None}
-    if args.start is not None:
-        settings["start_gps"] = args.start
+    settings = {f.name: getattr(args, f.name) for f in fields(ExcitationRequest)
+                if f.name not in ("channel", "waveform") and getattr(args, f.name, None)
+                is not None}  # the options are named as the request's fields
     if args.file:
         try:
             settings["samples"] = np.loadtxt(args.file, ndmin=1)

@@ -10,9 +10,23 @@ refusals), :mod:`.design` (tapers, multisine periods, noise shaping), :mod:`.wav
 (the generators).
 """
 
-from twind.excitation.checks import Limits, check
+import importlib
+from typing import Any
+
 from twind.excitation.request import WAVEFORMS, ExcitationError, ExcitationRequest
-from twind.excitation.waveforms import Waveform, make_waveform
+
+_LATER = {"Limits": "checks", "check": "checks", "Waveform": "waveforms",
+          "make_waveform": "waveforms"}
+"""Names imported when first asked for: the generators need scipy, which a client that only
+builds and sends a request (``twind inject``, ``twind status``) should not wait for."""
+
+
+def __getattr__(name: str) -> Any:  # noqa: ANN401 - whichever the name is
+    if name in _LATER:
+        return getattr(importlib.import_module(f"twind.excitation.{_LATER[name]}"), name)
+    msg = f"module 'twind.excitation' has no attribute {name!r}"
+    raise AttributeError(msg)
+
 
 __all__ = ["WAVEFORMS", "ExcitationError", "ExcitationRequest", "Limits", "Waveform", "check",
            "make_waveform"]

@@ -1,7 +1,7 @@
 """``twind campaign``: design -> inject -> record -> TF -> fit -> redesign, until the fitted
 parameters reach a target uncertainty, pushing each round's fit into a running twin.
 
-Each round designs D-optimal multisines (:mod:`twind.excitation.information`) at the current
+Each round designs D-optimal multisines (:mod:`twind.analysis.design.information`) at the current
 best parameters, measures every excited DOF for ``averages`` periods (after a settling
 period), estimates the TFs with a rectangular window (a periodic excitation has no leakage),
 and fits all rounds' data jointly.  Twin time counts the DOFs one after the other, as on a
@@ -31,7 +31,7 @@ from twind.bus.session import zenoh_config
 from twind.client import TwinClient
 from twind.config import OpticConfig
 from twind.errors import TwindError
-from twind.excitation.information import InformationDesign, design_information
+from twind.analysis.design.information import InformationDesign, design_information
 from twind.lab.measurement import SETTLE_S, measure_tfs
 from twind.recording.recorder import Recorder
 

@@ -58,7 +58,7 @@ def plot_information(design: Any, path: str | Path) -> Path:
     Parameters
     ----------
     design : InformationDesign
-        As :func:`~twind.excitation.information.design_information` returns it.
+        As :func:`~twind.analysis.design.information.design_information` returns it.
     path : path
         The image file to write (its suffix picks the format, e.g. ``.png``).
 

@@ -26,7 +26,7 @@ from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.params import FIT_PARAMS, check_names, param_value
 from twind.analysis.noise import in1_noise_asd
 from twind.config import OpticConfig
-from twind.excitation.coherence import ExcitationDesignError
+from twind.analysis.design.coherence import ExcitationDesignError
 from twind.excitation.design import schroeder_phases
 
 _STEP = 1e-4
