@@ -17,7 +17,8 @@ from scipy import signal
 
 from twind import DOFS
 from twind.analysis.estimation.demodulation import DemodulationError, demodulate
-from twind.analysis.estimation.tf import TFError, from_session
+from twind.analysis.estimation.tf import from_session
+from twind.analysis.estimation.tfset import TFError
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.cli import main

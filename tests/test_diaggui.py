@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from twind.analysis.estimation.diaggui import read_transfers, write_fft_measurement
-from twind.analysis.estimation.tf import TFError, from_diaggui
+from twind.analysis.estimation.tf import from_diaggui
+from twind.analysis.estimation.tfset import TFError
 from twind.cli import main
 
 DARM = Path(__file__).parent / "data" / "H1_DARM_OLGTF_swept_sine_2020-01-03.xml"

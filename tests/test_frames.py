@@ -17,7 +17,8 @@ from scipy import signal
 
 from twind.analysis.estimation.excitations import found, recognise
 from twind.analysis.estimation import tf
-from twind.analysis.estimation.tf import TFError, from_session
+from twind.analysis.estimation.tf import from_session
+from twind.analysis.estimation.tfset import TFError
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
 from twind.excitation.request import ExcitationRequest

@@ -14,7 +14,7 @@ import pytest
 import scipy.io
 from scipy import signal
 
-from twind.analysis.estimation.tf import TFError
+from twind.analysis.estimation.tfset import TFError
 from twind.analysis.statespace.diagnose import diagnose_plant
 from twind.analysis.statespace.measurement import read_plant
 from twind.channels import Convention

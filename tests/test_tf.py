@@ -15,13 +15,9 @@ from conftest import REFERENCE
 from measurekit import record_excited_session
 
 from twind import DOFS
-from twind.analysis.estimation.tf import (
-    TFError,
-    from_diaggui,
-    from_session,
-    welch_tf,
-    xml_transfer,
-)
+from twind.analysis.estimation.tf import from_diaggui, from_session, xml_transfer
+from twind.analysis.estimation.tfset import TFError
+from twind.analysis.estimation.welch import welch_tf
 from twind.cli import main
 from twind.config import load_config
 from twind.errors import MeasurementWarning

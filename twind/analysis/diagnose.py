@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from twind import progress
-from twind.analysis.estimation.tf import TFSet
+from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification import locate as search
 from twind.analysis.identification import narrow
 from twind.analysis.identification.controller import ControllerCheck, check_controller

@@ -12,7 +12,8 @@ import numpy as np
 from twind import OSEMS, __version__, strictjson
 from twind.analysis.diagnose import diagnose
 from twind.analysis.estimation.diaggui import read_transfers
-from twind.analysis.estimation.tf import TFError, from_diaggui, from_session
+from twind.analysis.estimation.tf import from_diaggui, from_session
+from twind.analysis.estimation.tfset import TFError
 from twind.analysis.identification.candidates import compare
 from twind.analysis.identification.controller import check_controller
 from twind.analysis.identification.fit import fit

@@ -22,7 +22,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from twind import progress
-from twind.analysis.estimation.tf import TFSet, from_session
+from twind.analysis.estimation.tf import from_session
+from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.params import FIT_PARAMS, with_params
 from twind.analysis.identification.result import FitResult

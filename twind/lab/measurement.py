@@ -18,15 +18,8 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS
-from twind.analysis.estimation.tf import (
-    POINTS,
-    TFSet,
-    assemble,
-    check_estimator,
-    highpassed,
-    lpm_column,
-    with_lpm,
-)
+from twind.analysis.estimation.tf import assemble, check_estimator, highpassed, lpm_column, with_lpm
+from twind.analysis.estimation.tfset import POINTS, TFSet
 from twind.analysis.estimation.welch import welch_tfs
 from twind.channels import dof_channel
 from twind.config import OpticConfig
@@ -166,11 +159,9 @@ def measure_tfs(cfg: OpticConfig, dofs: Sequence[str] = ("POS", "PIT", "YAW"), *
         freq, h, g2, navg = welch_tfs(x, ys, rate, nperseg, overlap, window=window,
                                       psd=exc_psd[d])
         columns[d] = _welch_column(h, g2, d)
-    tfs = assemble(cfg.name, freq, columns, navg)
     if estimates:
-        return with_lpm(tfs, estimates)
-    tfs.window, tfs.exc_psd = window, exc_psd
-    return tfs
+        return with_lpm(assemble(cfg.name, freq, columns, navg), estimates)
+    return assemble(cfg.name, freq, columns, navg, window=window, exc_psd=exc_psd)
 
 
 def _welch_column(h: NDArray[np.complex128], g2: NDArray[np.float64], excited: str

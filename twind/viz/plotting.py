@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS, OSEMS, __version__
-from twind.analysis.estimation.tf import TFSet
+from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.result import FitResult

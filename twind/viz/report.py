@@ -14,7 +14,7 @@ import numpy as np
 
 from twind import __version__, strictjson
 from twind.analysis.diagnose import Diagnosis, DiagnoseError
-from twind.analysis.estimation.tf import TFSet
+from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.locate import Located
 from twind.analysis.identification.model import ClosedLoopModel

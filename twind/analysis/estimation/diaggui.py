@@ -22,7 +22,7 @@ import dttxml
 import numpy as np
 from numpy.typing import NDArray
 
-from twind.analysis.estimation.tf import POINTS, TFError, TFSet
+from twind.analysis.estimation.tfset import POINTS, TFError, TFSet
 
 _DTD = """<?xml version="1.0"?>
 <!DOCTYPE LIGO_LW [

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from scipy import optimize, signal, stats
 
 from twind import DOFS
-from twind.analysis.estimation.tf import TFSet
+from twind.analysis.estimation.tfset import TFSet
 from twind.config import OpticConfig
 from twind.analysis.identification.locate import band_edges, gaussian_sigma
 from twind.config.reader import ModuleConfig

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from twind.analysis.estimation.tf import Kernel, TFSet
+from twind.analysis.estimation.tfset import Kernel, TFSet
 from twind.analysis.identification.params import FitError
 
 

@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from twind import progress
-from twind.analysis.estimation.tf import TFSet
+from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification.data import MIN_COHERENCE, FitData
 from twind.analysis.identification.model import ClosedLoopModel
 from twind.analysis.identification.params import FIT_PARAMS, FitError, check_names, param_value

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind import DOFS
-from twind.analysis.estimation.tf import Kernel
+from twind.analysis.estimation.tfset import Kernel
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.params import FIT_PARAMS, with_params
 from twind.config import OpticConfig

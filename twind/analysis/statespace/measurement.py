@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind.analysis.estimation.diaggui import Transfer, read_transfers
-from twind.analysis.estimation.tf import TFError, coherence_floor
+from twind.analysis.estimation.tfset import TFError, coherence_floor
 from twind.analysis.identification.data import MIN_COHERENCE, SURE_COHERENCE, smoothed
 from twind.config.statespace import StateSpaceOptic
 
