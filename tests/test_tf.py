@@ -16,11 +16,11 @@ from measurekit import record_excited_session
 
 from twind import DOFS
 from twind.analysis.estimation.tf import from_diaggui, from_session, xml_transfer
-from twind.analysis.estimation.tfset import TFError
+from twind.analysis.estimation.tfset import _READERS, ReadOptions, TFError, TFSet, register_reader
 from twind.analysis.estimation.welch import welch_tf
 from twind.cli import main
 from twind.config import load_config
-from twind.errors import MeasurementWarning
+from twind.errors import MeasurementWarning, TwindError
 from twind.model.analytical import analytical_mechanics
 from twind.model.plant import Plant
 
@@ -537,3 +537,24 @@ def test_events_no_twin_sends_are_left_out_with_a_warning() -> None:
     with pytest.warns(MeasurementWarning, match="2 event.s. in the recording left out"):
         segments = _segments([good, *forged])
     assert segments == {("C1", "ETMX", "POS"): (1e9, 1e9 + 10.0)}
+
+
+def test_one_way_in_finds_the_format_by_its_registered_identifier(tmp_path: Path) -> None:
+    """``TFSet.read`` picks the reader whose identifier takes the files (diaggui XML here,
+    the same set as its reader's), refuses a mix naming every registered format, and takes a
+    format registered later, as gwpy's registry does."""
+    via_registry = TFSet.read(NULL)
+    direct = from_diaggui(NULL)
+    _assert_same(via_registry, direct)
+    with pytest.raises(TwindError, match="estimator lpm needs the time series"):
+        TFSet.read(NULL, ReadOptions(estimator="lpm"))
+    other = tmp_path / "x.csv"
+    other.write_text("1,2\n")
+    with pytest.raises(TFError, match=r"all diaggui \.xml or all \.mcap or all HDF5"):
+        TFSet.read([NULL[0], other])
+    register_reader("csv-test", ".csv", lambda ps: all(p.suffix == ".csv" for p in ps),
+                    lambda ps, options: direct)
+    try:
+        assert TFSet.read([other]) is direct
+    finally:
+        _READERS.pop("csv-test")

@@ -12,8 +12,7 @@ import numpy as np
 from twind import OSEMS, __version__, strictjson
 from twind.analysis.diagnose import diagnose
 from twind.analysis.estimation.diaggui import read_transfers
-from twind.analysis.estimation.tf import from_diaggui, from_session
-from twind.analysis.estimation.tfset import TFError
+from twind.analysis.estimation.tfset import ReadOptions, TFError, TFSet
 from twind.analysis.identification.candidates import compare
 from twind.analysis.identification.controller import check_controller
 from twind.analysis.identification.fit import fit
@@ -29,7 +28,7 @@ from twind.cli.twin import client
 from twind.client import TwinClient
 from twind.config import MEASURED_MODES, OpticConfig, load_config
 from twind.errors import TwindError
-from twind.recording.frames import FORMATS, parse_map
+from twind.recording.frames import parse_map
 from twind.recording.reader import as_array, getdata
 from twind.recording.session import session_files
 from twind.service.ringdown import served_ringdown
@@ -37,35 +36,18 @@ from twind.viz.plotting import Measured, bode_matrix, bode_transfers, plot_fit, 
 from twind.viz.report import write_report
 
 
-def _measured_tfs(args: argparse.Namespace):  # noqa: ANN202 - TFSet
+def _measured_tfs(args: argparse.Namespace) -> TFSet:
     """The TFs of ``args.inputs``: all diaggui XML, or time series (MCAP sessions, or HDF5
     files or GWF frames)."""
 
     _check_band(args)
-    paths = [Path(p) for p in args.inputs]
-    missing = [str(p) for p in paths if not p.exists()]
-    if missing:
-        msg = f"no such input: {', '.join(missing)}"
-        raise TwindError(msg)
-    kinds = {p.suffix.lower() for p in paths}
-    if kinds <= {".xml"}:
-        if args.estimator != "welch":
-            msg = (f"--estimator {args.estimator} needs the time series: diaggui XML holds "
-                   "diaggui's Welch estimates only")
-            raise TwindError(msg)
-        return from_diaggui(paths)
-    if kinds <= {".mcap"} or kinds <= set(FORMATS):
-        tfs = from_session(paths, bw=args.bw, overlap=args.overlap, optic=args.optic,
-                           estimator=args.estimator,
-                           max_hz=args.band[1] if args.band else None,
-                           mapping=parse_map(args.map),
-                           exc_times={d: (a, b) for d, a, b in args.exc_times})
-        for line in tfs.found:
-            print(f"twind: excitation found in the data: {line}", file=sys.stderr)
-        return tfs
-    msg = (f"inputs must be all diaggui .xml, all .mcap, or all HDF5 (.h5, .hdf5) or GWF "
-           f"(.gwf), got {sorted(kinds)}")
-    raise TwindError(msg)
+    tfs = TFSet.read(args.inputs, ReadOptions(
+        bw=args.bw, overlap=args.overlap, optic=args.optic, estimator=args.estimator,
+        max_hz=args.band[1] if args.band else None, mapping=parse_map(args.map),
+        exc_times={d: (a, b) for d, a, b in args.exc_times}))
+    for line in tfs.found:
+        print(f"twind: excitation found in the data: {line}", file=sys.stderr)
+    return tfs
 
 
 def _input_matrix(args: argparse.Namespace, cfg: OpticConfig) -> InputMatrixCheck:

@@ -29,9 +29,17 @@ from twind.analysis.estimation.demodulation import AVERAGES, DemodulationError, 
 from twind.analysis.estimation.excitations import (SHORTEST_S, Stretch, at_one_rate, every,
                                                    longest, with_exc)
 from twind.analysis.estimation.lpm import LPMEstimate, lpm_tfs
-from twind.analysis.estimation.tfset import ESTIMATORS, POINTS, Kernel, TFError, TFSet
+from twind.analysis.estimation.tfset import (
+    ESTIMATORS,
+    POINTS,
+    Kernel,
+    ReadOptions,
+    TFError,
+    TFSet,
+    register_reader,
+)
 from twind.analysis.estimation.welch import Extent, Segment, WelchStream, welch_tfs
-from twind.errors import MeasurementWarning
+from twind.errors import MeasurementWarning, TwindError
 from twind.recording.fastread import event_count, read_channels, stream_channels
 from twind.recording.frames import is_frames, read_frames, same_channels
 from twind.recording.session import Channel
@@ -677,3 +685,26 @@ def _segments(events: list[dict], rate_hz: float = 16384.0
         else:
             chain.append([start, ends[exc_id]])
     return {k: tuple(max(v, key=lambda r: r[1] - r[0])) for k, v in runs.items()}
+
+
+def _diaggui(paths: list[Path], options: ReadOptions) -> TFSet:
+    if options.estimator != "welch":  # not a TFError: the files may well be TFs
+        msg = (f"--estimator {options.estimator} needs the time series: diaggui XML holds "
+               "diaggui's Welch estimates only")
+        raise TwindError(msg)
+    return from_diaggui(paths)
+
+
+def _time_series(paths: list[Path], options: ReadOptions) -> TFSet:
+    return from_session(paths, bw=options.bw, overlap=options.overlap, optic=options.optic,
+                        estimator=options.estimator, max_hz=options.max_hz,
+                        mapping=options.mapping, exc_times=options.exc_times)
+
+
+register_reader("diaggui", "diaggui .xml", lambda ps: all(p.suffix.lower() == ".xml" for p in ps),
+                _diaggui)
+register_reader("mcap", ".mcap", lambda ps: all(p.suffix.lower() == ".mcap" for p in ps),
+                _time_series)
+register_reader("frames", "HDF5 (.h5, .hdf5) or GWF (.gwf)", lambda ps: all(map(is_frames, ps)),
+                _time_series)
+

@@ -8,6 +8,7 @@ standard error, and the open-loop plant recovered from them. Built once by a rea
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -20,7 +21,8 @@ from scipy import stats
 from twind.channels import dof_channel
 from twind.errors import TwindError
 
-__all__ = ["ESTIMATORS", "POINTS", "Kernel", "TFError", "TFSet", "coherence_floor"]
+__all__ = ["ESTIMATORS", "POINTS", "Kernel", "ReadOptions", "TFError", "TFSet",
+           "coherence_floor", "register_reader"]
 
 POINTS = ("IN1", "IN2", "OUT")
 ESTIMATORS = ("welch", "lpm")
@@ -77,6 +79,59 @@ def coherence_floor(averages: int, tests: int, at_least: float = 0.5,
 
 
 @dataclass(frozen=True)
+class ReadOptions:
+    """How measurements are turned into transfer functions (the readers take what applies).
+
+    Attributes
+    ----------
+    bw : float
+        Resolution (Hz) of the estimates made from time series.
+    overlap : float
+        Fraction of a Welch segment shared with the next.
+    optic : str, optional
+        The optic, when several were excited.
+    estimator : str
+        ``"welch"`` or ``"lpm"`` (:data:`ESTIMATORS`).
+    max_hz : float, optional
+        Highest frequency wanted.
+    mapping : mapping of str to str, optional
+        A file's channel names to the twin's.
+    exc_times : mapping of str to (float, float)
+        Excited DOF to the GPS start and end of its excitation, where no event says them.
+    """
+
+    bw: float = 0.01
+    overlap: float = 0.5
+    optic: str | None = None
+    estimator: str = "welch"
+    max_hz: float | None = None
+    mapping: Mapping[str, str] | None = None
+    exc_times: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+
+
+Reader = Callable[[list[Path], ReadOptions], "TFSet"]
+_READERS: dict[str, tuple[str, Callable[[list[Path]], bool], Reader]] = {}
+
+
+def register_reader(name: str, what: str, identify: Callable[[list[Path]], bool],
+                    reader: Reader) -> None:
+    """Make :meth:`TFSet.read` take a format, as gwpy's ``io.registry`` does.
+
+    Parameters
+    ----------
+    name : str
+        The format's name (``"diaggui"``).
+    what : str
+        The files it takes, for an error message (``"diaggui .xml"``).
+    identify : callable
+        Whether a list of paths is of this format.
+    reader : callable
+        ``(paths, options) -> TFSet``.
+    """
+    _READERS[name] = (what, identify, reader)
+
+
+@dataclass(frozen=True)
 class TFSet:
     """Closed-loop transfer functions of one optic, one column per excited DOF.
 
@@ -102,6 +157,40 @@ class TFSet:
     # GPS start and end of each excited DOF's excitation; the end None where a file gives
     # only the start (diaggui)
     spans: dict[str, tuple[float, float | None]] = field(default_factory=dict)
+
+    @classmethod
+    def read(cls, paths: Sequence[str | Path], options: ReadOptions | None = None) -> TFSet:
+        """The transfer functions of measurement files, whichever registered format they
+        are in (:func:`register_reader`: diaggui XML, MCAP sessions, HDF5 or GWF files).
+
+        Parameters
+        ----------
+        paths : sequence of path
+            The files, all of one format.
+        options : ReadOptions, optional
+            How to estimate; the defaults otherwise.
+
+        Returns
+        -------
+        TFSet
+
+        Raises
+        ------
+        TFError
+            A file that does not exist, or files of no one registered format.
+        """
+        files = [Path(p) for p in paths]
+        missing = [str(p) for p in files if not p.exists()]
+        if missing:
+            msg = f"no such input: {', '.join(missing)}"
+            raise TFError(msg)
+        for _, identify, reader in _READERS.values():
+            if files and identify(files):
+                return reader(files, options or ReadOptions())
+        kinds = sorted({p.suffix.lower() for p in files})
+        msg = (f"inputs must be all {' or all '.join(w for w, _, _ in _READERS.values())}, "
+               f"got {kinds}")
+        raise TFError(msg)
 
     def sigma(self, point: str) -> NDArray[np.float64]:
         """Standard error of the real and of the imaginary part of each element of
