@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from twind.analysis.diagnose import ALPHA, Diagnosis
+from twind.analysis.diagnosis import ALPHA, Diagnosis
 from twind.model.effects import CATALOGUE, FAMILIES
 
 

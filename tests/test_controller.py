@@ -18,7 +18,7 @@ from twind.analysis.identification.controller import (
     corrected_module,
 )
 from twind.config import OpticConfig, load_config
-from twind.lab.measurement import measure_tfs
+from twind.commissioning.measurement import measure_tfs
 from twind.loop.filtermodule import Stage
 from twind.viz.report import report_page
 

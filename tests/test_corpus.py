@@ -36,7 +36,7 @@ from twind.lab.corpus import (
     stage_error,
     tilted_heads,
 )
-from twind.lab.measurement import SETTLE_S, measure_tfs, record_measurement
+from twind.commissioning.measurement import SETTLE_S, measure_tfs, record_measurement
 from twind.model.effects import CATALOGUE, model_names, with_effect
 from twind.model.plant import Plant
 

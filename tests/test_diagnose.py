@@ -19,14 +19,15 @@ from browser import tables
 from conftest import REFERENCE
 from diagnosekit import assert_accounted, assert_sound
 
-from twind.analysis.diagnose import ALPHA, diagnose, f_profile
+from twind.analysis.diagnose import diagnose, f_profile
+from twind.analysis.diagnosis import ALPHA
 from twind.analysis.identification.params import param_label
 from twind.analysis.separation import separating_measurement
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
 from twind.errors import MeasurementWarning
 from twind.lab.corpus import FACES, key_z
-from twind.lab.measurement import measure_tfs
+from twind.commissioning.measurement import measure_tfs
 from twind.limits import ServiceLimits
 from twind.model.plant import Plant
 from twind.viz.report import report_page
@@ -265,7 +266,7 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
     from twind.analysis.estimation.diaggui import write_measurement_set
     from twind.analysis.estimation.tf import from_diaggui
     from twind.analysis.identification.params import param_value, with_params
-    from twind.lab.measurement import DRIFT
+    from twind.commissioning.measurement import DRIFT
 
     real = replace(etmx, sus=with_params(etmx.sus, {k: param_value(etmx.sus, k) * v
                                                     for k, v in DRIFT.items()}))

@@ -126,7 +126,7 @@ def test_a_left_out_coil_imbalance_is_fitted_and_worth_its_parameters(etmx) -> N
     here, not through the effects module); nominal + coil_imbalance explains it, the nominal
     model alone does not."""
     from twind.model.plant import Plant
-    from twind.lab.measurement import measure_tfs
+    from twind.commissioning.measurement import measure_tfs
 
     gains = np.array([0.03, -0.02, 0.01, -0.025])
     plant = Plant.from_params(etmx.sus, etmx.mechanics())

@@ -23,7 +23,7 @@ from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
 from twind.excitation.request import ExcitationRequest
 from twind.excitation.waveforms import make_waveform
-from twind.lab.measurement import record_measurement
+from twind.commissioning.measurement import record_measurement
 from twind.model.effects import CATALOGUE
 from twind.recording.fastread import event_count
 from twind.recording.frames import read_frames, renamer

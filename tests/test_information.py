@@ -18,7 +18,7 @@ from twind.config import NOMINAL_ETMX, load_config, load_optic
 from twind.analysis.design.coherence import ExcitationDesignError
 from twind.analysis.design.information import design_information, tone_fisher
 from twind.lab.calibration import DRIFT
-from twind.lab.campaign import BusTwin, LocalTwin, run_campaign
+from twind.commissioning.campaign import BusTwin, LocalTwin, run_campaign
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from twind.analysis.estimation.tf import from_diaggui
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.locate import locate
 from twind.config import load_config
-from twind.lab.measurement import measure_tfs
+from twind.commissioning.measurement import measure_tfs
 from twind.model.plant import Plant
 
 NULL = sorted(glob.glob(str(REFERENCE / "example_null" / "*.xml")))

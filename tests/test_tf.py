@@ -268,7 +268,7 @@ def test_the_virtual_measurements_in2_is_its_in1_plus_exc() -> None:
     from scipy import signal
 
     from twind.analysis.estimation.tf import welch_tfs
-    from twind.lab.measurement import _welch_column
+    from twind.commissioning.measurement import _welch_column
 
     rng = np.random.default_rng(7)
     n, nperseg = 40000, 2000

@@ -12,7 +12,7 @@ Modes (``--mode``):
 
 Each mode returns a design with ``summary()`` (lines for a person), ``to_json()`` and a plot;
 a new mode is one more entry in :data:`MODES`. ``twind campaign`` designs, injects,
-records and fits in rounds until a target (:mod:`twind.lab.campaign`).
+records and fits in rounds until a target (:mod:`twind.commissioning.campaign`).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from twind.errors import TwindError
 from twind.excitation.checks import Limits
 from twind.analysis.design.coherence import design_coherent
 from twind.analysis.design.information import design_information
-from twind.lab.campaign import BusTwin, LocalTwin, Twin, plot_rounds, run_campaign
-from twind.lab.measurement import DRIFT
+from twind.commissioning.campaign import BusTwin, LocalTwin, Twin, plot_rounds, run_campaign
+from twind.commissioning.measurement import DRIFT
 from twind.viz.design import plot_coherence, plot_information
 
 

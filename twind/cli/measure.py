@@ -31,7 +31,7 @@ from twind.errors import TwindError
 from twind.recording.frames import parse_map
 from twind.recording.reader import as_array, getdata
 from twind.recording.session import session_files
-from twind.service.ringdown import served_ringdown
+from twind.commissioning.ringdown import served_ringdown
 from twind.viz.plotting import Measured, bode_matrix, bode_transfers, plot_fit, plot_freeswing
 from twind.viz.report import write_report
 

@@ -21,8 +21,8 @@ from twind.analysis.identification.fit import fit
 from twind.analysis.identification.params import FIT_PARAMS, param_value, with_params
 from twind.config import OpticConfig
 from twind.analysis.design.information import design_information, det_root
-from twind.lab.campaign import LocalTwin, tones_only
-from twind.lab.measurement import DRIFT, SETTLE_S, measure_tfs
+from twind.commissioning.campaign import LocalTwin, tones_only
+from twind.commissioning.measurement import DRIFT, SETTLE_S, measure_tfs
 from twind.lab.workers import side_by_side
 
 

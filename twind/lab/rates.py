@@ -2,7 +2,7 @@
 the corpus' concealment, and whether its p-values are as small as chance allows.
 
 What ``diagnose`` promises on a null is a rate: it claims an effect with probability at
-most :data:`~twind.analysis.diagnose.ALPHA` and locates a band with probability at most
+most :data:`~twind.analysis.diagnosis.ALPHA` and locates a band with probability at most
 :data:`~twind.analysis.identification.locate.ALPHA`, and every p-value it prints is no
 smaller than uniform. One case cannot show a rate. :func:`outcomes` diagnoses corpus cases
 (:func:`~twind.lab.corpus.make_cases`: drifted nulls, concealed effects) side by side in
@@ -24,10 +24,11 @@ import numpy as np
 from scipy import stats
 
 from twind import progress
-from twind.analysis.diagnose import ALPHA, diagnose
+from twind.analysis.diagnose import diagnose
+from twind.analysis.diagnosis import ALPHA
+from twind.commissioning.measurement import measure_tfs
 from twind.config import OpticConfig
 from twind.lab.corpus import EXCITED, Case, make_cases, reference_data, score
-from twind.lab.measurement import measure_tfs
 from twind.lab.workers import side_by_side
 from twind.model.effects import CATALOGUE
 
@@ -107,7 +108,7 @@ def outcome(cfg: OpticConfig, measurement: dict, job: tuple[Case, int]) -> Outco
     cfg : OpticConfig
         The nominal optic.
     measurement : dict
-        Keywords of :func:`~twind.lab.measurement.measure_tfs` (POS, PIT and YAW excited in
+        Keywords of :func:`~twind.commissioning.measurement.measure_tfs` (POS, PIT and YAW excited in
         turn).
     job : (Case, int)
         The case and the seed of its measurement.
@@ -144,7 +145,7 @@ def outcomes(cfg: OpticConfig, cases: Sequence[Case], seed: int, workers: int = 
     workers : int
         Processes (the outcomes do not depend on it).
     **measurement
-        Of :func:`~twind.lab.measurement.measure_tfs` (``bw``, ``averages``, ``rms``,
+        Of :func:`~twind.commissioning.measurement.measure_tfs` (``bw``, ``averages``, ``rms``,
         ``estimator``): default :data:`CONCEALED`'s.
 
     Returns
@@ -220,7 +221,7 @@ def nulls(cfg: OpticConfig, n: int, seed: int = 500, workers: int = 2,
     workers : int
         Processes side by side.
     **measurement
-        Keywords of :func:`~twind.lab.measurement.measure_tfs` that differ from
+        Keywords of :func:`~twind.commissioning.measurement.measure_tfs` that differ from
         :data:`NULLS` (``estimator="lpm"``: the local polynomial method's nulls).
 
     Returns

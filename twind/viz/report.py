@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from twind import __version__, strictjson
-from twind.analysis.diagnose import Diagnosis, DiagnoseError
+from twind.analysis.diagnosis import DiagnoseError, Diagnosis
 from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.locate import Located

@@ -56,7 +56,7 @@ ALPHA = 0.01
 """False-alarm probability of claiming a change."""
 EQUIVALENT_LR = 6.0
 """Claimed changes whose likelihood ratios lie within this of the best one's are its rivals
-(as for an SOS, :data:`twind.analysis.diagnose.EQUIVALENT_LR`)."""
+(as for an SOS, :data:`twind.analysis.diagnosis.EQUIVALENT_LR`)."""
 MAX_EFFECTS = 6
 """Changes a diagnosis chooses at most: a real suspension may differ from its model in
 several modes."""

@@ -33,7 +33,7 @@ from twind.client import TwinClient
 from twind.config import OpticConfig
 from twind.errors import TwindError
 from twind.analysis.design.information import InformationDesign, design_information
-from twind.lab.measurement import SETTLE_S, measure_tfs
+from twind.commissioning.measurement import SETTLE_S, measure_tfs
 from twind.recording.recorder import Recorder
 
 MIN_AVERAGES = 4
@@ -55,7 +55,7 @@ class Twin(Protocol):
         design : InformationDesign
             The multisine of each excited DOF.
         averages : int
-            Periods measured per DOF, after :data:`~twind.lab.measurement.SETTLE_S`.
+            Periods measured per DOF, after :data:`~twind.commissioning.measurement.SETTLE_S`.
 
         Returns
         -------
@@ -81,7 +81,7 @@ class LocalTwin:
         design : InformationDesign
             The multisine of each excited DOF.
         averages : int
-            Periods measured per DOF, after :data:`~twind.lab.measurement.SETTLE_S`.
+            Periods measured per DOF, after :data:`~twind.commissioning.measurement.SETTLE_S`.
 
         Returns
         -------
@@ -124,7 +124,7 @@ class BusTwin:
         design : InformationDesign
             The multisine of each excited DOF.
         averages : int
-            Periods injected per DOF, after :data:`~twind.lab.measurement.SETTLE_S`.
+            Periods injected per DOF, after :data:`~twind.commissioning.measurement.SETTLE_S`.
 
         Returns
         -------
