@@ -18,7 +18,7 @@ import zenoh
 from twind.bus.keys import ROOT, control_key
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config, zenoh_message
 from twind.errors import TwindError
-from twind.excitation.request import ExcitationError, ExcitationRequest
+from twind.excitation.request import ExcitationError, ExcitationRequest, channel_match
 
 
 class InjectionRefused(TwindError):
@@ -254,7 +254,7 @@ class TwinClient:
         try:  # typed and its fields checked here; its limits are the twin's to judge
             request = ExcitationRequest.from_json({"channel": channel, "waveform": waveform,
                                                    **settings})
-            request.optic  # noqa: B018 - the channel's form: IFO:SYSTEM-OPTIC_<point>_EXC
+            channel_match(request.channel)
         except ExcitationError as err:
             raise InjectionRefused(str(err)) from None
         reply = self.query("inject", request.to_json())

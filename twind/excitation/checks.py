@@ -27,7 +27,7 @@ from twind.excitation.request import (
     WAVEFORMS,
     ExcitationError,
     ExcitationRequest,
-    _channel_match,
+    channel_match,
     typed,
 )
 from twind.limits import ServiceLimits
@@ -155,7 +155,7 @@ def check(req: ExcitationRequest, limits: Limits, rate_hz: float,
     """
     rate_hz = _check_arguments(limits, rate_hz, max_samples)
     req = typed(req, max_samples)
-    _channel_match(req.channel)
+    channel_match(req.channel)
     if req.waveform not in WAVEFORMS:
         raise ExcitationError(f"{req.waveform!r:.40} is not one of {', '.join(WAVEFORMS)}",
                               "waveform")

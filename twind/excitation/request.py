@@ -232,7 +232,7 @@ class ExcitationRequest:
     @property
     def optic(self) -> str:
         """The optic of `channel` (``ETMX``); the channel must be valid."""
-        return _channel_match(self.channel).group("optic")
+        return channel_match(self.channel).group("optic")
 
     # -- equality (samples are arrays) ----------------------------------------------------------
     def _scalars(self) -> tuple[Any, ...]:
@@ -328,7 +328,14 @@ _COERCE = {
 }
 
 
-def _channel_match(channel: object) -> re.Match[str]:
+def channel_match(channel: object) -> re.Match[str]:
+    """`channel` parsed as an excitation test point (:data:`twind.channels.EXC_POINT`).
+
+    Raises
+    ------
+    ExcitationError
+        If it is not one, naming the field ``channel``.
+    """
     m = EXC_POINT.fullmatch(channel) if isinstance(channel, str) else None
     if m is None:
         raise ExcitationError(f"{channel!r:.60} is not an excitation test point; expected "

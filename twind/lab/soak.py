@@ -121,7 +121,7 @@ class _Watcher:
     def __init__(self, endpoint: str, config_file: str | None = None) -> None:
         self.last: dict[str, int] = {}
         self.per_channel: dict[str, Counter] = defaultdict(Counter)  # blocks, lost, ...
-        self.blocks = self.lost = self.out_of_order = self.corrupt = self.misdelivered = 0
+        self.corrupt = self.misdelivered = 0
         self.anomalies: list[str] = []  # the first few, with when and what
         self._t0 = time.monotonic()
         self.first_nonzero: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
@@ -143,7 +143,6 @@ class _Watcher:
                            f"({type(err).__name__})")
             return
         with self._lock:
-            self.blocks += 1
             counts = self.per_channel[block.channel]
             counts["blocks"] += 1
             if not key.endswith(block.channel):
@@ -153,10 +152,8 @@ class _Watcher:
             last = self.last.get(block.channel)
             if last is not None and block.sequence != last + 1:
                 if block.sequence > last + 1:
-                    self.lost += block.sequence - last - 1
                     counts["lost"] += block.sequence - last - 1
                 else:
-                    self.out_of_order += 1
                     counts["out_of_order"] += 1
                 self._note(f"{block.channel}: sequence {block.sequence} after {last}")
             self.last[block.channel] = block.sequence
@@ -192,11 +189,15 @@ class _Watcher:
             time.sleep(0.005)
         return None
 
+    def total(self, what: str) -> int:
+        """``blocks``, ``lost`` or ``out_of_order``, over every channel."""
+        with self._lock:
+            return sum(c[what] for c in self.per_channel.values())
+
     def counts(self) -> dict[str, int]:
         """What arrived, and what arrived amiss."""
-        with self._lock:
-            return {"blocks": self.blocks, "lost": self.lost, "out_of_order": self.out_of_order,
-                    "corrupt": self.corrupt, "misdelivered": self.misdelivered}
+        return {**{k: self.total(k) for k in ("blocks", "lost", "out_of_order")},
+                "corrupt": self.corrupt, "misdelivered": self.misdelivered}
 
     def close(self) -> None:
         self.sub.undeclare()
@@ -353,8 +354,8 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
     return SoakReport(
         duration_s=duration, optics=", ".join(status["optics"]), cpu_fraction=cpu,
         late_blocks=status["late_blocks"], max_lag_s=status["max_lag_s"],
-        bus_blocks=watcher.blocks, bus_lost=watcher.lost,
-        bus_out_of_order=watcher.out_of_order, bus_corrupt=watcher.corrupt,
+        bus_blocks=watcher.total("blocks"), bus_lost=watcher.total("lost"),
+        bus_out_of_order=watcher.total("out_of_order"), bus_corrupt=watcher.corrupt,
         bus_misdelivered=watcher.misdelivered, bus_anomalies=watcher.anomalies,
         mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies,
         service_latency=status["injection_latency_s"], hostile_sent=sent,
@@ -459,11 +460,11 @@ def scan_recording(files: list[Path]) -> dict[str, tuple[int, int]]:
     return {topic: (n, gaps) for topic, (n, gaps) in counts.items()}
 
 
-def _targets(status: dict) -> list[tuple[str, str]]:
+def _targets(statuses: list[dict]) -> list[tuple[str, str]]:
     """(twin, EXC channel) of the POS, PIT, YAW and SIDE test points of each twin's first
     optic, the twins taken in turn."""
     return [(st["twin"], dof_channel(st["ifo"], st["optics"][0], dof, "EXC"))
-            for dof in ("POS", "PIT", "YAW", "SIDE") for st in status]
+            for dof in ("POS", "PIT", "YAW", "SIDE") for st in statuses]
 
 
 def _inject_periodically(client: TwinClient, watcher: _Watcher, targets: list[tuple[str, str]],
