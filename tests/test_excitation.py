@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import random
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -18,6 +19,7 @@ from twind.excitation import (
     check,
     make_waveform,
 )
+from twind.excitation.checks import DEFAULT_LIMITS
 from twind.excitation.design import noise_gain, noise_shape
 from twind.excitation.waveforms import NOISE_CHUNK
 
@@ -318,6 +320,23 @@ def test_rms_limit_is_separate_from_the_peak_limit() -> None:
         check(_req("noise", amp=0.2), Limits(peak=10.0, rms=0.1), FS)
     with pytest.raises(ExcitationError, match="RMS 0.9 exceeds"):
         check(_req("stream", samples=np.full(100, -0.9)), Limits(peak=1.0, rms=0.8), FS)
+
+
+def test_a_multisine_within_the_peak_limit_is_refused_over_the_rms_limit() -> None:
+    """Four tones at a twin's default limits (peak 100, RMS 30): at amp 90 the true peak is
+    90 but the period's RMS 31.8, refused by the RMS limit with that RMS; at amp 80 (RMS
+    28.3) it runs. The RMS checked is that of the samples the multisine sends."""
+    tones = (3.0, 7.0, 13.0, 29.0)
+    req = _req("multisine", amp=90.0, freqs=tones, duration=math.inf)
+    x = _render(req, make_waveform(req, FS).period_samples)
+    rms = float(np.sqrt(np.mean(x**2)))
+    assert np.max(np.abs(x)) == pytest.approx(90.0) and rms > DEFAULT_LIMITS.rms
+    with pytest.raises(ExcitationError) as err:
+        check(req, DEFAULT_LIMITS, FS)
+    assert err.value.key == "amp"
+    said = re.search(r"the RMS (\S+) exceeds the limit 30 ", str(err.value))
+    assert said and float(said.group(1)) == pytest.approx(rms, rel=1e-5)
+    check(replace(req, amp=80.0), DEFAULT_LIMITS, FS)
 
 
 @pytest.mark.parametrize("channel", ["C1:SUS-ETMX_SUSPOS_IN1", "c1:sus-etmx_suspos_exc",

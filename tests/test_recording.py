@@ -25,6 +25,8 @@ import numpy as np
 import pytest
 import zenoh
 from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 from mcap_reference import reference_session
 from servicekit import free_port
@@ -52,6 +54,8 @@ from twind.recording import writer as writer_module
 from twind.recording.writer import (
     CHUNK_BYTES,
     CHUNK_SECONDS,
+    CONFIG_METADATA,
+    SESSION_METADATA,
     McapSession,
     SessionWriter,
     scan_block,
@@ -773,6 +777,41 @@ def test_a_damaged_chunk_inside_a_complete_file_costs_only_its_own_span(
     with open(tmp_path / "fixed.mcap", "rb") as fh:
         counts = make_reader(fh).get_summary().statistics.channel_message_counts
     assert sorted(counts.values())[-len(SYNTH):] == sorted(kept)
+
+
+def test_a_recovered_file_has_the_summary_chunk_index_and_metadata_mcap_promises(
+        tmp_path: Path) -> None:
+    """A file cut two thirds in, recovered: its summary indexes every chunk it holds (one
+    chunk index per Chunk record, as its statistics count them, and a seeking reader reads
+    every message through them), its messages are every block twind read from the cut file,
+    and its metadata (session and configuration) is the original's, found through the
+    summary's metadata index as a seeking reader finds it."""
+    full, cut, fixed = (tmp_path / n for n in ("full.mcap", "cut.mcap", "fixed.mcap"))
+    _synthetic_file(full, {c: list(range(40)) for c in SYNTH})
+    data = full.read_bytes()
+    cut.write_bytes(data[: 2 * len(data) // 3])
+    with pytest.warns(TruncatedRecordingWarning):
+        kept = {c: len(read_session(cut)[c].sequences) for c in SYNTH}
+    assert all(0 < n < 40 for n in kept.values()), kept
+    assert main(["recover", str(cut), "-o", str(fixed)]) == 0
+    with open(fixed, "rb") as fh:
+        records = StreamReader(fh, emit_chunks=True, validate_crcs=True).records
+        chunks = sum(isinstance(r, Chunk) for r in records)
+    with open(fixed, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert len(summary.chunk_indexes) == summary.statistics.chunk_count == chunks > 0
+        # read through them: every message the statistics count
+        assert sum(1 for _ in reader.iter_messages()) == summary.statistics.message_count
+        counts = {summary.channels[k].topic.removeprefix("twin/"): n
+                  for k, n in summary.statistics.channel_message_counts.items()}
+        assert {c: counts[c] for c in SYNTH} == kept
+        assert {m.name for m in summary.metadata_indexes} == {SESSION_METADATA,
+                                                              CONFIG_METADATA}
+        recovered = {m.name: m.metadata for m in reader.iter_metadata()}
+    with open(full, "rb") as fh:
+        assert recovered == {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
 
 
 def test_the_recorder_skips_what_no_twin_sends_and_its_file_stays_whole(tmp_path: Path) -> None:
