@@ -45,7 +45,7 @@ def test_serve_record_inject_export(tmp_path: Path) -> None:
         for bad in ({"freq": -3.0, "amp": 0.1}, {"freq": 3.0, "amp": math.nan}):
             with pytest.raises(InjectionRefused):
                 twin.inject(f"{POS}_EXC", "sine", duration=5.0, **bad)
-        assert twin.status()["excitations"][0]["id"] == exc_id  # still serving
+        assert twin.status().excitations[0].id == exc_id  # still serving
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
 
@@ -82,11 +82,11 @@ def test_serve_starts_again_a_recorder_that_ends_and_says_so(tmp_path: Path) -> 
     another (a file of its own) and the twin's status tells both; the gap is the outage."""
     endpoint, rec, proc = _serve_recording(tmp_path, speed=2, duration=40)
     with TwinClient.wait([endpoint], alive=lambda: proc.poll() is None) as twin:
-        assert twin.status()["recorder"] == {"folder": str(rec), "recording": True,
+        assert twin.status().recorder == {"folder": str(rec), "recording": True,
                                              "restarts": 0, "last_exit": None}
         assert subprocess.run(["pkill", "-KILL", "-f", f"record -o {rec}"]).returncode == 0
         deadline = time.monotonic() + 60
-        while (state := twin.status()["recorder"])["restarts"] < 1 or not state["recording"]:
+        while (state := twin.status().recorder)["restarts"] < 1 or not state["recording"]:
             assert time.monotonic() < deadline, state
             time.sleep(0.2)
         assert state["last_exit"] == -9
@@ -119,12 +119,12 @@ def test_a_full_disk_is_said_and_what_was_recorded_reads(tmp_path: Path) -> None
                                 stderr=subprocess.PIPE, text=True)
         with TwinClient.wait([endpoint], alive=lambda: proc.poll() is None) as twin:
             deadline = time.monotonic() + 120
-            while (state := twin.status()["recorder"])["recording"] or not state["restarts"]:
+            while (state := twin.status().recorder)["recording"] or not state["restarts"]:
                 assert time.monotonic() < deadline, state
                 time.sleep(0.5)
             time.sleep(3.0)  # the watch looks every second: no more restarts
             status = twin.status()
-            assert status["recorder"]["restarts"] == 1 and status["blocks"] > 0  # serves on
+            assert status.recorder["restarts"] == 1 and status.blocks > 0  # serves on
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
         assert "starting another" in err and "not started again, it ended again at once" \

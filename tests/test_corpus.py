@@ -19,22 +19,18 @@ from twind.analysis.identification.data import FitData
 from twind.analysis.identification.params import param_label
 from twind.cli import main
 from twind.config import load_config
+from twind.commissioning.concealed import CONCEAL_SIGMA, STOP_HZ, conceal
+from twind.commissioning.demo import run_demo
+from twind.commissioning.hidden import FACES, hidden, raised_clamp, tilted_heads
 from twind.lab.corpus import (
-    CONCEAL_SIGMA,
-    FACES,
-    STOP_HZ,
     Case,
     Score,
-    conceal,
-    hidden,
     key_error,
     make_cases,
     measure,
-    raised_clamp,
     score,
     summary,
     stage_error,
-    tilted_heads,
 )
 from twind.commissioning.measurement import SETTLE_S, measure_tfs, record_measurement
 from twind.model.effects import CATALOGUE, model_names, with_effect
@@ -211,7 +207,6 @@ def test_the_xml_route_is_a_diaggui_set_up_to_its_stop_frequency(etmx, tmp_path:
 @pytest.fixture(scope="module")
 def demo(etmx, tmp_path_factory: pytest.TempPathFactory) -> tuple:  # noqa: ANN001
     """twind demo's directory and its diagnoses of the "real" twin and the nominal one."""
-    from twind.lab.corpus import run_demo
 
     out = tmp_path_factory.mktemp("demo")
     return (out, *run_demo(etmx, out, "actuator_pole", say=lambda _line: None))

@@ -40,6 +40,7 @@ from twind.bus.codec import SampleBlock
 from twind.bus.keys import all_data, control_key, data_key
 from twind.bus.session import zenoh_config
 from twind.client import AccessRefused, TwinClient, TwinUnreachable
+from twind.protocol import StatusReply
 from twind.recording.reader import read_session
 from twind.recording.session import RecordingError, TruncatedRecordingWarning
 
@@ -62,6 +63,14 @@ def materialise(conf: zenoh.Config, path: Path) -> str:
     """Write `conf` to a file, for ``--zenoh-config`` and ``TwinClient(config_file=...)``."""
     path.write_text(str(conf))
     return str(path)
+
+
+STATUS = StatusReply(twin="stand-in", ifo="C1", optics=["ETMX"], rate_hz=16384.0,
+                     block_s=1 / 16, speed=1.0, gps=0.0, uptime_s=0.0, blocks=0,
+                     real_time_factor=0.0, lag_s=0.0, max_lag_s=0.0, late_blocks=0,
+                     dropped_blocks=0, injection_latency_s={}, cpu_fraction=0.0,
+                     excitations=[], config="", watchdogs={"ETMX": "armed"})
+"""What the stand-in answers to status: a status as a twin sends it."""
 
 
 class StandIn:
@@ -90,6 +99,8 @@ class StandIn:
                 reply |= {"accepted": True, "id": f"exc-{len(self.reached)}"}
             elif verb == "stop":
                 reply |= {"stopped": [request.get("id")]}
+            elif verb == "status":
+                reply |= STATUS.to_json()
             query.reply(query.key_expr, json.dumps(reply))
 
         return on_query
@@ -199,7 +210,7 @@ def check_rights(endpoint: str, operator_cfg: str, viewer_cfg: str,
                  twin: StandIn | None) -> None:
     """The operator drives; the viewer watches and gets no answer from inject."""
     with TwinClient(connect=[endpoint], timeout=5.0, config_file=operator_cfg) as op:
-        assert op.status()["ok"]
+        assert op.status().ifo == "C1"
         exc = op.inject("C1:SUS-ETMX_SUSPOS_EXC", "sine", freq=3.0, amp=0.1, duration=2.0)
         assert exc.startswith("exc-")
         assert op.stop(exc) == [exc]
@@ -207,7 +218,7 @@ def check_rights(endpoint: str, operator_cfg: str, viewer_cfg: str,
     try:
         with TwinClient(connect=[endpoint], timeout=NO_REPLY_S, config_file=viewer_cfg) as viewer:
             status = viewer.status()
-            assert status["ok"] and status["ifo"] == "C1"
+            assert status.ifo == "C1"
             before = list(twin.reached) if twin else None
             # the twin never hears of it; the client tells the refusal from a missing twin
             with pytest.raises(AccessRefused, match="access rights of this session do not allow"):

@@ -15,18 +15,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import stats
 from browser import tables
 from conftest import REFERENCE
 from diagnosekit import assert_accounted, assert_sound
 
-from twind.analysis.diagnose import diagnose, f_profile
+from twind.analysis.diagnose import _p_value, diagnose, f_profile
 from twind.analysis.diagnosis import ALPHA
+from twind.analysis.identification import narrow
 from twind.analysis.identification.params import param_label
 from twind.analysis.separation import separating_measurement
 from twind.cli import main
 from twind.config import NOMINAL_ETMX, load_optic
 from twind.errors import MeasurementWarning
-from twind.lab.corpus import FACES, key_z
+from twind.commissioning.hidden import FACES
+from twind.lab.corpus import key_z
 from twind.commissioning.measurement import measure_tfs
 from twind.limits import ServiceLimits
 from twind.model.plant import Plant
@@ -152,7 +155,7 @@ def test_a_pitched_optic_s_bounce_is_named_from_its_compliance(etmx) -> None:  #
     geometric body's VERT and ROLL: corpus.tilted_heads): the BounceRoll notches keep the
     modes' peaks out of IN1/EXC, but the bounce's compliance, rising as f^2 against the
     optic's above the pendulum modes, names bounce_roll with its coupling."""
-    from twind.lab.corpus import tilted_heads
+    from twind.commissioning.hidden import tilted_heads
 
     plant, truth = tilted_heads(Plant.from_params(etmx.sus, etmx.mechanics()), etmx.sus,
                                 0.0, 0.15)
@@ -194,7 +197,8 @@ def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  
     (corpus.attached_body: 3-D kinematics, a new coordinate of the mechanics), ringing in
     PIT/POS: a ``resonance`` anywhere in the band, not a catalogue effect, read as a body
     pulling along the beam at its point, with its mass."""
-    from twind.lab.corpus import attached_body, body_start
+    from twind.commissioning.hidden import attached_body
+    from twind.lab.corpus import body_start
 
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     body, truth = attached_body(plant, etmx.sus, 6e-5, 7.0, 30.0, (0.0, 0.02))
@@ -245,17 +249,17 @@ def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noq
         client = TwinClient([endpoint])
         client.params("ETMX", effect=effect, **nominal)
         reply = client.params("ETMX")
-        assert reply["params"]["wire_length_m"] == pytest.approx(d.final.as_dict()["wire_length_m"])
+        assert reply.params["wire_length_m"] == pytest.approx(d.final.as_dict()["wire_length_m"])
         gains = {"gain_UL": 0.01, "gain_LR": -0.01}
         reply = client.params("ETMX", effect={"id": "coil_imbalance", "values": gains})
-        assert reply["effect"] == {"id": "coil_imbalance", "values": gains}
+        assert reply.effect.to_json() == {"id": "coil_imbalance", "values": gains}
         reply = client.params("ETMX", b_m=0.00071)  # the effect stays through later changes
-        assert reply["effect"]["id"] == "coil_imbalance"
+        assert reply.effect.id == "coil_imbalance"
         with pytest.raises(TwindError, match="catalogue has"):
             client.params("ETMX", effect={"id": "gremlins"})
         with pytest.raises(TwindError, match="states"):
             client.params("ETMX", effect={"id": "actuator_pole", "values": {"inv_f_hz": 0.01}})
-        assert client.params("ETMX", effect={"id": None})["effect"] is None
+        assert client.params("ETMX", effect={"id": None}).effect is None
         client.close()
 
 
@@ -281,3 +285,17 @@ def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path
     d = _diagnosed(from_diaggui(files), etmx)
     assert d.effects and d.effects[0].effect == "coil_imbalance"
     assert d.final.chi2_nu < d.nominal.chi2_nu
+
+
+def test_a_searched_mode_s_p_value_pays_for_each_search_s_path() -> None:
+    """A mode searched for is given Davies' bound over each search, with that search's own
+    path (narrow.p_value), not the chi^2 tail a mode at a known frequency would get: at a
+    likelihood ratio of 20 with the two paths of a ``resonance`` search over the band (25
+    and 48 rad, a null's at 0.25 Hz), the search's cost lifts p above ALPHA, which the tail
+    alone stays ten times below."""
+    lr, k, searched, paths = 20.0, 4, 1, [25.0, 48.0]
+    p = _p_value(lr, k, paths, searched)
+    assert p == pytest.approx(sum(narrow.p_value(lr, k - searched, x) for x in paths),
+                              rel=1e-12)
+    assert p > ALPHA > 10 * len(paths) * narrow.p_value(lr, k - searched, 0.0)
+    assert _p_value(lr, k, [], searched) == pytest.approx(stats.chi2.sf(lr, k), rel=1e-12)

@@ -89,7 +89,7 @@ def test_bad_effects_are_named(plant: Plant, sus: SOSParams) -> None:
 def test_a_resonance_is_the_body_the_corpus_attaches(plant: Plant, sus: SOSParams) -> None:
     """Two paths to one physics: the catalogue's unit-mass body pulling along g, and the
     corpus's body of mass m on a spring at a face point in 3-D kinematics."""
-    from twind.lab.corpus import attached_body
+    from twind.commissioning.hidden import attached_body
 
     m, y, z = 2e-4, 0.012, -0.02
     real, truth = attached_body(plant, sus, m, 7.0, 30.0, (y, z))

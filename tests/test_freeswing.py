@@ -54,10 +54,10 @@ def test_twind_freeswing_rings_a_served_twin_down_and_puts_its_damping_back(caps
             TwinClient(connect=[endpoint]) as twin:
         twin.params("ETMX", wire_length_m=drifted.sus.wire_length_m)
         twin.params("ETMX", effect={"id": "osem_imbalance", "values": IMBALANCE})
-        gains = {d: m["gain"] for d, m in twin.params("ETMX")["filters"].items()}
+        gains = {d: m.gain for d, m in twin.params("ETMX").filters.items()}
         assert main(["freeswing", "--connect", endpoint, "--duration", "260", "--json"]) == 0
-        assert {d: m["gain"] for d, m in twin.params("ETMX")["filters"].items()} == gains
-        assert twin.status()["excitations"] == []
+        assert {d: m.gain for d, m in twin.params("ETMX").filters.items()} == gains
+        assert twin.status().excitations == []
     shown = json.loads(capsys.readouterr().out)
     plant = with_effect(drifted.loop().plant, drifted.sus, "osem_imbalance", IMBALANCE)
     f_true, q_true = eigenmodes(drifted, plant)

@@ -32,8 +32,9 @@ from twind.client import InjectionRefused, SeveralTwins, TwinClient, TwinUnreach
 from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
 from twind.limits import ServiceLimits
+from twind.protocol import LIVE_PARAMS, StatusReply
 from twind.service.serve import limit_zenoh
-from twind.service.twin import LIVE_PARAMS, TwinService
+from twind.service.twin import TwinService
 
 EXC = [f"C1:SUS-ETMX_SUS{d}_EXC" for d in DOFS]
 
@@ -346,10 +347,10 @@ def test_a_suspended_subscriber_holds_the_twin_briefly_and_no_one_gets_a_damaged
         with TwinClient([endpoint]) as client:
             status = client.status()
         steady, resumed = (json.loads(r.communicate("\n", timeout=30)[0]) for r in readers)
-    assert status["max_lag_s"] < 2.5, f"the twin waited {status['max_lag_s']:.2f} s for a reader"
+    assert status.max_lag_s < 2.5, f"the twin waited {status.max_lag_s:.2f} s for a reader"
     assert steady["damaged"] == [] and steady["gaps"] == 0
     assert resumed["damaged"] == [] and resumed["gaps"] > 0  # its session was closed
-    assert resumed["last"] >= status["blocks"] - 32  # and it reads again
+    assert resumed["last"] >= status.blocks - 32  # and it reads again
 
 
 def test_status_reports_the_latency_of_injections_made_now_only(fresh: TwinService) -> None:
@@ -413,7 +414,7 @@ def _trip_and_rearm(svc: TwinService) -> None:
     assert _ask(svc, "status", {})["watchdogs"] == {"ETMX": "tripped"}
     out = io.StringIO()
     with redirect_stdout(out):  # what twind status prints of it
-        print_status(svc.status())
+        print_status(StatusReply.from_json(svc.status()))
     assert "watchdog TRIPPED: ETMX" in out.getvalue()
     tripped = _event(events, "tripped")
     assert "service.watchdog_um" in tripped["reason"] and tripped["optic"] == "ETMX"

@@ -116,7 +116,7 @@ def test_campaign_against_a_running_twin_pushes_its_fit(tmp_path: Path) -> None:
         rounds = run_campaign(served, twin, ["POS"], (0.3, 3.0), rms=5.0, period_s=5.0,
                               averages=5, params=["wire_length_m", "coil_N_per_ct"],
                               max_rounds=1)
-        pushed = twin.updated.params("ETMX")["params"]
+        pushed = twin.updated.params("ETMX").params
     fit = rounds[0].fit
     assert np.all(np.isfinite(fit.sigma)) and fit.chi2_nu < 3
     assert pushed["wire_length_m"] == pytest.approx(fit.values[0], rel=1e-12)

@@ -86,6 +86,7 @@ def test_a_fit_figure_spans_the_bins_fitted_not_the_recording(figures, tmp_path:
     from twind.analysis.identification.fit import fit
     from twind.analysis.estimation.tf import from_diaggui
     from twind.config import load_config
+    from twind.analysis.prediction import fit_curves
     from twind.viz.plotting import plot_fit
 
     tfs = from_diaggui(XML)
@@ -104,7 +105,7 @@ def test_a_fit_figure_spans_the_bins_fitted_not_the_recording(figures, tmp_path:
     recording = replace(tfs, frequency_hz=np.concatenate([tfs.frequency_hz, beyond]),
                         tf={k: padded(v, True) for k, v in tfs.tf.items()},
                         coherence={k: padded(v, False) for k, v in tfs.coherence.items()})
-    plot_fit(recording, cfg, result, str(tmp_path / "fit.png"), baseline=result)
+    plot_fit(fit_curves(recording, cfg, result, baseline=result), str(tmp_path / "fit.png"))
     labels = figures[0].legends[0].get_texts()
     assert [t.get_text() for t in labels][:2] == ["nominal, refitted", "nominal, fitted"]
     for ax in figures[0].get_axes():

@@ -16,6 +16,7 @@ from twind.bus.keys import all_data
 from twind.bus.session import zenoh_config
 from twind.client import InjectionRefused, TwinClient, TwinUnreachable
 from twind.config import CONFIG_DIR, load_config
+from twind.protocol import RequestError, StatusReply
 
 POS = "C1:SUS-ETMX_SUSPOS"
 
@@ -60,12 +61,12 @@ def _amplitude_at(x: np.ndarray, rate: float, f: float) -> float:
     return float(np.hypot(*coef))
 
 
-def _blocks_reached(twin: TwinClient, blocks: int, timeout: float = 120.0) -> dict:
+def _blocks_reached(twin: TwinClient, blocks: int, timeout: float = 120.0) -> StatusReply:
     """The twin's status once it has published `blocks` blocks (`timeout` bounds a stuck
     test, not the twin's speed)."""
     deadline = time.monotonic() + timeout
-    while (status := twin.status())["blocks"] < blocks:
-        assert time.monotonic() < deadline, f"{status['blocks']} blocks after {timeout} s"
+    while (status := twin.status()).blocks < blocks:
+        assert time.monotonic() < deadline, f"{status.blocks} blocks after {timeout} s"
         time.sleep(0.1)
     return status
 
@@ -84,14 +85,14 @@ def test_serve_inject_refuse_and_test_points() -> None:
                         twin.inject(f"{POS}_EXC", "sine", duration=10.0, **bad)
                 with pytest.raises(InjectionRefused, match="unknown excitation channel"):
                     twin.inject("C1:SUS-ETMZ_SUSPOS_EXC", "sine", freq=1.0, amp=0.1)
-                assert [e["id"] for e in twin.status()["excitations"]] == [exc_id]
+                assert [e.id for e in twin.status().excitations] == [exc_id]
                 # limits hold per test point: a second sine that would add up past them is refused
                 with pytest.raises(InjectionRefused, match="limit"):
                     twin.inject(f"{POS}_EXC", "sine", freq=5.0, amp=99.95, duration=1.0)
                 col.wait_for(20 * 16384)  # 20 s of twin time
                 status = twin.status()
                 twin.stop(exc_id)
-            assert status["speed"] == 4
+            assert status.speed == 4
         finally:
             col.close()
     exc, blocks = col.series(f"{POS}_EXC")
@@ -115,9 +116,9 @@ def test_live_parameters_and_filters() -> None:
             TwinClient(connect=[endpoint]) as twin:
         before = twin.params("ETMX")
         configured = load_config(None, ["ETMX"]).optics["ETMX"].sus.wire_length_m
-        assert before["params"]["wire_length_m"] == pytest.approx(configured)
+        assert before.params["wire_length_m"] == pytest.approx(configured)
         after = twin.params("ETMX", wire_length_m=0.25)
-        assert after["params"]["wire_length_m"] == pytest.approx(0.25)
+        assert after.params["wire_length_m"] == pytest.approx(0.25)
         for bad in ({"wire_lenght_m": 0.25}, {"loop_delay_s": 0.01}, {"check": 1}):
             with pytest.raises(Exception, match="cannot change"):
                 twin.params("ETMX", **bad)
@@ -125,14 +126,14 @@ def test_live_parameters_and_filters() -> None:
             twin.params("ETMX", mass_kg=-1.0)
         with pytest.raises(Exception, match="unstable"):
             twin.params("ETMX", mass_kg=1e-7)
-        assert twin.params("ETMX")["params"]["mass_kg"] == pytest.approx(0.243)
+        assert twin.params("ETMX").params["mass_kg"] == pytest.approx(0.243)
         state = twin.switch("ITMX", "PIT", 3, False)
-        assert state["filters"]["PIT"]["on"] == [1, 2]
+        assert state.filters["PIT"].on == [1, 2]
         state = twin.set_gain("ITMX", "PIT", 0.2, ramp=0.0)
-        assert state["filters"]["PIT"]["gain"] == pytest.approx(0.2)
+        assert state.filters["PIT"].gain == pytest.approx(0.2)
         # still serving (pacing figures: twind soak): blocks keep coming after the changes,
         # however soon after the start the changes were all made
-        _blocks_reached(twin, twin.status()["blocks"] + 1)
+        _blocks_reached(twin, twin.status().blocks + 1)
 
 
 @pytest.mark.slow
@@ -145,7 +146,7 @@ def test_a_state_space_optic_is_served_under_its_site_names() -> None:
         col = Collector(endpoint, (*points, "K1:VIS-SRM_TM_OPLEV_PIT_DIAG"))
         try:
             with TwinClient(connect=[endpoint], ifo="K1") as twin:
-                assert twin.status()["optics"] == ["SRM"]
+                assert twin.status().optics == ["SRM"]
                 with pytest.raises(InjectionRefused, match="unknown excitation channel"):
                     twin.inject(POS + "_EXC", "sine", freq=1.0, amp=0.1)
                 with pytest.raises(Exception, match="state-space model"):
@@ -179,9 +180,9 @@ def test_a_state_space_optic_is_served_under_its_site_names() -> None:
 
 
 def test_the_client_checks_a_request_before_sending_it() -> None:
-    """A request with a field of the wrong type or an unknown field is refused by the client,
-    naming the field, before anything is sent: with no twin on the bus, it is refused
-    rather than unanswered; a well-formed one goes out and finds nobody."""
+    """A request (inject, params, filter) with a field of the wrong type or an unknown field
+    is refused by the client, naming the field, before anything is sent: with no twin on the
+    bus, it is refused rather than unanswered; a well-formed one goes out and finds nobody."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with zenoh.open(zenoh_config(listen=[endpoint])), \
             TwinClient(connect=[endpoint], timeout=0.5) as client:
@@ -193,3 +194,13 @@ def test_the_client_checks_a_request_before_sending_it() -> None:
             client.inject("C1:SUS-ETMX_SUSPOS_IN1", "sine", freq=3.0, amp=0.1)
         with pytest.raises(TwinUnreachable):
             client.inject(f"{POS}_EXC", "sine", freq=3.0, amp=0.1)
+        for call, field in ((lambda: client.params("ETMX", wire_lenght_m=0.25), "wire_lenght_m"),
+                            (lambda: client.params("ETMX", Q_POS="high"), "Q_POS"),
+                            (lambda: client.params("ETMX", effect={"values": {}}), "effect"),
+                            (lambda: client.switch("ETMX", "POS", 11, True), "fm"),
+                            (lambda: client.set_gain("ETMX", "ROLL", 1.0), "dof"),
+                            (lambda: client.set_gain("ETMX", "POS", 1.0, ramp=-1.0), "ramp")):
+            with pytest.raises(RequestError, match=field):
+                call()
+        with pytest.raises(TwinUnreachable):
+            client.set_gain("ETMX", "POS", 1.0)

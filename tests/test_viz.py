@@ -315,7 +315,7 @@ def test_served_twin_viewed_live_and_its_recording_converted(tmp_path: Path) -> 
         viewer.join()
         assert codes == [0]
         with TwinClient(connect=[endpoint]) as twin:
-            while any(e["id"] == exc for e in twin.status()["excitations"]):
+            while any(e.id == exc for e in twin.status().excitations):
                 time.sleep(0.2)
         deadline = time.monotonic() + 60  # a bound on a stuck test, not on the recorder
         while _events_on_disk(folder) < 2:  # the end event, on its way to the recorder

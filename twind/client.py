@@ -2,7 +2,7 @@
 
 >>> with TwinClient(connect=["tcp/127.0.0.1:7447"]) as twin:          # doctest: +SKIP
 ...     exc = twin.inject("C1:SUS-ETMX_SUSPOS_EXC", "sine", freq=3.0, amp=0.1, duration=20)
-...     print(twin.status()["excitations"])
+...     print(twin.status().excitations)
 ...     twin.stop(exc)
 """
 
@@ -19,6 +19,13 @@ from twind.bus.keys import ROOT, control_key
 from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config, zenoh_message
 from twind.errors import TwindError
 from twind.excitation.request import ExcitationError, ExcitationRequest, channel_match
+from twind.protocol import (
+    FilterRequest,
+    ParamsReply,
+    ParamsRequest,
+    StatusReply,
+    StopRequest,
+)
 
 
 class InjectionRefused(TwindError):
@@ -221,9 +228,9 @@ class TwinClient:
         key = control_key(self.ifo, "status", self.root)
         return any(r.ok is not None for r in self._session.get(key, timeout=self.timeout))
 
-    def status(self) -> dict:
+    def status(self) -> StatusReply:
         """The service status: real-time factor, lag, late blocks, excitations, uptime."""
-        return self.query("status")
+        return StatusReply.from_json(self.query("status"))
 
     def inject(self, channel: str, waveform: str, **settings: object) -> str:
         """Start an excitation at a test point, as awg does.
@@ -264,13 +271,14 @@ class TwinClient:
 
     def stop(self, exc_id: str | None = None) -> list[str]:
         """Stop one excitation by id, or all of them, on every twin, when `exc_id` is None."""
-        replies = self.replies("stop", {"all": True} if exc_id is None else {"id": exc_id})
+        request = StopRequest(all=True) if exc_id is None else StopRequest(id=exc_id)
+        replies = self.replies("stop", request.to_json())
         done = [r for r in replies if r.get("ok")]
         if not done:
             raise TwindError(replies[0].get("reason", "stop failed"))
         return [x for r in done for x in r.get("stopped", [])]
 
-    def params(self, optic: str, effect: dict | None = None, **changes: float) -> dict:
+    def params(self, optic: str, effect: dict | None = None, **changes: float) -> ParamsReply:
         """An optic's parameters and filter modules, set live first if asked.
 
         Parameters
@@ -286,29 +294,24 @@ class TwinClient:
 
         Returns
         -------
-        dict
+        ParamsReply
             The optic's parameters, filter modules and effect after the change.
 
         Raises
         ------
         TwindError
-            With the twin's reason for a refused change.
+            A :class:`twind.protocol.RequestError` naming a field at fault, found before
+            sending; or the twin's reason for a refused change.
         """
         body = {"optic": optic, **({"set": changes} if changes else {}),
                 **({"effect": effect} if effect is not None else {})}
-        reply = self.query("params", body)
-        if not reply.get("ok"):
-            raise TwindError(reply.get("reason", "params failed"))
-        return reply
+        return self._changed("params", ParamsRequest.from_json(body).to_json())
 
-    def rearm(self, optic: str) -> dict:
+    def rearm(self, optic: str) -> ParamsReply:
         """Re-arm a tripped watchdog: the optic's damping outputs come back (from rest)."""
-        reply = self.query("params", {"optic": optic, "watchdog": "rearm"})
-        if not reply.get("ok"):
-            raise TwindError(reply.get("reason", "re-arm failed"))
-        return reply
+        return self._changed("params", ParamsRequest(optic, rearm=True).to_json())
 
-    def switch(self, optic: str, dof: str, fm: int, on: bool) -> dict:
+    def switch(self, optic: str, dof: str, fm: int, on: bool) -> ParamsReply:
         """Switch stage FM`fm` of `optic`'s `dof` damping filter module on or off.
 
         The twin refuses the change, with the reason, unless the damping loop stays stable.
@@ -326,18 +329,19 @@ class TwinClient:
 
         Returns
         -------
-        dict
-            The optic's parameters and filter modules after the change, as :meth:`params`
-            returns them.
+        ParamsReply
+            The optic's parameters and filter modules after the change.
 
         Raises
         ------
         TwindError
-            With the twin's reason for a refused change.
+            A field at fault, found before sending; or the twin's reason for a refusal.
         """
-        return self._filter({"optic": optic, "dof": dof, "fm": fm, "on": on})
+        body = {"optic": optic, "dof": dof, "fm": fm, "on": on}
+        return self._changed("filter", FilterRequest.from_json(body).to_json())
 
-    def set_gain(self, optic: str, dof: str, gain: float, ramp: float | None = None) -> dict:
+    def set_gain(self, optic: str, dof: str, gain: float,
+                 ramp: float | None = None) -> ParamsReply:
         """Ramp `optic`'s `dof` damping gain to `gain`.
 
         The twin refuses the change, with the reason, unless the damping loop stays stable.
@@ -355,22 +359,22 @@ class TwinClient:
 
         Returns
         -------
-        dict
-            The optic's parameters and filter modules after the change, as :meth:`params`
-            returns them.
+        ParamsReply
+            The optic's parameters and filter modules after the change.
 
         Raises
         ------
         TwindError
-            With the twin's reason for a refused change.
+            A field at fault, found before sending; or the twin's reason for a refusal.
         """
-        return self._filter({"optic": optic, "dof": dof, "gain": gain, "ramp": ramp})
+        body = {"optic": optic, "dof": dof, "gain": gain, "ramp": ramp}
+        return self._changed("filter", FilterRequest.from_json(body).to_json())
 
-    def _filter(self, request: dict) -> dict:
-        reply = self.query("filter", request)
+    def _changed(self, verb: str, request: dict) -> ParamsReply:
+        reply = self.query(verb, request)
         if not reply.get("ok"):
-            raise TwindError(reply.get("reason", "filter change failed"))
-        return reply
+            raise TwindError(reply.get("reason", f"{verb} failed"))
+        return ParamsReply.from_json(reply)
 
     def close(self) -> None:
         """Close the session."""

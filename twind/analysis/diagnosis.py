@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification import locate as search
 from twind.analysis.identification import narrow
 from twind.analysis.identification.controller import ControllerCheck
@@ -16,6 +17,7 @@ from twind.analysis.identification.inmatrix import InputMatrixCheck
 from twind.analysis.identification.locate import Located
 from twind.analysis.identification.params import FIT_PARAMS
 from twind.analysis.identification.result import FitResult
+from twind.analysis.prediction import FitCurves, fit_curves
 from twind.analysis.separation import Separation
 from twind.config import OpticConfig
 from twind.errors import TwindError
@@ -278,6 +280,23 @@ class Diagnosis:
         if self.controller:
             return self.controller.config
         return self.input_matrix.config(cfg) if self.input_matrix else cfg
+
+    def curves(self, tfs: TFSet, cfg: OpticConfig) -> dict[str, FitCurves]:
+        """The models the diagnosis leaves on `tfs`'s grid, as a report draws them: the
+        nominal model refitted against the configuration (``"nominal"``) and, once an
+        effect is chosen, the final model against the nominal refitted (``"augmented"``).
+
+        Parameters
+        ----------
+        tfs : TFSet
+            The measurement diagnosed.
+        cfg : OpticConfig
+            The configuration as the plant was read (:meth:`read_through`).
+        """
+        fits = {"nominal": fit_curves(tfs, cfg, self.nominal)}
+        if self.effects:
+            fits["augmented"] = fit_curves(tfs, cfg, self.final, self.nominal)
+        return fits
 
     @property
     def p_values(self) -> dict[str, float]:

@@ -502,7 +502,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("campaign", "identify an optic: design, inject, record, fit, redesign to a target",
             _campaign, "twind.cli.design:cmd_campaign", counting("evaluation")),
     Command("demo", "a 'real' twin with a concealed effect beside a nominal one: excited, "
-            "recorded, diagnosed", _demo, "twind.cli.lab:cmd_demo", counting("evaluation")),
+            "recorded, diagnosed", _demo, "twind.cli.measure:cmd_demo", counting("evaluation")),
     Command("bench", "the benchmarks, every ratio measured side by side in one run", _bench,
             "twind.cli.lab:cmd_bench", lambda args: BENCH_PROGRESS.get(args.suite)),
     Command("soak", "serve, record, inject and attack; print the figures", _soak,

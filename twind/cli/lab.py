@@ -1,4 +1,4 @@
-"""The commands that prove twind: ``twind bench``, ``demo`` and ``soak``."""
+"""The commands that prove twind: ``twind bench`` and ``soak``."""
 
 from __future__ import annotations
 
@@ -11,16 +11,9 @@ from twind.config import CONFIG_DIR, load_config, optic_kinds
 from twind.errors import TwindError
 from twind.lab import plant_bench
 from twind.lab.calibration import information_benchmark, pull_test
-from twind.lab.corpus import (
-    AVERAGES,
-    BEYOND,
-    EFFECTS,
-    EXCITED,
-    MADE,
-    RMS,
-    run_corpus,
-    run_demo,
-)
+from twind.commissioning.concealed import AVERAGES, EXCITED, RMS
+from twind.commissioning.hidden import MADE
+from twind.lab.corpus import BEYOND, EFFECTS, run_corpus
 from twind.lab.engine_speed import run_benchmarks
 from twind.lab.freeswing_bench import benchmark
 from twind.lab.latency import command_latency
@@ -197,12 +190,6 @@ SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
           "rates": _bench_rates, "freeswing": _bench_freeswing,
           "statespace": _bench_statespace, "commands": _bench_commands}
 """The functions of ``twind bench --suite`` (:data:`twind.cli.commands.BENCH_SUITES`)."""
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    """A "real" twin with a concealed effect beside a nominal one, recorded and diagnosed."""
-    run_demo(_optic(args), args.output, args.effect, say=lambda line: print(line, flush=True))
-    return 0
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

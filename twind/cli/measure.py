@@ -1,4 +1,5 @@
-"""The measurement commands: ``twind tf``, ``fit``, ``diagnose``, ``modes``, ``freeswing``."""
+"""The measurement commands: ``twind tf``, ``fit``, ``diagnose``, ``modes``, ``freeswing``,
+and ``demo``, the diagnosis on a twin that hides an effect."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ import numpy as np
 
 from twind import OSEMS, __version__, strictjson
 from twind.analysis.diagnose import diagnose
+from twind.analysis.diagnosis import DiagnoseError
 from twind.analysis.estimation.diaggui import read_transfers
-from twind.analysis.estimation.tfset import ReadOptions, TFError, TFSet
+from twind.analysis.estimation.tfset import ReadOptions, TFError, TFSet, identify
 from twind.analysis.identification.candidates import compare
 from twind.analysis.identification.controller import check_controller
 from twind.analysis.identification.fit import fit
@@ -20,6 +22,7 @@ from twind.analysis.identification.freeswing import analyse, ringdown
 from twind.analysis.identification.inmatrix import InputMatrixCheck, recorded_input_matrix
 from twind.analysis.identification.modes import fit_modes, read_mode_table
 from twind.analysis.identification.params import FIT_PARAMS, read_truth
+from twind.analysis.prediction import fit_curves
 from twind.bus.session import zenoh_config
 from twind.channels import osem_channel
 from twind.cli import plant as statespace
@@ -31,9 +34,10 @@ from twind.errors import TwindError
 from twind.recording.frames import parse_map
 from twind.recording.reader import as_array, getdata
 from twind.recording.session import session_files
+from twind.commissioning.demo import run_demo
 from twind.commissioning.ringdown import served_ringdown
 from twind.viz.plotting import Measured, bode_matrix, bode_transfers, plot_fit, plot_freeswing
-from twind.viz.report import write_report
+from twind.viz.report import REPORT_FILES, report_dir, write_report
 
 
 def _measured_tfs(args: argparse.Namespace) -> TFSet:
@@ -53,7 +57,7 @@ def _measured_tfs(args: argparse.Namespace) -> TFSet:
 def _input_matrix(args: argparse.Namespace, cfg: OpticConfig) -> InputMatrixCheck:
     """The input matrix of ``args.inputs`` (a recording's IN1 and OSEM readings) checked
     against `cfg`'s."""
-    if all(Path(p).suffix.lower() == ".xml" for p in args.inputs):
+    if identify(args.inputs) == "diaggui":
         return InputMatrixCheck(cfg.cds_input_matrix(),
                                 why="diaggui XML holds no OSEM readings")
     return recorded_input_matrix(args.inputs, cfg, parse_map(args.map))
@@ -84,12 +88,12 @@ def cmd_tf(args: argparse.Namespace) -> int:
     try:
         tfs = _measured_tfs(args)
     except TFError as err:
-        if not all(Path(p).suffix.lower() == ".xml" for p in args.inputs):
+        if identify(args.inputs) != "diaggui":  # a diaggui set of other TFs: as measured
             raise
         return _show_transfers(args, str(err))
     if args.band:
         tfs = tfs.band(*args.band)
-    elif not all(Path(p).suffix.lower() == ".xml" for p in args.inputs):
+    elif identify(args.inputs) != "diaggui":
         # a recording's bins reach Nyquist: 800 000 at 0.01 Hz, most of them noise
         band = tfs.coherent_band()
         if band is None:
@@ -185,7 +189,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"(fitted - truth) / sigma: {result.pulls(truth)}",
               file=sys.stderr if args.json else sys.stdout)
     if args.output:
-        print(f"wrote {plot_fit(tfs, cfg, result, args.output)}", file=sys.stderr)
+        print(f"wrote {plot_fit(fit_curves(tfs, cfg, result), args.output)}", file=sys.stderr)
     return 0
 
 
@@ -273,6 +277,8 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     optic = statespace.statespace_optic(args)
     if optic is not None:
         return statespace.diagnose(args, optic)
+    if args.output:  # a report already there is refused before the work, not after it
+        report_dir(args.output, REPORT_FILES, DiagnoseError)
     tfs = _measured_tfs(args)
     if args.band:
         tfs = tfs.band(*args.band)
@@ -281,12 +287,19 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     show(result, args.json)
     cfg = result.read_through(cfg)
     if args.output:
-        print(f"wrote {write_report(result, tfs, cfg, args.output, args.inputs)}",
-              file=sys.stderr)
+        page = write_report(result, result.curves(tfs, cfg), tfs, args.output, args.inputs)
+        print(f"wrote {page}", file=sys.stderr)
     if args.push:
         nominal, effect = result.final_model()
         with TwinClient(list(args.push)) as twin:
             twin.params(result.final.optic, effect=effect, **nominal)
         print(f"pushed into {', '.join(args.push)}: {len(nominal)} nominal parameter(s)"
               + (f" and {effect['id']}" if effect else ""), file=sys.stderr)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """A "real" twin with a concealed effect beside a nominal one, recorded and diagnosed."""
+    cfg = load_config(args.config, ["ETMX"]).optics["ETMX"]
+    run_demo(cfg, args.output, args.effect, say=lambda line: print(line, flush=True))
     return 0

@@ -15,6 +15,7 @@ from twind.bus.session import DEFAULT_ENDPOINT, zenoh_config
 from twind.client import TwinClient
 from twind.errors import TwindError
 from twind.excitation.request import ExcitationRequest
+from twind.protocol import StatusReply
 
 
 def _endpoints(args: argparse.Namespace) -> tuple[list[str], list[str]]:
@@ -92,31 +93,32 @@ def cmd_status(args: argparse.Namespace) -> int:
         return 0
     if len(replies) > 1:
         print(f"{len(replies)} twins answer:")
-    for status in replies:
+    for reply in replies:
         try:
-            print_status(status)
+            status = StatusReply.from_json(reply)
         except (KeyError, TypeError, ValueError) as err:
-            print(f"twin {status['twin']}: a status twind cannot read ({err!r} missing or "
-                  "not a number)")
+            print(f"twin {reply['twin']}: a status twind cannot read ({err!r} missing or "
+                  "not as twind writes it)")
+            continue
+        print_status(status)
     return 0
 
 
-def print_status(status: dict) -> None:
+def print_status(status: StatusReply) -> None:
     """One twin's status as ``twind status`` prints it."""
-    print(f"{status['ifo']} twin of {', '.join(status['optics'])} ({status['twin']}): GPS "
-          f"{status['gps']:.3f}, up {status['uptime_s']:.1f} s, "
-          f"{status['real_time_factor']:.3f} x real time (speed {status['speed']:g}), lag "
-          f"{1e3 * status['lag_s']:.1f} ms (max {1e3 * status['max_lag_s']:.1f}), "
-          f"{status['late_blocks']} late blocks, busy {100 * status['cpu_fraction']:.1f} %")
-    tripped = [o for o, w in (status.get("watchdogs") or {}).items() if w != "armed"]
+    print(f"{status.ifo} twin of {', '.join(status.optics)} ({status.twin}): GPS "
+          f"{status.gps:.3f}, up {status.uptime_s:.1f} s, "
+          f"{status.real_time_factor:.3f} x real time (speed {status.speed:g}), lag "
+          f"{1e3 * status.lag_s:.1f} ms (max {1e3 * status.max_lag_s:.1f}), "
+          f"{status.late_blocks} late blocks, busy {100 * status.cpu_fraction:.1f} %")
+    tripped = [o for o, w in status.watchdogs.items() if w != "armed"]
     if tripped:
         print(f"  watchdog TRIPPED: {', '.join(tripped)} (outputs zeroed until re-armed)")
-    rec = status.get("recorder")
+    rec = status.recorder
     if rec:
         again = f", restarted {rec['restarts']} time(s)" if rec["restarts"] else ""
         print(f"  recorder: {'recording' if rec['recording'] else 'NOT RECORDING'} to "
               f"{rec['folder']}{again}")
-    for exc in status["excitations"]:
-        when = "waits for" if exc["scheduled"] else "since"
-        print(f"  {exc['id']}: {exc['waveform']} on {exc['channel']}, {when} GPS "
-              f"{exc['start_gps']:.3f}")
+    for exc in status.excitations:
+        when = "waits for" if exc.scheduled else "since"
+        print(f"  {exc.id}: {exc.waveform} on {exc.channel}, {when} GPS {exc.start_gps:.3f}")

@@ -21,7 +21,7 @@ from typing import Protocol
 import numpy as np
 from matplotlib.figure import Figure
 
-from twind import progress
+from twind import DOFS, progress
 from twind.analysis.estimation.tf import from_session
 from twind.analysis.estimation.tfset import TFSet
 from twind.analysis.identification.fit import fit
@@ -29,6 +29,7 @@ from twind.analysis.identification.params import FIT_PARAMS, with_params
 from twind.analysis.identification.result import FitResult
 from twind.bus.keys import data_key
 from twind.bus.session import zenoh_config
+from twind.channels import dof_channel
 from twind.client import TwinClient
 from twind.config import OpticConfig
 from twind.errors import TwindError
@@ -130,16 +131,16 @@ class BusTwin:
         -------
         TFSet
         """
-        rate = float(self.client.params(self.optic)["params"]["sample_rate_hz"])
+        rate = float(self.client.params(self.optic).params["sample_rate_hz"])
         self.rounds += 1
         path = self.workdir / f"{self.optic}-round{self.rounds}.mcap"
-        keys = [data_key(f"{self.ifo}:SUS-{self.optic}_SUS{d}_{p}")
-                for d in ("POS", "PIT", "YAW", "SIDE") for p in ("EXC", "IN1", "IN2", "OUT")]
+        keys = [data_key(dof_channel(self.ifo, self.optic, d, p))
+                for d in DOFS for p in ("EXC", "IN1", "IN2", "OUT")]
         n = int(round((SETTLE_S + averages * design.period_s) * rate))
         with Recorder(zenoh_config(connect=self.connect, mode="client"), path, keys,
                       ifo=self.ifo, log=lambda line: None):
             for dof in design.tones:
-                self._stream(f"{self.ifo}:SUS-{self.optic}_SUS{dof}_EXC",
+                self._stream(dof_channel(self.ifo, self.optic, dof, "EXC"),
                              design.waveform(dof, n, rate), rate)
             time.sleep(0.5)  # the last blocks on their way to the recorder
         return from_session([path], bw=1 / design.period_s, overlap=0.0, optic=self.optic,
@@ -150,12 +151,12 @@ class BusTwin:
         wait for the last to end; ``twind tf`` joins them into one excitation."""
         status = self.client.status()
         chunks = -(-samples.size // STREAM_CHUNK)
-        start = status["gps"] + status.get("speed", 1.0) * STREAM_LEAD_S * (1 + chunks)
+        start = status.gps + status.speed * STREAM_LEAD_S * (1 + chunks)
         ids = []
         for a in range(0, samples.size, STREAM_CHUNK):
             ids.append(self.client.inject(channel, "stream", samples=samples[a:a + STREAM_CHUNK],
                                           start_gps=start + a / rate))
-        while any(e.get("id") in ids for e in self.client.status().get("excitations", [])):
+        while any(e.id in ids for e in self.client.status().excitations):
             time.sleep(0.2)
 
     def push(self, values: dict[str, float]) -> None:

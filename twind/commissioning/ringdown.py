@@ -72,20 +72,20 @@ def served_ringdown(client: TwinClient, optic: OpticConfig, duration_s: float, b
         already zero (the drive goes through the damping loops), or an injection is refused.
     """
     name, status = optic.name, client.status()
-    if name not in status["optics"]:
-        msg = f"the twin runs {', '.join(status['optics'])}, not {name}"
+    if name not in status.optics:
+        msg = f"the twin runs {', '.join(status.optics)}, not {name}"
         raise TwindError(msg)
-    if status["watchdogs"].get(name) == "tripped":
+    if status.watchdogs.get(name) == "tripped":
         msg = f"{name}'s watchdog is tripped: re-arm it first (TwinClient.rearm)"
         raise TwindError(msg)
-    gains = {d: m["gain"] for d, m in client.params(name)["filters"].items()}
+    gains = {d: m.gain for d, m in client.params(name).filters.items()}
     off = [d for d in DOFS if gains[d] == 0]
     if off:
         msg = (f"{name}'s {', '.join(off)} damping gain is zero: the drive rings the optic up "
                "through its damping loops, switch them on first")
         raise TwindError(msg)
-    lead = LEAD_WALL_S * status["speed"]
-    start = status["gps"] + lead
+    lead = LEAD_WALL_S * status.speed
+    start = status.gps + lead
     amp = DRIVE_RMS * DEFAULT_LIMITS.rms * math.sqrt(2)
     ids: list[str] = []
     try:
@@ -96,13 +96,13 @@ def served_ringdown(client: TwinClient, optic: OpticConfig, duration_s: float, b
         _wait_until(client, start + DRIVE_S)
         for dof in DOFS:
             client.set_gain(name, dof, 0.0, ramp=0.0)
-        released = client.status()["gps"]
+        released = client.status().gps
         _stop(client, ids)
         progress(f"{name}: released at GPS {released:.1f}, reading {duration_s:g} s of ringdown")
         data = getdata([osem_channel(client.ifo, name, o) for o in OSEMS], duration_s,
                        start=released + lead,
                        source=bus,
-                       timeout=2 * duration_s / status["speed"] + 60)
+                       timeout=2 * duration_s / status.speed + 60)
     finally:
         _stop(client, ids)
         for dof in DOFS:
@@ -112,13 +112,13 @@ def served_ringdown(client: TwinClient, optic: OpticConfig, duration_s: float, b
 
 def _wait_until(client: TwinClient, gps: float) -> None:
     """Return once the twin's time has reached `gps`."""
-    while (now := client.status())["gps"] < gps:
-        time.sleep(min(0.5, max(0.01, 0.5 * (gps - now["gps"]) / now["speed"])))
+    while (now := client.status()).gps < gps:
+        time.sleep(min(0.5, max(0.01, 0.5 * (gps - now.gps) / now.speed)))
 
 
 def _stop(client: TwinClient, ids: list[str]) -> None:
     """Stop the excitations `ids` that still run (the others ended or were never accepted)."""
-    running = {e["id"] for e in client.status()["excitations"]}
+    running = {e.id for e in client.status().excitations}
     for exc_id in ids:
         if exc_id in running:
             client.stop(exc_id)

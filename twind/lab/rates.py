@@ -28,7 +28,8 @@ from twind.analysis.diagnose import diagnose
 from twind.analysis.diagnosis import ALPHA
 from twind.commissioning.measurement import measure_tfs
 from twind.config import OpticConfig
-from twind.lab.corpus import EXCITED, Case, make_cases, reference_data, score
+from twind.commissioning.concealed import EXCITED, reference_data
+from twind.lab.corpus import Case, make_cases, score
 from twind.lab.workers import side_by_side
 from twind.model.effects import CATALOGUE
 

@@ -37,6 +37,7 @@ from twind.channels import POINT_NAME, dof_channel
 from twind.client import TwinClient
 from twind.config import DEFAULT_CONFIG, load_config
 from twind.errors import TwindError
+from twind.protocol import StatusReply
 from twind.recording.mcapfile import iter_raw_messages
 
 
@@ -327,11 +328,11 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
             cpu0, t0 = cpu_seconds(proc.pid), time.monotonic()
             hostile_result: list[tuple[int, int]] = []
             attack = threading.Thread(target=lambda: hostile_result.append(
-                _hostile(endpoint, hostile, status0["ifo"])), daemon=True)
+                _hostile(endpoint, hostile, status0.ifo)), daemon=True)
             attack.start()
             latencies = _inject_periodically(client, watcher, _targets([status0]),
-                                             status0["rate_hz"],
-                                             t0 + duration, injections_every)[status0["twin"]]
+                                             status0.rate_hz,
+                                             t0 + duration, injections_every)[status0.twin]
             latencies = [t for t in latencies if t is not None]
             attack.join(timeout=max(1.0, t0 + duration - time.monotonic() + 30))
             watchdog = _trip_and_rearm(client, status0)
@@ -352,14 +353,14 @@ def soak(duration: float = 60.0, optics: str = "all", hostile: int = 1000, port:
         mcap_blocks, mcap_gaps = sum(n for n, _ in topics), sum(g for _, g in topics)
     sent, refused, unanswered = hostile_result[0] if hostile_result else ({}, {}, hostile)
     return SoakReport(
-        duration_s=duration, optics=", ".join(status["optics"]), cpu_fraction=cpu,
-        late_blocks=status["late_blocks"], max_lag_s=status["max_lag_s"],
+        duration_s=duration, optics=", ".join(status.optics), cpu_fraction=cpu,
+        late_blocks=status.late_blocks, max_lag_s=status.max_lag_s,
         bus_blocks=watcher.total("blocks"), bus_lost=watcher.total("lost"),
         bus_out_of_order=watcher.total("out_of_order"), bus_corrupt=watcher.corrupt,
         bus_misdelivered=watcher.misdelivered, bus_anomalies=watcher.anomalies,
         mcap_blocks=mcap_blocks, mcap_gaps=mcap_gaps, latency_s=latencies,
-        service_latency=status["injection_latency_s"], hostile_sent=sent,
-        hostile_refused=refused, hostile_unanswered=unanswered, block_s=status["block_s"],
+        service_latency=status.injection_latency_s, hostile_sent=sent,
+        hostile_refused=refused, hostile_unanswered=unanswered, block_s=status.block_s,
         crashed=crashed, load=load, watchdog=watchdog, log_tail=log_tail, suspended=suspended)
 
 
@@ -383,21 +384,21 @@ def _watchful_config(folder: Path) -> str:
     return str(path)
 
 
-def _trip_and_rearm(client: TwinClient, status: dict) -> str:
+def _trip_and_rearm(client: TwinClient, status: StatusReply) -> str:
     """Drive one optic's POS at the RMS limit near its resonance until its watchdog trips,
     then re-arm it: what a commissioner sees, in words."""
-    optic = status["optics"][0]
-    reply = client.query("inject", {"channel": f"{status['ifo']}:SUS-{optic}_SUSPOS_EXC",
+    optic = status.optics[0]
+    reply = client.query("inject", {"channel": dof_channel(status.ifo, optic, "POS", "EXC"),
                                     "waveform": "sine", "freq": 1.0, "amp": 42.0,
                                     "duration": 20.0})
     if not reply.get("accepted"):
         return f"drive refused ({reply.get('reason')})"
     deadline = time.monotonic() + 20
-    while client.status()["watchdogs"][optic] != "tripped" and time.monotonic() < deadline:
+    while client.status().watchdogs[optic] != "tripped" and time.monotonic() < deadline:
         time.sleep(0.1)
-    tripped = client.status()["watchdogs"][optic] == "tripped"
+    tripped = client.status().watchdogs[optic] == "tripped"
     client.query("stop", {"id": reply["id"]})
-    rearmed = client.rearm(optic)["watchdog"]
+    rearmed = client.rearm(optic).watchdog
     return (f"{optic} tripped under a 42 um drive and re-armed" if tripped and
             rearmed == "armed" else f"{optic}: tripped {tripped}, after re-arm {rearmed}")
 
@@ -429,8 +430,8 @@ def _suspend_a_subscriber(client: TwinClient, endpoint: str, seconds: float, pau
         proc.send_signal(signal.SIGCONT)
         proc.kill()
     return {"seconds": seconds, "pauses": pauses, **counts,
-            "late_blocks": after["late_blocks"] - before["late_blocks"],
-            "max_lag_s": after["max_lag_s"],
+            "late_blocks": after.late_blocks - before.late_blocks,
+            "max_lag_s": after.max_lag_s,
             "wait_s": load_config(config, []).service.subscriber_wait_s}
 
 
@@ -460,10 +461,10 @@ def scan_recording(files: list[Path]) -> dict[str, tuple[int, int]]:
     return {topic: (n, gaps) for topic, (n, gaps) in counts.items()}
 
 
-def _targets(statuses: list[dict]) -> list[tuple[str, str]]:
+def _targets(statuses: list[StatusReply]) -> list[tuple[str, str]]:
     """(twin, EXC channel) of the POS, PIT, YAW and SIDE test points of each twin's first
     optic, the twins taken in turn."""
-    return [(st["twin"], dof_channel(st["ifo"], st["optics"][0], dof, "EXC"))
+    return [(st.twin, dof_channel(st.ifo, st.optics[0], dof, "EXC"))
             for dof in ("POS", "PIT", "YAW", "SIDE") for st in statuses]
 
 
@@ -523,22 +524,22 @@ def soak_connected(endpoint: str, duration: float = 60.0, config_file: str | Non
         If no twin answers.
     """
     with TwinClient([endpoint], config_file=config_file) as client:
-        before = {st["twin"]: st for st in client.replies("status")}
+        before = {st.twin: st for st in map(StatusReply.from_json, client.replies("status"))}
         if not before:
             msg = f"no twin answers status at {endpoint}"
             raise TwindError(msg)
         watcher = _Watcher(endpoint, config_file)
-        watcher.wait_for({o for st in before.values() for o in st["optics"]})
+        watcher.wait_for({o for st in before.values() for o in st.optics})
         t0 = time.monotonic()
         first = next(iter(before.values()))
         attack: list = []
         thread = threading.Thread(target=lambda: attack.append(
-            _hostile(endpoint, hostile, first["ifo"], config_file)), daemon=True)
+            _hostile(endpoint, hostile, first.ifo, config_file)), daemon=True)
         thread.start()
         latencies = _inject_periodically(client, watcher, _targets(list(before.values())),
-                                         first["rate_hz"], t0 + duration, injections_every)
+                                         first.rate_hz, t0 + duration, injections_every)
         thread.join(timeout=max(1.0, t0 + duration - time.monotonic() + 30))
-        after = {st["twin"]: st for st in client.replies("status")}
+        after = {st.twin: st for st in map(StatusReply.from_json, client.replies("status"))}
         watcher.close()
     twins = [_twin_figures(b, after.get(twin), watcher, latencies.get(twin, []))
              for twin, b in before.items()]
@@ -547,18 +548,18 @@ def soak_connected(endpoint: str, duration: float = 60.0, config_file: str | Non
             "hostile": {"sent": sent, "refused": refused, "unanswered": unanswered}}
 
 
-def _twin_figures(before: dict, after: dict | None, watcher: _Watcher,
+def _twin_figures(before: StatusReply, after: StatusReply | None, watcher: _Watcher,
                   latencies: list[float | None]) -> dict:
     """One twin's figures over the soak, from its status before and after (None: it did not
     answer at the end) and what the subscriber counted of its optics' channels."""
-    optics = set(before["optics"])
+    optics = set(before.optics)
     seen = Counter()
     for channel, counts in watcher.per_channel.items():
         match = POINT_NAME.match(channel)
         if match and match["optic"] in optics:
             seen.update(counts)
     lat = np.array([t for t in latencies if t is not None]) * 1e3
-    figures = {"twin": before["twin"], "optics": before["optics"], "answered_at_end": bool(after),
+    figures = {"twin": before.twin, "optics": before.optics, "answered_at_end": bool(after),
                "injected": len(latencies),
                "blocks": seen["blocks"], "lost": seen["lost"],
                "out_of_order": seen["out_of_order"],
@@ -566,10 +567,10 @@ def _twin_figures(before: dict, after: dict | None, watcher: _Watcher,
                               "median": float(np.median(lat)) if lat.size else None,
                               "p99": float(np.percentile(lat, 99)) if lat.size else None}}
     after = after or before
-    busy = after["cpu_fraction"] * after["uptime_s"] - before["cpu_fraction"] * before["uptime_s"]
-    elapsed = after["uptime_s"] - before["uptime_s"]
+    busy = after.cpu_fraction * after.uptime_s - before.cpu_fraction * before.uptime_s
+    elapsed = after.uptime_s - before.uptime_s
     figures.update(cpu_fraction=busy / elapsed if elapsed > 0 else 0.0,
-                   late_blocks=after["late_blocks"] - before["late_blocks"],
-                   max_lag_s=after["max_lag_s"],
-                   dropped_blocks=after["dropped_blocks"] - before["dropped_blocks"])
+                   late_blocks=after.late_blocks - before.late_blocks,
+                   max_lag_s=after.max_lag_s,
+                   dropped_blocks=after.dropped_blocks - before.dropped_blocks)
     return figures

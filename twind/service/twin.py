@@ -19,7 +19,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import zenoh
@@ -31,21 +31,24 @@ from twind.channels import block_channels, dof_channel
 from twind.config import OpticConfig, TwinConfig
 from twind.errors import FotonError, TwindError
 from twind.excitation import ExcitationError, ExcitationRequest, Limits, check, make_waveform
-from twind.excitation.request import MAX_FINITE_SAMPLES, is_int, is_real
+from twind.excitation.request import MAX_FINITE_SAMPLES
 from twind.loop.damping import DampingLoop
-from twind.loop.filtermodule import FilterModule
-from twind.loop.foton_file import N_STAGES
 from twind.model.effects import with_effect
-from twind.model.params import SOSParams
+from twind.protocol import (
+    EffectChange,
+    Excitation,
+    FilterRequest,
+    ModuleState,
+    ParamsReply,
+    ParamsRequest,
+    StatusReply,
+    StopRequest,
+)
 from twind.simulation.discretize import closed_loop_matrices
 from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
 
 VERBS = ("status", "inject", "stop", "params", "filter")
-# parameters a running twin may change (rate, delay and identity need a restart); a DOF's
-# Q by the name twind fit reports (Q_POS), one number each
-LIVE_PARAMS = (frozenset(f.name for f in fields(SOSParams))
-               - {"name", "sample_rate_hz", "loop_delay_s", "Q"}) | {f"Q_{d}" for d in DOFS}
 
 
 @dataclass
@@ -336,26 +339,26 @@ class TwinService:
                 f"{type(err).__name__}: {err}" if not isinstance(err, TwindError) else str(err))}
 
     def status(self) -> dict:
-        """Real-time factor, lag, late blocks, active excitations, uptime."""
+        """Real-time factor, lag, late blocks, active excitations, uptime
+        (:class:`twind.protocol.StatusReply`)."""
         uptime = time.monotonic() - self._started
         twin_time = self.stats.blocks * self.block_s
         with self._lock:
-            active = [{"id": a.id, "channel": a.request.channel, "waveform": a.request.waveform,
-                       "start_gps": self.gps0 + a.start_sample / self.rate,
-                       "scheduled": a.start_sample >= self.engine.samples}
+            active = [Excitation(a.id, a.request.channel, a.request.waveform,
+                                 self.gps0 + a.start_sample / self.rate,
+                                 a.start_sample >= self.engine.samples)
                       for a in self._active.values()]
-        return {"ok": True, "twin": self.twin_id, "ifo": self.twin.ifo,
-                "optics": [o.name for o in self.optics],
-                "rate_hz": self.rate, "block_s": self.block_s, "speed": self.speed,
-                "gps": self.gps0 + twin_time, "uptime_s": uptime, "blocks": self.stats.blocks,
-                "real_time_factor": twin_time / uptime if uptime > 0 else 0.0,
-                "lag_s": self.stats.lag_s, "max_lag_s": self.stats.max_lag_s,
-                "late_blocks": self.stats.late_blocks, "dropped_blocks": self.stats.dropped_blocks,
-                "injection_latency_s": self.stats.latency(),
-                "cpu_fraction": self.stats.busy_s / uptime if uptime > 0 else 0.0,
-                "excitations": active, "config": self.twin.source,
-                "watchdogs": self._watchdogs(),
-                "recorder": self.recorder_status() if self.recorder_status else None}
+        return StatusReply(
+            twin=self.twin_id, ifo=self.twin.ifo, optics=[o.name for o in self.optics],
+            rate_hz=self.rate, block_s=self.block_s, speed=self.speed,
+            gps=self.gps0 + twin_time, uptime_s=uptime, blocks=self.stats.blocks,
+            real_time_factor=twin_time / uptime if uptime > 0 else 0.0,
+            lag_s=self.stats.lag_s, max_lag_s=self.stats.max_lag_s,
+            late_blocks=self.stats.late_blocks, dropped_blocks=self.stats.dropped_blocks,
+            injection_latency_s=self.stats.latency(),
+            cpu_fraction=self.stats.busy_s / uptime if uptime > 0 else 0.0,
+            excitations=active, config=self.twin.source, watchdogs=self._watchdogs(),
+            recorder=self.recorder_status() if self.recorder_status else None).to_json()
 
     def inject(self, request: dict, received: float | None = None) -> dict:
         """Accept an excitation (reply with its id) or refuse it with the reason.
@@ -462,16 +465,13 @@ class TwinService:
     def stop(self, request: dict) -> dict:
         """Stop an excitation by id (``{"id": ...}``), or all with ``{"all": true}``; it
         ramps down over its request's ``ramp``, or ``"ramp"`` seconds if given."""
-        _known(request, ("id", "all", "ramp"), "stop")
-        if request.get("all") is not True and not isinstance(request.get("id"), str):
-            msg = 'stop takes {"id": "<the id inject returned>"} or {"all": true}'
-            raise TwindError(msg)
-        ramp = request.get("ramp")
-        if ramp is not None and not (_number(ramp) and 0 <= ramp * self.rate <= MAX_FINITE_SAMPLES):
-            msg = f"'ramp' takes a number of seconds >= 0, got {str(ramp)[:40]}"
+        req = StopRequest.from_json(request)
+        ramp = req.ramp
+        if ramp is not None and not ramp * self.rate <= MAX_FINITE_SAMPLES:
+            msg = f"'ramp' takes a number of seconds >= 0, got {ramp}"
             raise TwindError(msg)
         with self._lock:
-            ids = list(self._active) if request.get("all") is True else [request["id"]]
+            ids = list(self._active) if req.all else [req.id]
             ended = [i for i in ids if i in self._ended]
             missing = [i for i in ids if i not in self._active and i not in self._ended]
             if missing:
@@ -491,49 +491,27 @@ class TwinService:
         return {"ok": True, "stopped": [a.id for a in stopping], "already_ended": ended}
 
     def params(self, request: dict) -> dict:
-        """Get (``{"optic": "ETMX"}``) or set parameters: ``"set": {name: value}`` the
-        nominal ones, ``"effect": {"id": ..., "values": {...}}`` physics the nominal model
-        leaves out (the catalogue of docs/model.md; ``{"id": null}`` removes it), kept across later
-        changes of the nominal parameters; ``"watchdog": "rearm"`` re-arms a tripped
-        watchdog."""
-        _known(request, ("optic", "set", "effect", "watchdog"), "params")
-        name = request.get("optic", self.optics[0].name)
+        """Get (``{"optic": "ETMX"}``) or set parameters (:class:`twind.protocol.ParamsRequest`):
+        ``"set": {name: value}`` the nominal ones, ``"effect": {"id": ..., "values": {...}}``
+        physics the nominal model leaves out (the catalogue of docs/model.md; ``{"id": null}``
+        removes it), kept across later changes of the nominal parameters; ``"watchdog":
+        "rearm"`` re-arms a tripped watchdog."""
+        req = ParamsRequest.from_json(request)
+        name = req.optic or self.optics[0].name
         index = self._optic_index(name)
-        watchdog = request.get("watchdog")
-        if watchdog is not None:
-            if watchdog != "rearm":
-                msg = f"'watchdog' takes \"rearm\", got {str(watchdog)[:40]!r}"
-                raise TwindError(msg)
+        if req.rearm:
             with self._lock:
                 if self.engine.tripped(name):
                     self.engine.rearm(name)
                     self._publish_event("rearmed", None, optic=name)
-        changes = request.get("set") or {}
-        effect = request.get("effect")
-        if not isinstance(changes, dict):
-            msg = "'set' must be an object of parameter names and values"
-            raise TwindError(msg)
-        unknown = [k for k in changes if k not in LIVE_PARAMS]
-        if unknown:
-            msg = (f"cannot change {', '.join(unknown)[:200]} live; parameters: "
-                   f"{', '.join(sorted(LIVE_PARAMS))}")
-            raise TwindError(msg)
-        bad = [k for k, v in changes.items() if not _number(v)]
-        if bad:
-            msg = f"'set' takes numbers; {bad[0]} is {str(changes[bad[0]])[:40]}"
-            raise TwindError(msg)
-        if effect is not None and not (isinstance(effect, dict) and "id" in effect):
-            msg = "'effect' must be an object {\"id\": <catalogue id or null>, \"values\": {...}}"
-            raise TwindError(msg)
-        if changes or effect is not None:
-            self._rebuild(index, changes, effect)
-        sus = asdict(self.optics[index].sus)
-        modules = {d: {"gain": m.gain, "on": sorted(m.on), "limit": m.limit, "ramp_s": m.ramp_s}
+        if req.set or req.effect is not None:
+            self._rebuild(index, req.set, req.effect)
+        modules = {d: ModuleState(m.gain, sorted(m.on), m.limit, m.ramp_s)
                    for d, m in self.engine.loops[index].modules.items()}
         applied = self._effects.get(name)
-        return {"ok": True, "optic": name, "params": sus, "filters": modules,
-                "watchdog": "tripped" if self.engine.tripped(name) else "armed",
-                "effect": {"id": applied[0], "values": applied[1]} if applied else None}
+        return ParamsReply(self.twin_id, name, asdict(self.optics[index].sus), modules,
+                           "tripped" if self.engine.tripped(name) else "armed",
+                           EffectChange(*applied) if applied else None).to_json()
 
     def _count_change(self) -> None:
         """Refuse a change beyond ``service.changes_per_minute`` (under the params lock)."""
@@ -547,7 +525,8 @@ class TwinService:
             raise TwindError(msg)
         self._changes.append(now)
 
-    def _rebuild(self, index: int, changes: dict, effect: dict | None) -> None:
+    def _rebuild(self, index: int, changes: dict[str, float],
+                 effect: EffectChange | None) -> None:
         """A new plant from the changed parameters and effect, checked, then swapped in."""
         with self._params_lock:
             self._count_change()
@@ -558,7 +537,7 @@ class TwinService:
                 raise TwindError("; ".join(f"{k}: {p}" for k, p in problems))
             applied = self._effects.get(cfg.name)
             if effect is not None:
-                applied = (effect["id"], dict(effect.get("values") or {})) if effect["id"] else None
+                applied = (effect.id, effect.values) if effect.id else None
             new = replace(cfg, sus=sus)
             loop = new.loop()
             if applied:
@@ -580,9 +559,9 @@ class TwinService:
     def filter(self, request: dict) -> dict:
         """Switch a stage (``fm``, ``on``) or ramp a gain (``gain``, ``ramp``) of a module;
         refused, with the reason, unless the damping loop stays stable with the change."""
-        optic = request.get("optic", self.optics[0].name)
+        change = FilterRequest.from_json(request)
+        optic = change.optic or self.optics[0].name
         index = self._optic_index(optic)
-        change = _filter_change(request)
         with self._params_lock:
             self._count_change()
             loop = self.engine.loops[index]
@@ -644,59 +623,6 @@ def _rms(req: ExcitationRequest) -> float:
     return req.amp if req.waveform == "noise" else req.amp / math.sqrt(2)
 
 
-@dataclass(frozen=True)
-class FilterChange:
-    """A ``filter`` request, its fields checked."""
-
-    dof: str
-    fm: int | None = None
-    on: bool = True
-    gain: float | None = None
-    ramp: float | None = None
-
-    def applied(self, module: FilterModule) -> FilterModule:
-        """`module` as it would be after the change (it is not touched)."""
-        on = set(module.on)
-        if self.fm is not None:
-            on = on | {self.fm} if self.on else on - {self.fm}
-        return replace(module, on=on, gain=module.gain if self.gain is None else self.gain)
-
-
-MAX_GAIN_RAMP_S = 3600.0
-
-
-def _filter_change(request: dict) -> FilterChange:
-    """The change a ``filter`` request asks for, or a TwindError naming the field at fault."""
-    known = {"optic", "dof", "fm", "on", "gain", "ramp"}
-    unknown = sorted(str(k)[:40] for k in request if k not in known)
-    if unknown:
-        msg = f"unknown field(s) {', '.join(unknown)}; a filter request has {', '.join(sorted(known))}"
-        raise TwindError(msg)
-    dof = request.get("dof")
-    if dof not in DOFS:
-        msg = f"dof must be one of {', '.join(DOFS)}, got {str(dof)[:40]!r}"
-        raise TwindError(msg)
-    fm, on, gain, ramp = (request.get(k) for k in ("fm", "on", "gain", "ramp"))
-    if fm is not None and (not is_int(fm) or not 1 <= fm <= N_STAGES):
-        msg = f"fm must be an integer 1..{N_STAGES}, got {str(fm)[:40]!r}"
-        raise TwindError(msg)
-    if on is not None and not isinstance(on, bool):
-        msg = f"on must be true or false, got {str(on)[:40]!r}"
-        raise TwindError(msg)
-    if gain is not None and not (is_real(gain) and math.isfinite(gain)):
-        msg = f"gain must be a finite number, got {str(gain)[:40]!r}"
-        raise TwindError(msg)
-    if ramp is not None and not (is_real(ramp) and 0 <= ramp <= MAX_GAIN_RAMP_S):
-        msg = f"ramp must be a number of seconds in 0..{MAX_GAIN_RAMP_S:g}, got {str(ramp)[:40]!r}"
-        raise TwindError(msg)
-    if fm is None and gain is None:
-        msg = "a filter request changes a stage (fm, on) or the gain (gain, ramp)"
-        raise TwindError(msg)
-    return FilterChange(dof, fm, True if on is None else on,
-                        None if gain is None else float(gain),
-                        None if ramp is None else float(ramp))
-
-
 def _check_stable(loop, rate: float) -> None:  # noqa: ANN001 - DampingLoop
 
     with np.errstate(all="ignore"):
@@ -709,21 +635,6 @@ def _check_stable(loop, rate: float) -> None:  # noqa: ANN001 - DampingLoop
 
 def _jsonable(obj: object) -> str:
     return str(obj)
-
-
-def _number(value: object) -> bool:
-    """A finite JSON number (not a boolean)."""
-    return (isinstance(value, (int, float)) and not isinstance(value, bool)
-            and math.isfinite(value))
-
-
-def _known(request: dict, fields: tuple[str, ...], verb: str) -> None:
-    """Refuse a request with a field `verb` does not take: a misspelt one does nothing."""
-    unknown = sorted(set(request) - set(fields))
-    if unknown:
-        msg = (f"{verb} takes {', '.join(fields)}; unknown field(s): "
-               f"{', '.join(map(repr, unknown))[:200]}")
-        raise TwindError(msg)
 
 
 def _summary(request: dict) -> dict:

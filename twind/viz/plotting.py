@@ -14,12 +14,8 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from twind import DOFS, OSEMS, __version__
-from twind.analysis.estimation.tfset import TFSet
-from twind.analysis.identification.data import FitData
-from twind.analysis.identification.model import ClosedLoopModel
-from twind.analysis.identification.result import FitResult
+from twind.analysis.prediction import FitCurves
 from twind.channels import UNITS
-from twind.config import OpticConfig
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -412,52 +408,28 @@ def _panel(ax: "Axes", cmp: "ModelComparison", i: int, j: int, zero: bool, worst
     ax.grid(True, which="both", alpha=0.3)
 
 
-def plot_fit(tfs: TFSet, cfg: OpticConfig, result: FitResult, path: str,
-             baseline: FitResult | None = None) -> str:
+def plot_fit(fit: FitCurves, path: str) -> str:
     """A fit as a Bode matrix: per element, measured ``IN1/EXC`` (the bins the fit used with
     their errors, the others faded) with the model it started from and the fitted one, the
     coherence, and the residual of each in units of the measurement's sigma (what the fit
-    minimised), over the span of the bins the fit used: a recording reaches Nyquist, its
-    excitation does not.
+    minimised).
 
     Parameters
     ----------
-    tfs : TFSet
-        The measurement fitted.
-    cfg : OpticConfig
-        The model fitted.
-    result : FitResult
+    fit : FitCurves
+        The measurement and the models, as :func:`twind.analysis.prediction.fit_curves`
+        computes them.
     path : str
         The PNG to write.
-    baseline : FitResult, optional
-        Drawn in place of the configuration the fit started from: the nominal model refitted,
-        beside the nominal model with an effect.
 
     Returns
     -------
     str
         `path`.
     """
-    used = FitData.from_tfset(tfs, result.min_coherence).mask
-    f_used = tfs.frequency_hz[used.any(axis=(1, 2))]
-    if f_used.size:
-        used = used[(tfs.frequency_hz >= f_used[0]) & (tfs.frequency_hz <= f_used[-1])]
-        tfs = tfs.band(f_used[0], f_used[-1])
-    data = FitData.from_tfset(tfs, min_coherence=0.0)
-
-    def curve(fitted: FitResult | None) -> NDArray[np.complex128]:
-        effect = (fitted or result).effect
-        model = ClosedLoopModel.of(cfg, data, effect).for_data(data)
-        return model(fitted.as_dict() if fitted else {})
-
-    effect = f"nominal + {result.effect}" if result.effect else "nominal"
-    curves = {"nominal, refitted" if baseline else "configuration (the fit's start)":
-              curve(baseline), f"{effect}, fitted": curve(result)}
-    rows = [tfs.responses.index(r) for r in data.responses]
-    cols = [tfs.excited.index(e) for e in data.excited]
-    title = f"{result.optic} IN1/EXC, {effect} model: chi2/nu {result.chi2_nu:.3g} after the fit"
-    bode_matrix(data.frequency_hz, path, data.responses, data.excited, curves,
-                {"measured": Measured(data.H, data.sigma, used)}, residuals=True, title=title,
-                coherence=tfs.coherence["IN1"][:, rows][:, :, cols],
-                caption=f"{tfs.caption()}; twind {__version__}")
+    title = f"{fit.optic} IN1/EXC, {fit.model} model: chi2/nu {fit.chi2_nu:.3g} after the fit"
+    bode_matrix(fit.frequency_hz, path, fit.responses, fit.excited, fit.curves,
+                {"measured": Measured(fit.H, fit.sigma, fit.used)}, residuals=True,
+                title=title, coherence=fit.coherence,
+                caption=f"{fit.caption}; twind {__version__}")
     return path

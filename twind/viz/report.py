@@ -7,21 +7,21 @@ from __future__ import annotations
 
 import html
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from twind import __version__, strictjson
 from twind.analysis.diagnosis import DiagnoseError, Diagnosis
 from twind.analysis.estimation.tfset import TFSet
-from twind.analysis.identification.data import FitData
-from twind.analysis.identification.locate import Located
-from twind.analysis.identification.model import ClosedLoopModel
-from twind.analysis.identification.params import param_label
-from twind.config import OpticConfig
+from twind.analysis.prediction import FitCurves
 from twind.viz.plotting import plot_fit
 from twind.viz.spectra import write_spectra_rrd
+
+if TYPE_CHECKING:  # a type named, not imported: viz draws what the analysis found
+    from twind.analysis.identification.locate import Located
 
 STYLE = """
 body { font-family: sans-serif; max-width: 70em; margin: 1em auto; color: #222 }
@@ -124,7 +124,7 @@ def _listed(key: str, lines: list[str]) -> str:
 def _nominal(d: Diagnosis) -> str:
     """The refitted nominal parameters; what the data cannot fix is held at its start."""
     params = d.nominal.to_json()["params"]
-    rows = [(param_label(n), "held at start" if p["sigma"] is None else number(p["value"], 6),
+    rows = [(p["label"], "held at start" if p["sigma"] is None else number(p["value"], 6),
              number(p["sigma"], 3), "unidentifiable" if p["sigma"] is None else
              f"{100 * p['sigma'] / abs(p['value']):.2g} %", number(p["start"], 6))
             for n, p in params.items()]
@@ -197,17 +197,23 @@ def measurement(tfs: TFSet, inputs: Sequence[str | Path] = ()) -> list[tuple[str
             ("read by", f"twind {__version__}")]
 
 
-def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | Path,
-                 inputs: Sequence[str | Path] = ()) -> Path:
+REPORT_FILES = ("nominal.png", "augmented.png", "diagnosis.json", "index.html",
+                "diagnosis.rrd")
+"""The files of a diagnosis report (:func:`write_report`)."""
+
+
+def write_report(diagnosis: Diagnosis, fits: Mapping[str, FitCurves], tfs: TFSet,
+                 out: str | Path, inputs: Sequence[str | Path] = ()) -> Path:
     """The report of a diagnosis in directory `out` (created).
 
     Parameters
     ----------
     diagnosis : Diagnosis
+    fits : mapping of str to FitCurves
+        Its models on the measurement's grid (:meth:`Diagnosis.curves`): ``"nominal"`` and,
+        when an effect was chosen, ``"augmented"``.
     tfs : TFSet
         The measurement it was made from.
-    cfg : OpticConfig
-        The nominal model.
     out : path
         The directory: ``nominal.png`` and ``augmented.png`` (measured, model, residual /
         sigma per bin, before and after), ``diagnosis.json``, ``diagnosis.rrd`` and
@@ -225,13 +231,11 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
     DiagnoseError
         If `out` already holds a report's files: reports are never overwritten.
     """
-    out = report_dir(out, ["nominal.png", "augmented.png", "diagnosis.json", "index.html",
-                           "diagnosis.rrd"], DiagnoseError)
-    plot_fit(tfs, cfg, diagnosis.nominal, str(out / "nominal.png"))
-    if diagnosis.effects:
-        plot_fit(tfs, cfg, diagnosis.final, str(out / "augmented.png"), diagnosis.nominal)
+    out = report_dir(out, REPORT_FILES, DiagnoseError)
+    for name, fit in fits.items():
+        plot_fit(fit, str(out / f"{name}.png"))
     (out / "diagnosis.json").write_text(strictjson.dumps(diagnosis.to_json(), indent=1))
-    _write_rrd(diagnosis, tfs, cfg, out / "diagnosis.rrd")
+    _write_rrd(fits, out / "diagnosis.rrd", f"twind diagnose {diagnosis.nominal.optic}")
     titles = {"nominal.png": "The nominal model refitted, against the configuration it "
                              "started from: measured, models, coherence, residual / sigma",
               "augmented.png": "With the effects chosen, against the nominal model refitted"}
@@ -240,25 +244,20 @@ def write_report(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, out: str | 
     return out / "index.html"
 
 
-def _write_rrd(diagnosis: Diagnosis, tfs: TFSet, cfg: OpticConfig, path: Path) -> None:
-    """Per element: measured, nominal and augmented |IN1/EXC| (dB) and residuals / sigma."""
-    data = FitData.from_tfset(tfs)
-    f = data.frequency_hz
-    fits = {"nominal": diagnosis.nominal}
-    if diagnosis.effects:
-        fits["augmented"] = diagnosis.final
+def _write_rrd(fits: Mapping[str, FitCurves], path: Path, title: str) -> None:
+    """Per element: measured and each fitted model's |IN1/EXC| (dB) and residuals / sigma,
+    over the bins the fits used."""
     series = {}
-    for label, result in fits.items():
-        model = ClosedLoopModel.of(cfg, data, result.effect).for_data(data)
-        pred = model(result.as_dict())
-        for i, r in enumerate(data.responses):
-            for j, e in enumerate(data.excited):
-                used = data.mask[:, i, j]
+    for label, fit in fits.items():
+        f, pred = fit.frequency_hz, fit.fitted
+        for i, r in enumerate(fit.responses):
+            for j, e in enumerate(fit.excited):
+                used = fit.used[:, i, j]
                 if not used.any():
                     continue
                 base = f"diagnose/{r}_{e}"
-                resid = np.abs(data.H[:, i, j] - pred[:, i, j]) / data.sigma[:, i, j]
+                resid = np.abs(fit.H[:, i, j] - pred[:, i, j]) / fit.sigma[:, i, j]
                 series[f"{base}/{label}_db"] = (f[used], 20 * np.log10(np.abs(pred[used, i, j])))
                 series[f"{base}/{label}_residual_sigma"] = (f[used], resid[used])
-                series[f"{base}/measured_db"] = (f[used], 20 * np.log10(np.abs(data.H[used, i, j])))
-    write_spectra_rrd(path, f"twind diagnose {diagnosis.nominal.optic}", series)
+                series[f"{base}/measured_db"] = (f[used], 20 * np.log10(np.abs(fit.H[used, i, j])))
+    write_spectra_rrd(path, title, series)

@@ -131,6 +131,24 @@ def register_reader(name: str, what: str, identify: Callable[[list[Path]], bool]
     _READERS[name] = (what, identify, reader)
 
 
+def identify(paths: Sequence[str | Path]) -> str:
+    """The registered format of measurement files (``"diaggui"``, ``"mcap"``, ``"frames"``).
+
+    Raises
+    ------
+    TFError
+        If the files are of no one registered format.
+    """
+    files = [Path(p) for p in paths]
+    for name, (_, is_format, _) in _READERS.items():
+        if files and is_format(files):
+            return name
+    kinds = sorted({p.suffix.lower() for p in files})
+    msg = (f"inputs must be all {' or all '.join(w for w, _, _ in _READERS.values())}, "
+           f"got {kinds}")
+    raise TFError(msg)
+
+
 @dataclass(frozen=True)
 class TFSet:
     """Closed-loop transfer functions of one optic, one column per excited DOF.
@@ -184,13 +202,7 @@ class TFSet:
         if missing:
             msg = f"no such input: {', '.join(missing)}"
             raise TFError(msg)
-        for _, identify, reader in _READERS.values():
-            if files and identify(files):
-                return reader(files, options or ReadOptions())
-        kinds = sorted({p.suffix.lower() for p in files})
-        msg = (f"inputs must be all {' or all '.join(w for w, _, _ in _READERS.values())}, "
-               f"got {kinds}")
-        raise TFError(msg)
+        return _READERS[identify(files)][2](files, options or ReadOptions())
 
     def sigma(self, point: str) -> NDArray[np.float64]:
         """Standard error of the real and of the imaginary part of each element of

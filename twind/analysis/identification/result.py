@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twind.analysis.identification.data import MIN_COHERENCE
+from twind.analysis.identification.params import param_label
 from twind.model.effects import effect_scale
 
 
@@ -111,7 +112,7 @@ class FitResult:
     def to_json(self) -> dict:
         """The ``twind fit --json`` object (unidentifiable sigmas are null)."""
         params = {n: {"value": float(v), "sigma": None if math.isnan(s) else float(s),
-                      "start": float(p0)}
+                      "start": float(p0), "label": param_label(n)}
                   for n, v, s, p0 in zip(self.names, self.values, self.sigma, self.nominal,
                                          strict=True)}
         return {"optic": self.optic, "effect": self.effect, "params": params,

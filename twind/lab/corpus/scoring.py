@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twind.commissioning.hidden import FACES, SEEN
 from twind.lab.corpus.cases import Case
-from twind.lab.corpus.physics import _SEEN, FACES
 
 KEY_TOLERANCE = 0.35
 RESOLVED_F = 0.15
@@ -102,8 +102,8 @@ def key_error(effect: str, truth: dict, fitted: dict) -> float:
     float
     """
     if effect in ("coil_imbalance", "osem_imbalance"):
-        t = _SEEN @ np.array([truth["gains"][f] for f in FACES])
-        g = _SEEN @ np.array([fitted["gains"][f] for f in FACES])
+        t = SEEN @ np.array([truth["gains"][f] for f in FACES])
+        g = SEEN @ np.array([fitted["gains"][f] for f in FACES])
         return float(np.linalg.norm(g - t) / np.linalg.norm(t))
     key = {"loop_delay": "extra_s", "actuator_pole": "f_hz", "side_coupling": "sensing",
            "wire_asymmetry": "delta_m", "bounce_roll": "vertical"}[effect]
@@ -132,8 +132,8 @@ def key_z(effect: str, truth: dict, result) -> float:  # noqa: ANN001 - FitResul
     got = result.as_dict()
     if effect in ("coil_imbalance", "osem_imbalance"):
         combos = [{f"{pre}gain_{f}": w for f, w in zip(FACES, row, strict=True)}
-                  for row in _SEEN]
-        d = _SEEN @ np.array([got[f"{pre}gain_{f}"] - truth["gains"][f] for f in FACES])
+                  for row in SEEN]
+        d = SEEN @ np.array([got[f"{pre}gain_{f}"] - truth["gains"][f] for f in FACES])
     else:  # a driver pole is fitted as 1/f
         name = {"loop_delay": "extra_s", "actuator_pole": "inv_f_hz",
                 "side_coupling": "sensing", "wire_asymmetry": "delta_m",

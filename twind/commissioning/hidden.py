@@ -1,8 +1,8 @@
-"""The corpus's effects, put into the plant by hand and independently of
-:mod:`twind.model.effects`: the coil or OSEM columns, a raised clamp in the geometric model
-(:func:`raised_clamp`), face heads tilted against the optic (:func:`tilted_heads`), a body
-on a spring at a face point (:func:`attached_body`), one channel's own stage
-(:func:`one_stage`)."""
+"""Effects put into an optic's plant by hand, for the demo and the proof corpus, written
+independently of :mod:`twind.model.effects` (whose models the diagnosis fits): the coil or
+OSEM columns, a raised clamp in the geometric model (:func:`raised_clamp`), face heads
+tilted against the optic (:func:`tilted_heads`), a body on a spring at a face point
+(:func:`attached_body`), one channel's own stage (:func:`one_stage`)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from twind.model.plant import Plant
 FACES = ("UL", "UR", "LL", "LR")
 # directions of four face gains a damping-loop measurement determines: pitch-like and
 # yaw-like; their mean is a change of coil (or lever) strength, their butterfly is unseen
-_SEEN = np.array([[1.0, 1.0, -1.0, -1.0], [1.0, -1.0, 1.0, -1.0]]) / 2
+SEEN = np.array([[1.0, 1.0, -1.0, -1.0], [1.0, -1.0, 1.0, -1.0]]) / 2
 
 
 def hidden(plant: Plant, effect: str, size: float, direction: NDArray[np.float64],
@@ -308,8 +308,8 @@ def one_stage(plant: Plant, separation: float, kind: str, channel: int, pole_hz:
              "zero_hz": zero})
 
 
-_FIRST_SIZE = {"coil_imbalance": 1e-3, "osem_imbalance": 1e-3, "loop_delay": 1e-4,
+FIRST_SIZE = {"coil_imbalance": 1e-3, "osem_imbalance": 1e-3, "loop_delay": 1e-4,
                "actuator_pole": 1 / 300, "side_coupling": 1e-2, "wire_asymmetry": 1e-3,
                "bounce_roll": 1e-3, "resonance": 1e-4, "channel_filter": 0.1}
-MADE = tuple(_FIRST_SIZE)
+MADE = tuple(FIRST_SIZE)
 """Every effect the corpus can hide."""
