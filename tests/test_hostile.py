@@ -32,7 +32,15 @@ from twind.client import InjectionRefused, SeveralTwins, TwinClient, TwinUnreach
 from twind.config import DEFAULT_CONFIG, ConfigError, TwinConfig, load_config
 from twind.excitation import WAVEFORMS
 from twind.limits import ServiceLimits
-from twind.protocol import LIVE_PARAMS, StatusReply
+from twind.protocol import (
+    LIVE_PARAMS,
+    EffectChange,
+    FilterRequest,
+    ParamsReply,
+    ParamsRequest,
+    StatusReply,
+    StopRequest,
+)
 from twind.service.serve import limit_zenoh
 from twind.service.twin import TwinService
 
@@ -351,6 +359,25 @@ def test_a_suspended_subscriber_holds_the_twin_briefly_and_no_one_gets_a_damaged
     assert steady["damaged"] == [] and steady["gaps"] == 0
     assert resumed["damaged"] == [] and resumed["gaps"] > 0  # its session was closed
     assert resumed["last"] >= status.blocks - 32  # and it reads again
+
+
+def test_the_twin_s_replies_are_what_the_client_reads(fresh: TwinService) -> None:
+    """status and params replies, an excitation and an effect running, read as typed
+    replies and written back field for field: nothing the twin says is dropped or renamed;
+    the requests the client sends read back as themselves."""
+    sine = {"channel": EXC[0], "waveform": "sine", "amp": 0.1, "freq": 1.0, "duration": 5.0}
+    assert _ask(fresh, "inject", sine)["accepted"]
+    effect = {"id": "coil_imbalance", "values": {"gain_UL": 0.01}}
+    assert _ask(fresh, "params", {"optic": "ETMX", "effect": effect})["ok"]
+    status = fresh.status()
+    assert StatusReply.from_json(status).to_json() == status and status["excitations"]
+    params = {**_ask(fresh, "filter", {"dof": "PIT", "fm": 3, "on": False}), "twin": "t"}
+    read = ParamsReply.from_json(params)
+    assert read.to_json() == params and read.effect == EffectChange(**effect)
+    for request in (StopRequest(all=True, ramp=2.0), ParamsRequest("ETMX", {"Q_POS": 4.0},
+                    EffectChange(**effect), rearm=True), FilterRequest("PIT", "ETMX", 3, False),
+                    FilterRequest("POS", gain=0.5, ramp=1.0)):
+        assert type(request).from_json(request.to_json()) == request
 
 
 def test_status_reports_the_latency_of_injections_made_now_only(fresh: TwinService) -> None:

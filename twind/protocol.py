@@ -5,14 +5,10 @@ The client builds a request and checks it before sending it; the twin reads the 
 with the same code, so a field is spelled and checked in one place. An excitation's request
 is :class:`twind.excitation.ExcitationRequest`.
 
-=========  =================  =================
-verb       request            reply
-=========  =================  =================
-status     (none)             :class:`StatusReply`
-stop       :class:`StopRequest`   ``{"stopped", "already_ended"}``
-params     :class:`ParamsRequest` :class:`ParamsReply`
-filter     :class:`FilterRequest` :class:`ParamsReply`
-=========  =================  =================
+- ``status``: no request; :class:`StatusReply`.
+- ``stop``: :class:`StopRequest`; the ids stopped and those already ended.
+- ``params``: :class:`ParamsRequest`; :class:`ParamsReply`.
+- ``filter``: :class:`FilterRequest`; :class:`ParamsReply`.
 """
 
 from __future__ import annotations

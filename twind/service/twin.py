@@ -468,7 +468,7 @@ class TwinService:
         req = StopRequest.from_json(request)
         ramp = req.ramp
         if ramp is not None and not ramp * self.rate <= MAX_FINITE_SAMPLES:
-            msg = f"'ramp' takes a number of seconds >= 0, got {ramp}"
+            msg = f"'ramp' of {ramp:g} s is more samples than the twin counts"
             raise TwindError(msg)
         with self._lock:
             ids = list(self._active) if req.all else [req.id]
@@ -497,7 +497,7 @@ class TwinService:
         removes it), kept across later changes of the nominal parameters; ``"watchdog":
         "rearm"`` re-arms a tripped watchdog."""
         req = ParamsRequest.from_json(request)
-        name = req.optic or self.optics[0].name
+        name = self.optics[0].name if req.optic is None else req.optic
         index = self._optic_index(name)
         if req.rearm:
             with self._lock:
@@ -560,7 +560,7 @@ class TwinService:
         """Switch a stage (``fm``, ``on``) or ramp a gain (``gain``, ``ramp``) of a module;
         refused, with the reason, unless the damping loop stays stable with the change."""
         change = FilterRequest.from_json(request)
-        optic = change.optic or self.optics[0].name
+        optic = self.optics[0].name if change.optic is None else change.optic
         index = self._optic_index(optic)
         with self._params_lock:
             self._count_change()
