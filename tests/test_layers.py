@@ -6,11 +6,13 @@ once (100 lines at most), and modules short enough to hold one concept (800 line
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
 
 import pytest
 from importlinter.cli import lint_imports
 
+from twind.cli.commands import COMMANDS
 from twind.model.effects import CATALOGUE, CHANNEL_FILTERS, FAMILIES
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -101,3 +103,14 @@ def test_only_cli_parses_a_command_line() -> None:
                    ([a.name for a in n.names] if isinstance(n, ast.Import) else [n.module])
                    for n in ast.walk(ast.parse(p.read_text())))]
     assert not outside, f"modules outside cli/ that import argparse: {outside}"
+
+
+def test_every_command_runs_a_function_of_cli() -> None:
+    """Each command's run, named ``"module:function"`` so that it loads only when it runs,
+    is a function of a module of ``twind/cli``: a misspelt one fails here, not in use."""
+    commands = [c for top in COMMANDS for c in (top.subcommands or [top])]
+    runs = [c.run.split(":") for c in commands]
+    assert all(module.startswith("twind.cli.") for module, _ in runs), runs
+    missing = [f"{module}:{name}" for module, name in runs
+               if not callable(getattr(importlib.import_module(module), name, None))]
+    assert not missing
