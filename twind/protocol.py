@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # named, not loaded: its foton designs take a second to impor
     from twind.loop.filtermodule import FilterModule
 
 LIVE_PARAMS = (frozenset(f.name for f in fields(SOSParams))
-               - {"name", "sample_rate_hz", "loop_delay_s", "Q"}) | {f"Q_{d}" for d in DOFS}
+               - {"name", "sample_rate_hz", "loop_delay_s", "Q", "wire"}) | {f"Q_{d}" for d in DOFS}
 """Parameters a running twin may change (the rate, the delay and the name need a restart); a
 DOF's Q by the name ``twind fit`` reports (``Q_POS``), one number each."""
 

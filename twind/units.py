@@ -25,6 +25,9 @@ UNITS: dict[str, tuple[str, float]] = {
     "m/rtHz": ("length ASD", 1.0), "nm/rtHz": ("length ASD", 1e-9),
     "rad/rtHz": ("angle ASD", 1.0), "nrad/rtHz": ("angle ASD", 1e-9),
     "m/s^2": ("acceleration", 1.0),
+    "kg/m^3": ("density", 1.0), "g/cm^3": ("density", 1e3),
+    "Pa": ("pressure", 1.0), "MPa": ("pressure", 1e6), "GPa": ("pressure", 1e9),
+    "in": ("length", 0.0254),
 }
 
 _QUANTITY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")

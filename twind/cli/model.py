@@ -16,6 +16,7 @@ from twind.cli.options import shown
 from twind.config import default_optic, load_config
 from twind.errors import TwindError
 from twind.model.compare import compare_models
+from twind.model.violin import violin_modes
 from twind.recording.writer import SessionWriter
 from twind.simulation.engine import Engine
 from twind.timeutil import now_gps
@@ -51,6 +52,9 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     f = _frequencies(args)
     if cfg.kind == "statespace":
         return statespace.response(args, cfg, f)
+    violins = np.array([f_hz for _, f_hz, _ in violin_modes(cfg.mechanics())])
+    if not args.freqs and violins.size:  # a Q of millions: each drawn at its peak
+        f = np.union1d(f, violins[(violins > f[0]) & (violins < f[-1])])
     r = cfg.loop().responses(f)
     keys = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC",
             "closed_loop_IN2_per_EXC")
@@ -75,6 +79,8 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     print(f"wrote {path} and {plant}")
     for f_hz, q in cfg.closed_loop_modes:
         print(f"closed-loop mode {f_hz:.3f} Hz, Q {q:.1f}")
+    for name, f_hz, q in violin_modes(cfg.mechanics()):
+        print(f"violin mode {name}: {f_hz:.3f} Hz, Q {q:.3g}")
     return 0
 
 

@@ -39,10 +39,12 @@ from twind.loop.damping import DampingLoop
 from twind.loop.filtermodule import N_STAGES, Stage
 from twind.loop.foton_file import read_filter_file
 from twind.model.analytical import analytical_mechanics
-from twind.model.geometric import WireGeometry, geometric_mechanics
+from twind.model.geometric import WireGeometry, geometric_model, wire_segments
 from twind.model.matrices import CALIBRATION, input_matrix
+from twind.model.mechanics import Mechanics
 from twind.model.params import ALL_DOFS, SOSParams
 from twind.model.plant import Plant
+from twind.model.violin import Wire, sos_segments, with_violin_modes
 from twind.simulation.discretize import closed_loop_matrices, closed_loop_modes, delay_samples
 from twind.simulation.noise import NoiseSpec
 
@@ -65,6 +67,9 @@ SUSPENSION_KEYS = {
 OSEM_KEYS = {"lever": ("osem_lever_m", "length"), "coil": ("coil_N_per_ct", "actuation"),
              "side_coil": ("side_coil_N_per_ct", "actuation")}
 CDS_KEYS = {"rate": ("sample_rate_hz", "frequency"), "loop_delay": ("loop_delay_s", "time")}
+WIRE_KEYS = {"diameter": ("diameter_m", "length"), "density": ("density_kgpm3", "density"),
+             "youngs_modulus": ("youngs_modulus_Pa", "pressure")}
+"""``[suspension.wire]`` keys with a unit; ``loss_angle`` and ``violin_modes`` are numbers."""
 INPUT_MATRIX = "input_matrix"
 """``[cds]`` key of the input matrix as set in the front end: rows POS, PIT, YAW, SIDE (um, urad,
 urad, um) per OSEM reading UL, UR, LL, LR, SIDE (um); default: the OSEM geometry's
@@ -96,12 +101,14 @@ class OpticConfig:
         """The model rate (Hz)."""
         return self.sus.sample_rate_hz
 
-    def mechanics(self):  # noqa: ANN201 - Mechanics, imported lazily with the geometric model
-        """Rigid-body dynamics of the configured model."""
+    def mechanics(self) -> Mechanics:
+        """Dynamics of the configured model: the rigid body, with its wires' violin modes
+        when ``[suspension.wire] violin_modes`` asks for them."""
         if self.model == "geometric":
-            return geometric_mechanics(WireGeometry.from_params(self.sus))
-
-        return analytical_mechanics(self.sus)
+            model = geometric_model(WireGeometry.from_params(self.sus))
+            return with_violin_modes(model.mechanics, wire_segments(model), self.sus.wire)
+        mech = analytical_mechanics(self.sus)
+        return with_violin_modes(mech, sos_segments(self.sus, mech.dofs), self.sus.wire)
 
     def plant(self, sus: SOSParams | None = None) -> Plant:
         """The optic's plant (with other suspension parameters `sus`, if given) behind its
@@ -163,17 +170,37 @@ def _read_sus(r: Reader, name: str) -> SOSParams:
     sus, osem, cds = r.sub("suspension"), r.sub("osem"), r.sub("cds")
     values: dict[str, Any] = {"name": name}
     for reader, keys in ((sus, SUSPENSION_KEYS), (osem, OSEM_KEYS), (cds, CDS_KEYS)):
-        reader.only([*keys, "Q"] if reader is sus else [*keys, INPUT_MATRIX] if reader is cds
-                    else list(keys))
+        reader.only([*keys, "Q", "wire"] if reader is sus else [*keys, INPUT_MATRIX]
+                    if reader is cds else list(keys))
         for key, (attr, dim) in keys.items():
             values[attr] = reader.get(key, quantity(dim))
     q = sus.sub("Q")
     q.only(ALL_DOFS)
     values["Q"] = {d: q.get(d, positive) for d in ALL_DOFS}
+    values["wire"] = _read_wire(sus.sub("wire", required=False))
     p = SOSParams(**values)
     for attr, problem in p.check():
         raise ConfigError(r.source, _config_key(attr), problem)
     return p
+
+
+def _read_wire(wire: Reader) -> Wire:
+    """``[suspension.wire]``: the wire's material and size, and how many violin modes of each
+    segment the twin runs (none when the table or the key is missing)."""
+    wire.only([*WIRE_KEYS, "loss_angle", "violin_modes"])
+    default = Wire()
+    values = {attr: wire.get(key, positive_quantity(dim), getattr(default, attr))
+              for key, (attr, dim) in WIRE_KEYS.items()}
+    values["loss_angle"] = wire.get("loss_angle", positive, default.loss_angle)
+    values["modes"] = wire.get("violin_modes", _modes, 0)
+    return Wire(**values)
+
+
+def _modes(v: Any) -> int:
+    if not (isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 20):
+        msg = f"expected a whole number of modes 0..20, got {v!r}"
+        raise ValueError(msg)
+    return v
 
 
 def _config_key(attr: str) -> str:

@@ -1,7 +1,8 @@
 """Engine benchmarks, every figure measured side by side in one run (machines are noisy).
 
 ``twind bench`` prints: the engine's speed on one optic and on the 40m, the median and the
-best of repeated runs, quiet and again with another process keeping one core busy; its speed
+best of repeated runs, quiet and again with another process keeping one core busy; with the
+wires' violin modes against rigid wires, timed in turns; its speed
 and largest output difference against python-control's ``forced_response`` on the same
 discrete closed loop; and the marginal speed of ``twind simulate`` (200 s minus 20 s of
 simulated time over the wall-time difference, so start-up and compilation cancel).
@@ -19,15 +20,20 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
+from dataclasses import replace
 
 import control
 import numba as nb
 import numpy as np
 
 from twind.config import load_config
+from twind.model.violin import violin_modes
 from twind.simulation.discretize import discrete_closed_loop
 from twind.simulation.engine import Engine
 from twind.simulation.noise import NoiseSpec
+
+VIOLIN_MODES = 4
+"""Violin modes per segment and direction the engine suite times: past 2 kHz on the 40m SOS."""
 
 
 @nb.njit(cache=True, fastmath={"contract"})
@@ -91,6 +97,27 @@ def engine_speed(optics: list, seconds: float, seed: int = 0, repeats: int = 5
             engine.step(n, out=buf)
         speeds.append(max(1, int(seconds)) / (time.perf_counter() - t0))
     return float(np.median(speeds)), float(max(speeds))
+
+
+def violin_cost(optic, seconds: float, modes: int = VIOLIN_MODES, rounds: int = 3  # noqa: ANN001
+                ) -> dict[str, float]:
+    """The engine on one optic with rigid wires and with `modes` violin modes per segment and
+    direction, timed in turns (`rounds` of each) so that both see the same machine.
+
+    Returns
+    -------
+    dict
+        ``rigid`` and ``violin`` median speeds (x real time), their ``ratio``, and the
+        violin modes' highest frequency ``f_max_hz``.
+    """
+    violin = replace(optic, sus=replace(optic.sus, wire=replace(optic.sus.wire, modes=modes)))
+    speeds: dict[str, list[float]] = {"rigid": [], "violin": []}
+    for _ in range(rounds):
+        for label, o in (("rigid", optic), ("violin", violin)):
+            speeds[label].append(engine_speed([o], seconds, repeats=1)[0])
+    rigid, with_violins = (float(np.median(speeds[k])) for k in ("rigid", "violin"))
+    return {"rigid": rigid, "violin": with_violins, "ratio": with_violins / rigid,
+            "f_max_hz": max(f for _, f, _ in violin_modes(violin.mechanics()))}
 
 
 @contextmanager
@@ -222,6 +249,10 @@ def run_benchmarks(config: str | None = None, seconds: float = 20.0, marginal: b
         print(f"engine, {len(every)} optics ({twin.source}), {label}: median {many[0]:7.1f}, "
               f"best {many[1]:7.1f} x real time ({many[0] * rate * len(every):.3g} "
               f"optic-samples/s)")
+    v = violin_cost(etmx, seconds / 5)
+    print(f"engine, 1 optic, its wires' violin modes ({VIOLIN_MODES} per segment and direction, "
+          f"up to {v['f_max_hz']:.0f} Hz) against rigid wires, in turns: {v['violin']:.1f} "
+          f"against {v['rigid']:.1f} x real time, {v['ratio']:.2f} of the speed")
     fr = against_forced_response(etmx, min(seconds, 5.0))
     print(f"python-control forced_response, same closed loop, {fr['samples']} samples, "
           f"median of 3: engine {fr['engine_s']:.4f} s, control {fr['control_s']:.3f} s, "

@@ -90,6 +90,7 @@ from scipy.spatial.transform import Rotation
 from twind.errors import TwindError
 from twind.model.mechanics import Mechanics
 from twind.model.params import ALL_DOFS, SOSParams
+from twind.model.violin import Segment
 
 DOFS: tuple[str, ...] = ALL_DOFS  # POS, PIT, YAW, SIDE, VERT, ROLL
 
@@ -329,6 +330,33 @@ def geometric_mechanics(geom: WireGeometry) -> Mechanics:
         POS, PIT, YAW, SIDE, VERT, ROLL in the OSEM sign convention (see module docstring).
     """
     return geometric_model(geom).mechanics
+
+
+def wire_segments(model: GeometricModel) -> list[Segment]:
+    """Each wire segment at the equilibrium, as its violin modes see it
+    (:mod:`twind.model.violin`): its own tension and length, its axis, and its break-off
+    point's motion ``dt + w x a`` over :data:`DOFS`.
+
+    Parameters
+    ----------
+    model : GeometricModel
+
+    Returns
+    -------
+    list of Segment
+        Named ``+y`` and ``-y`` for the SOS's two (the sign of each break-off's y), or by
+        number beyond two.
+    """
+    geom, eq = model.geometry, model.equilibrium
+    segments = []
+    for i in range(geom.n_wires):
+        lever = eq.rotation @ geom.attach_m[i]  # lab frame, from the centre of mass
+        axis = (geom.clamp_m[i] - (eq.com_m + lever)) / eq.lengths_m[i]
+        motion = np.hstack([np.eye(3), -_skew(lever[None])[0]]) @ _S.T  # (3, 6) over DOFS
+        name = ("+y" if lever[1] > 0 else "-y") if geom.n_wires == 2 else str(i)
+        segments.append(Segment(name, float(eq.tensions_N[i]), float(eq.lengths_m[i]),
+                                motion, axis))
+    return segments
 
 
 def pendulum_centre_offset(model: GeometricModel) -> float:

@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from twind.model.violin import Wire
+
 G_MPS2 = 9.81  # m/s^2, the value docs/model.md and the golden TFs use
 
 ALL_DOFS = ("POS", "PIT", "YAW", "SIDE", "VERT", "ROLL")
@@ -46,6 +48,7 @@ class SOSParams:
     loop_delay_s: float = 1.0 / 16384  # one model cycle in the drive path
     sample_rate_hz: float = 16384.0  # CDS model rate
     g_mps2: float = G_MPS2
+    wire: Wire = field(default_factory=Wire)  # its material and violin modes
 
     def updated(self, **changes: Any) -> SOSParams:
         """Return a copy with some parameters changed: ``Q`` may be a partial dict, and
@@ -83,4 +86,5 @@ class SOSParams:
         for dof in ALL_DOFS:
             if not self.Q.get(dof, 0) > 0:
                 problems.append((f"Q.{dof}", f"must be positive, got {self.Q.get(dof)}"))
+        problems += [(f"wire.{key}", problem) for key, problem in self.wire.check()]
         return problems

@@ -1,7 +1,8 @@
 """Discrete-time pieces shared by the engine and its checks.
 
-The plant is discretised with the bilinear (trapezoidal) rule. docs/model.md's loop has exactly one
-cycle of delay, ``exp(-s T)``, and nothing for the DAC's hold; a zero-order-hold plant would
+The plant is discretised with the bilinear (trapezoidal) rule, its poles matched
+(:func:`bilinear`). docs/model.md's loop has exactly one cycle of delay, ``exp(-s T)``, and
+nothing for the DAC's hold; a zero-order-hold plant would
 add half a cycle (1.9e-3 rad at 10 Hz), enough to pass for a ``loop_delay`` effect in a
 diagnosis. The bilinear plant behind a whole-cycle delay reproduces the model to ~(wT)^2/12.
 Filter sections are transposed direct form II, as in the kernel.
@@ -25,7 +26,13 @@ SS = tuple  # (A, B, C, D) of a discrete state space, numpy arrays
 
 
 def bilinear(A: NDArray, B: NDArray, C: NDArray, dt: float) -> SS:
-    """Bilinear discretisation of ``x' = A x + B u, y = C x``; returns ``(Ad, Bd, Cd, Dd)``.
+    """Bilinear discretisation of ``x' = A x + B u, y = C x`` with its poles matched; returns
+    ``(Ad, Bd, Cd, Dd)``.
+
+    Each mode's continuous eigenvalue ``lambda`` is first moved to ``(2 / dt) tanh(lambda dt
+    / 2)``, whose bilinear image is ``exp(lambda dt)``: every mode keeps its frequency and Q
+    however high it lies (unmatched, a violin mode at 2.35 kHz would land 6 % low at 16384
+    Hz), while a pendulum mode moves by ``(lambda dt)^2 / 12``, 1e-8.
 
     Parameters
     ----------
@@ -39,9 +46,24 @@ def bilinear(A: NDArray, B: NDArray, C: NDArray, dt: float) -> SS:
     Ad, Bd, Cd, Dd : ndarray
         The discrete matrices; ``Dd`` is the feedthrough the trapezoidal rule adds.
     """
-    Ad, Bd, Cd, Dd, _ = signal.cont2discrete((A, B, C, np.zeros((C.shape[0], B.shape[1]))),
+    Ad, Bd, Cd, Dd, _ = signal.cont2discrete((_matched(A, dt), B, C,
+                                              np.zeros((C.shape[0], B.shape[1]))),
                                              dt, method="bilinear")
     return Ad, Bd, Cd, Dd
+
+
+MATCH_CONDITION = 1e10
+"""Beyond this eigenvector condition number the poles are left as the bilinear rule puts
+them: a basis that ill-conditioned would cost more digits than the match gains."""
+
+
+def _matched(A: NDArray, dt: float) -> NDArray:
+    """`A` with each eigenvalue ``lambda`` moved to ``(2 / dt) tanh(lambda dt / 2)``."""
+    lam, V = np.linalg.eig(A)
+    if not A.size or np.linalg.cond(V) > MATCH_CONDITION:
+        return A
+    warped = (2 / dt) * np.tanh(lam * dt / 2)
+    return (V @ np.diag(warped) @ np.linalg.inv(V)).real
 
 
 def delay_samples(delay_s: float, rate_hz: float) -> int:
