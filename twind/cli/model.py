@@ -52,9 +52,10 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     f = _frequencies(args)
     if cfg.kind == "statespace":
         return statespace.response(args, cfg, f)
-    violins = np.array([f_hz for _, f_hz, _ in violin_modes(cfg.mechanics())])
-    if not args.freqs and violins.size:  # a Q of millions: each drawn at its peak
-        f = np.union1d(f, violins[(violins > f[0]) & (violins < f[-1])])
+    violins = violin_modes(cfg.mechanics())
+    at = np.array([f_hz for _, f_hz, _ in violins])
+    if not args.freqs and at.size:  # a Q of millions: each drawn at its peak
+        f = np.union1d(f, at[(at > f[0]) & (at < f[-1])])
     r = cfg.loop().responses(f)
     keys = ("plant_IN1_per_OUT", "controller_diag", "closed_loop_IN1_per_EXC",
             "closed_loop_IN2_per_EXC")
@@ -79,7 +80,7 @@ def cmd_model_response(args: argparse.Namespace) -> int:
     print(f"wrote {path} and {plant}")
     for f_hz, q in cfg.closed_loop_modes:
         print(f"closed-loop mode {f_hz:.3f} Hz, Q {q:.1f}")
-    for name, f_hz, q in violin_modes(cfg.mechanics()):
+    for name, f_hz, q in violins:
         print(f"violin mode {name}: {f_hz:.3f} Hz, Q {q:.3g}")
     return 0
 

@@ -2,9 +2,9 @@
 
 The plant is discretised with the bilinear (trapezoidal) rule, its poles matched
 (:func:`bilinear`). docs/model.md's loop has exactly one cycle of delay, ``exp(-s T)``, and
-nothing for the DAC's hold; a zero-order-hold plant would
-add half a cycle (1.9e-3 rad at 10 Hz), enough to pass for a ``loop_delay`` effect in a
-diagnosis. The bilinear plant behind a whole-cycle delay reproduces the model to ~(wT)^2/12.
+nothing for the DAC's hold; a zero-order-hold plant would add half a cycle (1.9e-3 rad at 10
+Hz), enough to pass for a ``loop_delay`` effect in a diagnosis. The bilinear plant behind a
+whole-cycle delay reproduces the model to ~(wT)^2/12.
 Filter sections are transposed direct form II, as in the kernel.
 """
 
@@ -59,8 +59,10 @@ them: a basis that ill-conditioned would cost more digits than the match gains."
 
 def _matched(A: NDArray, dt: float) -> NDArray:
     """`A` with each eigenvalue ``lambda`` moved to ``(2 / dt) tanh(lambda dt / 2)``."""
+    if not A.size:
+        return A
     lam, V = np.linalg.eig(A)
-    if not A.size or np.linalg.cond(V) > MATCH_CONDITION:
+    if np.linalg.cond(V) > MATCH_CONDITION:
         return A
     warped = (2 / dt) * np.tanh(lam * dt / 2)
     return (V @ np.diag(warped) @ np.linalg.inv(V)).real
