@@ -12,9 +12,15 @@ from scipy import signal
 from twind.config import CONFIG_DIR, load_config, load_optic
 from twind.config.reader import read_toml
 from twind.errors import ConfigError
-from twind.model.geometric import WireGeometry, geometric_model, wire_segments
+from twind.model.geometric import (
+    WireGeometry,
+    geometric_model,
+    pendulum_centre_offset,
+    wire_segments,
+)
 from twind.model.violin import (
     Wire,
+    read_pair,
     sos_segments,
     violin_frequencies_hz,
     violin_q,
@@ -163,3 +169,24 @@ def test_etmx_s_measured_violin_modes_against_its_model(etmx) -> None:  # noqa: 
     model = [f for _, f, _ in violin_modes(cfg.mechanics())]
     assert set(measured) == {"ETMX"}
     assert all(0.8 < m / f < 1.2 for m in measured["ETMX"] for f in model)
+
+
+def test_a_pair_read_as_a_raised_clamp_gives_the_geometry_s_wire_asymmetry(etmx) -> None:  # noqa: ANN001
+    """The +y clamp raised 1 mm in the geometric model (equal tensions, one segment longer):
+    the pair its violin modes make, read as a length difference, gives the length (1 mm) and
+    the pendulum centre's offset the geometry has (pendulum_centre_offset), within 2 %; the
+    centre of mass moved 3 mm sideways instead (equal lengths, unequal tensions) gives a
+    pair read as the tensions' ratio, and the geometry no offset."""
+    sus = _with_violins(etmx, 1).sus
+    raised = geometric_model(WireGeometry.from_params(sus, clamp_offsets=[(0, 0, 1e-3), (0, 0, 0)]))
+    plus, minus = wire_segments(raised)
+    f = [float(violin_frequencies_hz(s.tension_N, s.length_m, sus.wire, 1)) for s in (plus, minus)]
+    reading = read_pair(*f, (plus.length_m + minus.length_m) / 2, sus.R2_m)
+    assert reading.length_difference_m == pytest.approx(plus.length_m - minus.length_m, rel=0.02)
+    assert reading.delta_m == pytest.approx(abs(pendulum_centre_offset(raised)), rel=0.02)
+    tilted = geometric_model(WireGeometry.from_params(sus, com_offset=(0.0, 0.003, 0.0)))
+    plus, minus = wire_segments(tilted)
+    f = [float(violin_frequencies_hz(s.tension_N, s.length_m, sus.wire, 1)) for s in (plus, minus)]
+    reading = read_pair(*f, plus.length_m, sus.R2_m)
+    assert reading.tension_ratio == pytest.approx(plus.tension_N / minus.tension_N, rel=0.01)
+    assert abs(pendulum_centre_offset(tilted)) < 0.02 * reading.delta_m

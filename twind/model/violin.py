@@ -247,3 +247,58 @@ def _mode_name(dofs: tuple[str, ...], shape: NDArray[np.float64], violin: list[i
     other = "VIOLIN" + ("-y" if segment == "+y" else "+y") + rest
     both = other in dofs and shape[dofs.index(other)] > 0.5 * shape[dofs.index(top)]
     return f"{rest} of {'both segments' if both else segment}"
+
+
+@dataclass(frozen=True)
+class PairReading:
+    """What a measured pair of first violin modes (one per segment) says of the wires, read
+    the two ways the ideal SOS allows (:func:`read_pair`).
+
+    Attributes
+    ----------
+    split : float
+        ``|f_a - f_b| / (f_a + f_b)``.
+    length_difference_m : float
+        Read as equal tensions and unequal lengths (``f ~ 1/L``, a raised clamp): how much
+        longer the lower segment is.
+    delta_m : float
+        Then docs/model.md's ``wire_asymmetry``: the pendulum centre's offset from the centre
+        of mass, ``R2 split`` (the lower segment's side), which couples POS and YAW.
+    tension_ratio : float
+        Read as equal lengths and unequal tensions (``f ~ sqrt(T)``, the centre of mass off to
+        one side): the higher segment's tension over the lower's. The wires then form a
+        parallelogram and couple POS and YAW not at all.
+    """
+
+    split: float
+    length_difference_m: float
+    delta_m: float
+    tension_ratio: float
+
+    def lines(self) -> list[str]:
+        """The two readings, for a person."""
+        return [f"violin pair split {100 * self.split:.2f} %: either the lower segment is "
+                f"{1e3 * self.length_difference_m:.2f} mm longer (wire_asymmetry delta_m "
+                f"{1e3 * self.delta_m:.3f} mm, a POS-YAW coupling), or its tension is "
+                f"{self.tension_ratio:.3f} times less (no POS-YAW coupling); a fitted "
+                "wire_asymmetry tells the two apart"]
+
+
+def read_pair(f_a_hz: float, f_b_hz: float, length_m: float, half_separation_m: float
+              ) -> PairReading:
+    """A measured pair of first violin modes (one per segment of a loop) read as a length
+    difference and as a tension difference (:class:`PairReading`): an independent handle on
+    ``wire_asymmetry``, which a damping-loop fit reads from the POS-YAW coupling.
+
+    Parameters
+    ----------
+    f_a_hz, f_b_hz : float
+        The two segments' first violin modes.
+    length_m : float
+        The segments' mean length.
+    half_separation_m : float
+        ``R2``: half the break-offs' separation.
+    """
+    split = abs(f_a_hz - f_b_hz) / (f_a_hz + f_b_hz)
+    return PairReading(split, 2 * length_m * split, half_separation_m * split,
+                       (max(f_a_hz, f_b_hz) / min(f_a_hz, f_b_hz)) ** 2)
