@@ -41,7 +41,7 @@ import rerun as rr
 from numpy.typing import NDArray
 
 from twind.bus.codec import SampleBlock
-from twind.channels import parse_dof_channel
+from twind.channels import dof_channel, parse_dof_channel
 from twind.errors import TwindError
 from twind.recording.mcapfile import iter_raw_messages
 from twind.timeutil import GPS_EPOCH_UNIX, LEAP_SECONDS
@@ -281,7 +281,7 @@ class _Exporter:
               rate: float, truncated: bool) -> None:
 
         stop = start + series["EXC"].size / rate
-        channel = f"{ifo}:SUS-{optic}_SUS{dof}_EXC"
+        channel = dof_channel(ifo, optic, dof, "EXC")
         event = self._start_event(channel, start, stop)
         label = str(event["id"]) if event else f"gps{start:.0f}"
         request = event.get("request") if event else None

@@ -73,6 +73,7 @@ from scipy import optimize, special, stats
 
 from twind import DOFS
 from twind.analysis.noise import in1_noise_asd
+from twind.channels import dof_channel
 from twind.errors import TwindError
 from twind.excitation.checks import DEFAULT_LIMITS, Limits, check
 from twind.excitation.design import NOISE_PEAK_SIGMAS, noise_shape
@@ -537,7 +538,7 @@ def _design_dof(optic_cfg: OpticConfig, loop: DampingLoop, dof: str, resp: tuple
                 win: _Window, band: tuple[float, float], g2: float, limits: Limits,
                 rate: float, ifo: str, seed: int, max_order: int, averages: int,
                 target: float) -> DofDesign:
-    channel = f"{ifo}:SUS-{optic_cfg.name}_SUS{dof}_EXC"
+    channel = dof_channel(ifo, optic_cfg.name, dof, "EXC")
     lo, hi = band
     j, rows = DOFS.index(dof), [DOFS.index(r) for r in resp]
     f_abs = win.f_abs
