@@ -53,8 +53,11 @@ def _known(request: Mapping[str, Any], fields_: tuple[str, ...], verb: str) -> N
 
 
 def _number(value: object) -> bool:
-    """A finite JSON number (not a boolean)."""
-    return is_real(value) and math.isfinite(value)  # type: ignore[arg-type]
+    """A finite JSON number (not a boolean; not an integer beyond a float's range)."""
+    try:
+        return is_real(value) and math.isfinite(value)  # type: ignore[arg-type]
+    except OverflowError:
+        return False
 
 
 def _optic(request: Mapping[str, Any]) -> str | None:
