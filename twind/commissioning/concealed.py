@@ -75,15 +75,15 @@ def conceal(real: OpticConfig, effect: str, reference: FitData, direction: NDArr
     real : OpticConfig
         The drifted optic.
     effect : str
-        One of :data:`MADE`.
+        One of :data:`~twind.commissioning.hidden.MADE`.
     reference : FitData
         The bins and errors the effect is concealed against (:func:`reference_data`).
     direction : ndarray
-        Four face gains of an imbalance (see :func:`hidden`).
+        Four face gains of an imbalance (see :func:`~twind.commissioning.hidden.hidden`).
     target : float
         The largest change of one bin, in its standard errors.
     shape : dict, optional
-        As :func:`hidden`.
+        As :func:`~twind.commissioning.hidden.hidden`.
 
     Returns
     -------

@@ -39,7 +39,8 @@ def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", s
     out : str or Path
         Directory of the recordings and reports (made if missing).
     effect : str
-        One of :data:`MADE` with no shape (not ``resonance`` or ``channel_filter``).
+        One of :data:`~twind.commissioning.hidden.MADE` with no shape (not ``resonance``
+        or ``channel_filter``).
     seed : int
         Seed of the drift, the effect's direction and the measurements.
     say : callable

@@ -127,7 +127,7 @@ def _nominal(d: Diagnosis) -> str:
     rows = [(p["label"], "held at start" if p["sigma"] is None else number(p["value"], 6),
              number(p["sigma"], 3), "unidentifiable" if p["sigma"] is None else
              f"{100 * p['sigma'] / abs(p['value']):.2g} %", number(p["start"], 6))
-            for n, p in params.items()]
+            for p in params.values()]
     return (table("nominal", ("parameter", "value", "sigma", "relative", "start"), rows)
             + "<p>A parameter these data cannot fix is held at its start: it has no sigma "
             "(—).</p>")

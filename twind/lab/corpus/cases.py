@@ -25,8 +25,9 @@ coupling reaches 3 sigma in it."""
 BEYOND = ("resonance", "channel_filter", "coil_imbalance+loop_delay",
           "osem_imbalance+actuator_pole", "wire_asymmetry+coil_imbalance")
 """What the catalogue alone cannot say, hidden by default beside it: a body on the face
-(:func:`attached_body`), one channel's own stage (:func:`one_stage`) and pairs of
-catalogue effects, each concealed alone and then put in together."""
+(:func:`~twind.commissioning.hidden.attached_body`), one channel's own stage
+(:func:`~twind.commissioning.hidden.one_stage`) and pairs of catalogue effects, each
+concealed alone and then put in together."""
 
 
 @dataclass
@@ -70,8 +71,9 @@ def make_cases(cfg: OpticConfig, reference: FitData | None, per_effect: int = 3,
     cfg : OpticConfig
         The nominal optic.
     reference : FitData or None
-        The bins and errors effects are concealed against (:func:`reference_data`); None
-        when there are no effects.
+        The bins and errors effects are concealed against
+        (:func:`~twind.commissioning.concealed.reference_data`); None when there are no
+        effects.
     per_effect : int
         Cases of each kind of `effects`.
     nulls : int

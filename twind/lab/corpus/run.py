@@ -34,9 +34,9 @@ def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - 
             excited: Sequence[str] = EXCITED, bw: float | None = None,
             averages: int = AVERAGES, rms: float = RMS):
     """The case's measurement as users have it: ``"xml"`` (a diaggui set written from the
-    twin's TFs, up to :data:`STOP_HZ`) or ``"mcap"`` (a session recorded from the twin's
-    engine), each DOF of `excited` in turn, at resolution `bw` (default the route's), with
-    `averages` and an excitation of `rms`.
+    twin's TFs, up to :data:`~twind.commissioning.concealed.STOP_HZ`) or ``"mcap"`` (a
+    session recorded from the twin's engine), each DOF of `excited` in turn, at resolution
+    `bw` (default the route's), with `averages` and an excitation of `rms`.
 
     Parameters
     ----------
@@ -51,7 +51,7 @@ def measure(case: Case, route: str, workdir: Path, seed: int,  # noqa: ANN201 - 
     excited : sequence of str
         DOFs excited in turn.
     bw : float, optional
-        Resolution (Hz); default the route's (:data:`ROUTE_BW`).
+        Resolution (Hz); default the route's (:data:`~twind.commissioning.concealed.ROUTE_BW`).
     averages : int
     rms : float
         RMS of the white EXC.
@@ -88,9 +88,10 @@ def run_corpus(cfg: OpticConfig, route: str = "xml", per_effect: int = 3, nulls:
                say: Callable[[str], None] = print, excited: Sequence[str] = EXCITED,
                bw: float | None = None, averages: int = AVERAGES, rms: float = RMS
                ) -> list[Score]:
-    """Build the corpus, measure (at resolution `bw`, default :data:`ROUTE_BW`'s, with
-    `averages` and excitation `rms`) and diagnose every case (each DOF of `excited` in
-    turn), print a line each and the rates, each kind apart.
+    """Build the corpus, measure (at resolution `bw`, default
+    :data:`~twind.commissioning.concealed.ROUTE_BW`'s, with `averages` and excitation `rms`)
+    and diagnose every case (each DOF of `excited` in turn), print a line each and the
+    rates, each kind apart.
 
     Parameters
     ----------
