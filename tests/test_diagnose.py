@@ -61,9 +61,15 @@ def _diagnosed(tfs, cfg, **kwargs):  # noqa: ANN001, ANN003, ANN202
 def test_example_null_is_consistent(tmp_path: Path) -> None:
     out = io.StringIO()
     with redirect_stdout(out):
-        assert main(["diagnose", *NULL, "--json", "-o", str(tmp_path / "report")]) == 0
+        assert main(["diagnose", *NULL, "--json", "-o", str(tmp_path / "report"),
+                     "--violin-pair", "631", "691"]) == 0
     obj = json.loads(out.getvalue())
-    assert set(obj) == KEYS
+    assert set(obj) == KEYS | {"violin_pair"}
+    # ETMX's measured pair against a measurement of the nominal optic, which has no
+    # POS-YAW coupling: only a tension difference splits it
+    pair = obj.pop("violin_pair")
+    assert pair["verdict"] == "tension"
+    assert pair["fitted_sigma_m"] < pair["delta_m"] / 4
     assert obj["consistent"] and obj["effects"] == [] and obj["located"] == []
     assert not obj["input_matrix"]["checked"]  # diaggui XML holds no OSEM readings
     assert obj["nominal_params"]["Q_SIDE"]["sigma"] is None

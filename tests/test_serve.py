@@ -204,3 +204,32 @@ def test_the_client_checks_a_request_before_sending_it() -> None:
                 call()
         with pytest.raises(TwinUnreachable):
             client.set_gain("ETMX", "POS", 1.0)
+
+
+def test_an_excitation_past_the_damping_filters_is_served_as_lsc_exc() -> None:
+    """``C1:SUS-ETMX_LSC_EXC`` is a test point of the served twin: a sine injected there is
+    published on it, drives the coils past the damping filters (IN1 answers as the loop's
+    ``(I - P K)^-1 P``) and leaves SUSPOS_EXC alone; a name it does not serve is refused
+    with both kinds of point as examples."""
+    lsc = "C1:SUS-ETMX_LSC_EXC"
+    points = (lsc, f"{POS}_EXC", f"{POS}_IN1")
+    with serving("--optics", "ETMX", "--speed", "4") as endpoint:
+        col = Collector(endpoint, points)
+        try:
+            with TwinClient(connect=[endpoint]) as twin:
+                with pytest.raises(InjectionRefused, match="ETMX_LSC_EXC"):
+                    twin.inject("C1:SUS-ETMX_SIDELSC_EXC", "sine", freq=3.0, amp=1.0)
+                twin.inject(lsc, "sine", freq=3.0, amp=25.0, duration=math.inf)
+                col.wait_for(16 * 16384)
+        finally:
+            col.close()
+    drive, _ = col.series(lsc)
+    exc, _ = col.series(f"{POS}_EXC")
+    in1, _ = col.series(f"{POS}_IN1")
+    on = np.flatnonzero(drive)
+    assert on.size and not np.any(exc)
+    a, b = on[0] + 4 * 16384, min(drive.size, in1.size)  # the loop's transient gone
+    assert _amplitude_at(drive[a:b], 16384, 3.0) == pytest.approx(25.0, rel=1e-6)
+    want = load_config(None, ["ETMX"]).optics["ETMX"].loop().responses(
+        np.array([3.0]))["closed_loop_IN1_per_LSC"][0, 0, 0]
+    assert _amplitude_at(in1[a:b], 16384, 3.0) == pytest.approx(25.0 * abs(want), rel=0.05)

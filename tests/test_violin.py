@@ -190,3 +190,19 @@ def test_a_pair_read_as_a_raised_clamp_gives_the_geometry_s_wire_asymmetry(etmx)
     reading = read_pair(*f, plus.length_m, sus.R2_m)
     assert reading.tension_ratio == pytest.approx(plus.tension_N / minus.tension_N, rel=0.01)
     assert abs(pendulum_centre_offset(tilted)) < 0.02 * reading.delta_m
+
+
+def test_a_fitted_wire_asymmetry_weighs_the_pair_s_two_readings() -> None:
+    """A pair read as 1.7 mm of delta: a fit of 1.6 +- 0.2 mm says length, 0.05 +- 0.2 mm
+    tension, 1 +- 1 mm either, 0.8 +- 0.1 mm neither; no standard error, undetermined."""
+    reading = read_pair(631.0, 691.0, 0.2745, 0.0375)
+    assert reading.delta_m == pytest.approx(1.702e-3, rel=1e-3)
+    cases = [(1.6e-3, 0.2e-3, "length"), (-1.6e-3, 0.2e-3, "length"), (5e-5, 2e-4, "tension"),
+             (1e-3, 1e-3, "either"), (0.8e-3, 1e-4, "neither"), (1e-3, None, "undetermined")]
+    for delta, sigma, verdict in cases:
+        weighed = reading.weigh(delta, sigma)
+        assert weighed.verdict == verdict, (delta, sigma)
+        assert weighed.to_json()["verdict"] == verdict
+        said = weighed.lines()[-1].split("the pair is ")[1]
+        assert said.startswith(f"a {verdict} difference" if verdict in ("length", "tension")
+                               else verdict), said

@@ -13,6 +13,9 @@ from numpy.typing import NDArray
 from twind import DOFS, OSEMS
 
 TEST_POINTS = ("EXC", "IN1", "IN2", "OUT")
+DRIVE_POINTS = {"POS": "LSC", "PIT": "ASCPIT", "YAW": "ASCYAW"}
+"""The filter modules past the damping filters whose EXC drives a DOF's coils directly (the
+40m's SUS models sum them with the damping OUT before the output matrix); SIDE has none."""
 UNITS = {"POS": "um", "PIT": "urad", "YAW": "urad", "SIDE": "um"}
 DOF_CHANNEL = re.compile(
     r"^(?P<ifo>\w+):SUS-(?P<optic>\w+?)_SUS(?P<dof>POS|PIT|YAW|SIDE)_(?P<point>\w+)$")
@@ -113,6 +116,30 @@ def dof_channel(ifo: str, optic: str, dof: str, point: str) -> str:
     return f"{ifo}:SUS-{optic}_SUS{dof}_{point}"
 
 
+def drive_channel(ifo: str, optic: str, dof: str) -> str:
+    """The name of the excitation that drives `dof`'s coils past the damping filters.
+
+    Parameters
+    ----------
+    ifo : str
+        The interferometer prefix, e.g. ``C1``.
+    optic : str
+        E.g. ``ETMX``.
+    dof : str
+        ``POS``, ``PIT`` or ``YAW`` (:data:`DRIVE_POINTS`).
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> drive_channel("C1", "ETMX", "PIT")
+    'C1:SUS-ETMX_ASCPIT_EXC'
+    """
+    return f"{ifo}:SUS-{optic}_{DRIVE_POINTS[dof]}_EXC"
+
+
 def osem_channel(ifo: str, optic: str, osem: str) -> str:
     """The name of an OSEM's calibrated reading (um).
 
@@ -152,7 +179,8 @@ def block_channels(ifo: str, block) -> Iterator[tuple[str, str, NDArray[np.float
     name : str
         The channel, e.g. ``C1:SUS-ETMX_SUSPOS_IN1``.
     unit : str
-        ``um`` or ``urad`` for EXC, IN1 and IN2 and the OSEMs, ``ct`` for OUT.
+        ``um`` or ``urad`` for EXC, IN1 and IN2 and the OSEMs, ``ct`` for OUT and the
+        excitations past the damping filters (:func:`drive_channel`).
     samples : numpy.ndarray
         A view of the block's samples of that channel.
     """
@@ -161,5 +189,7 @@ def block_channels(ifo: str, block) -> Iterator[tuple[str, str, NDArray[np.float
             for point in TEST_POINTS:
                 unit = "ct" if point == "OUT" else UNITS[dof]
                 yield dof_channel(ifo, optic, dof, point), unit, getattr(block, point.lower())[o, d]
+            if dof in DRIVE_POINTS:
+                yield drive_channel(ifo, optic, dof), "ct", block.lsc[o, d]
         for j, osem in enumerate(OSEMS):
             yield osem_channel(ifo, optic, osem), "um", block.sen[o, j]

@@ -358,6 +358,17 @@ class Diagnosis:
                     f"{rest}{rivals}")
         return f"explained by {names} ({chi2}); nothing remains{rivals}"
 
+    def fitted(self, effect: str, param: str) -> tuple[float, float | None] | None:
+        """`effect`'s `param` and its standard error (None: undetermined): from the final
+        model when the effect was chosen, else from its fit at the first step (what the
+        measurement allows of it); None when it was not fitted."""
+        chosen = [e for e in self.effects if e.rival_of is None]
+        for fit_ in [*chosen, *self.first_step]:
+            if fit_.effect == effect:
+                values, sigma = fit_.values()
+                return values[param], sigma[param]
+        return None
+
     def final_model(self) -> tuple[dict[str, float], dict | None]:
         """The final model as a running twin takes it (:meth:`twind.client.TwinClient.params`):
         the refitted nominal parameters, and the best effect when one was claimed."""

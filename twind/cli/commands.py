@@ -253,6 +253,10 @@ def _diagnose(p: argparse.ArgumentParser) -> None:
                    help="write PNGs, the JSON and an HTML summary here")
     p.add_argument("--push", action="append", metavar="ENDPOINT",
                    help="give the fitted (augmented) model to the running twin there")
+    p.add_argument("--violin-pair", type=frequency, nargs=2, metavar=("F_A", "F_B"),
+                   help="the optic's two first violin modes (Hz, e.g. from twind freeswing): "
+                        "weigh their length and tension readings against the fitted "
+                        "wire_asymmetry")
 
 
 def _modes(p: argparse.ArgumentParser) -> None:
@@ -280,6 +284,12 @@ def _freeswing(p: argparse.ArgumentParser) -> None:
                    help="seconds of ringdown: made on the twin (default 1000), or read from "
                         "a recording (default: to its end)")
     p.add_argument("--seed", type=seed, default=0, help="noise seed of the twin's ringdown")
+    p.add_argument("--violin", type=frequency, nargs="?", const=0.0, metavar="HZ",
+                   help="on the twin in process: ring a violin mode up through POS's LSC_EXC "
+                        "(at HZ; default the model's mode POS drives most), then measure its "
+                        "line's frequency and Q from the ringdown (--duration, default 400 s)")
+    p.add_argument("--ring-up", type=float, default=1600.0, metavar="S",
+                   help="--violin: seconds of drive (default 1600)")
     p.add_argument("--json", action="store_true", help="the numbers as JSON")
     p.add_argument("-o", "--output", type=new_file(*FIGURES),
                    help="PNG (PDF, SVG): OSEM spectra with the modes, and both input matrices")

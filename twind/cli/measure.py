@@ -20,13 +20,19 @@ from twind.analysis.identification.controller import check_controller
 from twind.analysis.identification.fit import fit
 from twind.analysis.identification.freeswing import analyse, ringdown
 from twind.analysis.identification.inmatrix import InputMatrixCheck, recorded_input_matrix
+from twind.analysis.identification.lines import (
+    MIN_HZ,
+    LineReport,
+    pair_reading,
+    violin_lines,
+    violin_ringdown,
+)
 from twind.analysis.identification.modes import fit_modes, read_mode_table
 from twind.analysis.identification.params import FIT_PARAMS, read_truth
 from twind.analysis.prediction import fit_curves
 from twind.bus.session import zenoh_config
 from twind.channels import osem_channel
 from twind.cli import plant as statespace
-from twind.cli.options import show
 from twind.cli.twin import client
 from twind.client import TwinClient
 from twind.config import MEASURED_MODES, OpticConfig, load_config
@@ -36,7 +42,14 @@ from twind.recording.reader import as_array, getdata
 from twind.recording.session import session_files
 from twind.commissioning.demo import run_demo
 from twind.commissioning.ringdown import served_ringdown
-from twind.viz.plotting import Measured, bode_matrix, bode_transfers, plot_fit, plot_freeswing
+from twind.viz.plotting import (
+    Measured,
+    bode_matrix,
+    bode_transfers,
+    plot_fit,
+    plot_freeswing,
+    plot_violin_lines,
+)
 from twind.viz.report import REPORT_FILES, report_dir, write_report
 
 
@@ -230,6 +243,8 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
     twin = load_config(args.config, [args.optic])
     optic = twin.optics[args.optic]
     args.ifo = args.ifo or twin.ifo  # a recording's channels and a served twin's keys
+    if args.violin is not None:
+        return _violin(args, optic)
     duration = 1000.0 if args.duration is None else args.duration
     if args.input:
         sen, rate = _recorded_osems(args.input, args.ifo, args.optic, args.start,
@@ -240,11 +255,61 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
         print(f"twind freeswing: {optic.name} kicked, damping off, {duration:g} s of "
               "ringdown on the twin ...", file=sys.stderr, flush=True)
         sen, rate = ringdown(optic, duration, seed=args.seed)
-    result = analyse(optic, sen, rate)
-    show(result, args.json)
+    lines = _lines(optic, sen, rate)
+    try:
+        result = analyse(optic, sen, rate)
+    except TwindError as err:
+        if lines is None or not lines.found:
+            raise
+        print(f"twind freeswing: {err}; the lines above {MIN_HZ:g} Hz only", file=sys.stderr)
+        result = None
+    if args.json:
+        strictjson.dump({**({"optic": optic.name} if result is None else result.to_json()),
+                         "lines": None if lines is None else lines.to_json()}, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join([*(result.lines() if result else []),
+                         *(lines.lines() if lines else [])]))
     if args.output:
-        print(f"wrote {plot_freeswing(result, sen, rate, args.output)}", file=sys.stderr)
+        done = (plot_freeswing(result, sen, rate, args.output) if result is not None
+                else plot_violin_lines(lines, args.output))
+        print(f"wrote {done}", file=sys.stderr)
     return 0
+
+
+def _violin(args: argparse.Namespace, optic: OpticConfig) -> int:
+    """``twind freeswing --violin``: a violin mode rung up and let ring down on the twin, and
+    the lines of its OSEM readings."""
+    if args.input or args.connect:
+        msg = "--violin rings the twin in process: no recording or --connect with it"
+        raise TwindError(msg)
+    duration = 400.0 if args.duration is None else args.duration
+    at = f"{args.violin:g} Hz" if args.violin else "its violin mode POS drives most"
+    print(f"twind freeswing: {optic.name} driven through LSC_EXC at {at} for {args.ring_up:g} s, "
+          f"then {duration:g} s of ringdown ...", file=sys.stderr, flush=True)
+    sen, rate, f_hz = violin_ringdown(optic, args.violin or None, args.ring_up, duration,
+                                      args.seed)
+    report = violin_lines(optic, sen, rate)
+    if args.json:
+        strictjson.dump({"optic": optic.name, "driven_hz": f_hz, "lines": report.to_json()},
+                        sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join([f"driven at {f_hz:.6f} Hz", *report.lines()]))
+    if args.output:
+        print(f"wrote {plot_violin_lines(report, args.output)}", file=sys.stderr)
+    return 0
+
+
+def _lines(optic: OpticConfig, sen: np.ndarray, rate: float) -> LineReport | None:
+    """The violin lines of a free-swinging measurement; None where its rate or length
+    cannot hold them (a decimated recording, a few seconds)."""
+    if rate / 2 <= MIN_HZ:
+        return None
+    try:
+        return violin_lines(optic, sen, rate)
+    except TwindError:  # too short for lines: then too short for the modes, which say so
+        return None
 
 
 def _served_ringdown(args: argparse.Namespace, optic, duration: float):  # noqa: ANN001, ANN202
@@ -284,7 +349,13 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         tfs = tfs.band(*args.band)
     cfg = load_config(args.config, tfs.optic).select(tfs.optic)[0]
     result = diagnose(tfs, cfg, input_matrix=_input_matrix(args, cfg))
-    show(result, args.json)
+    pair = _weighed_pair(args.violin_pair, cfg, result) if args.violin_pair else None
+    if args.json:
+        strictjson.dump({**result.to_json(), **({"violin_pair": pair.to_json()} if pair else {})},
+                        sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join([*result.lines(), *(pair.lines() if pair else [])]))
     cfg = result.read_through(cfg)
     if args.output:
         page = write_report(result, result.curves(tfs, cfg), tfs, args.output, args.inputs)
@@ -296,6 +367,16 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         print(f"pushed into {', '.join(args.push)}: {len(nominal)} nominal parameter(s)"
               + (f" and {effect['id']}" if effect else ""), file=sys.stderr)
     return 0
+
+
+def _weighed_pair(pair: list[float], cfg: OpticConfig, result):  # noqa: ANN001, ANN202
+    """``--violin-pair``: its two readings weighed against the diagnosis's wire_asymmetry."""
+    fitted = result.fitted("wire_asymmetry", "delta_m")
+    if fitted is None:
+        msg = ("--violin-pair: the diagnosis fitted no wire_asymmetry to weigh the pair "
+               "against (see its hypotheses not fitted)")
+        raise TwindError(msg)
+    return pair_reading(cfg, *pair).weigh(*fitted)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -134,7 +134,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     writer = None
     if args.record:
         writer = SessionWriter(args.record, twin.ifo, now_gps())
-    sums = {p: 0.0 for p in ("exc", "in1", "in2", "out", "sen")}
+    sums = {p: 0.0 for p in ("exc", "in1", "in2", "out", "sen", "lsc")}
     t0 = time.perf_counter()
     try:
         done = 0

@@ -44,7 +44,7 @@ from twind.model.matrices import CALIBRATION, input_matrix
 from twind.model.mechanics import Mechanics
 from twind.model.params import ALL_DOFS, SOSParams
 from twind.model.plant import Plant
-from twind.model.violin import Wire, sos_segments, with_violin_modes
+from twind.model.violin import Segment, Wire, sos_segments, with_violin_modes
 from twind.simulation.discretize import closed_loop_matrices, closed_loop_modes, delay_samples
 from twind.simulation.noise import NoiseSpec
 
@@ -109,6 +109,13 @@ class OpticConfig:
             return with_violin_modes(model.mechanics, wire_segments(model), self.sus.wire)
         mech = analytical_mechanics(self.sus)
         return with_violin_modes(mech, sos_segments(self.sus, mech.dofs), self.sus.wire)
+
+    def wire_segments(self) -> list[Segment]:
+        """The wire segments of the configured model, with their own tensions and lengths
+        (what the violin modes' frequencies follow, whether or not the model keeps them)."""
+        if self.model == "geometric":
+            return wire_segments(geometric_model(WireGeometry.from_params(self.sus)))
+        return sos_segments(self.sus, analytical_mechanics(self.sus).dofs)
 
     def plant(self, sus: SOSParams | None = None) -> Plant:
         """The optic's plant (with other suspension parameters `sus`, if given) behind its

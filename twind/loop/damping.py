@@ -46,7 +46,9 @@ class DampingLoop:
         dict
             ``plant_IN1_per_OUT`` (f, 4, 4), ``controller_diag`` (f, 4),
             ``closed_loop_IN1_per_EXC``, ``closed_loop_IN2_per_EXC``,
-            ``closed_loop_OUT_per_EXC`` (f, 4, 4); rows and columns POS, PIT, YAW, SIDE.
+            ``closed_loop_OUT_per_EXC`` (f, 4, 4), and ``closed_loop_IN1_per_LSC``: IN1 per
+            excitation past the damping filters (added to OUT, :data:`twind.channels.DRIVE_POINTS`),
+            ``(I - P K)^-1 P``; rows and columns POS, PIT, YAW, SIDE.
         """
         P = self.plant.response(f_hz)
         k = self.controller(f_hz)
@@ -59,6 +61,7 @@ class DampingLoop:
             "closed_loop_IN1_per_EXC": in2 - np.eye(4),
             "closed_loop_IN2_per_EXC": in2,
             "closed_loop_OUT_per_EXC": k[:, :, None] * in2,
+            "closed_loop_IN1_per_LSC": in2 @ P,
         }
 
 

@@ -238,6 +238,22 @@ def violin_modes(mech: Mechanics) -> list[tuple[str, float, float]]:
     return sorted(modes, key=lambda m: m[1])
 
 
+def segment_modes(segments: list[Segment], wire: Wire, below_hz: float
+                  ) -> list[tuple[str, int, float, float]]:
+    """Each segment's violin modes below `below_hz` by the stiff-string formula, as the
+    optic's coupling leaves them within 1e-5: ``(segment, n, frequency (Hz), Q)``, lowest
+    first."""
+    modes = []
+    for seg in segments:
+        f1 = float(violin_frequencies_hz(seg.tension_N, seg.length_m, wire, 1))
+        n = np.arange(1, max(1, int(below_hz / f1)) + 2)
+        f = violin_frequencies_hz(seg.tension_N, seg.length_m, wire, n)
+        q = violin_q(seg.tension_N, seg.length_m, wire, n)
+        modes += [(seg.name, int(k), float(fk), float(qk))
+                  for k, fk, qk in zip(n, f, q, strict=True) if fk < below_hz]
+    return sorted(modes, key=lambda m: m[2])
+
+
 def _mode_name(dofs: tuple[str, ...], shape: NDArray[np.float64], violin: list[int]) -> str:
     """``<direction><n> of <segment>`` for the violin coordinate a mode moves most, or ``of
     both`` when the other segment's like mode moves with it (equal tensions: their sum and
@@ -282,6 +298,67 @@ class PairReading:
                 f"{1e3 * self.delta_m:.3f} mm, a POS-YAW coupling), or its tension is "
                 f"{self.tension_ratio:.3f} times less (no POS-YAW coupling); a fitted "
                 "wire_asymmetry tells the two apart"]
+
+    def weigh(self, delta_m: float, sigma_m: float | None) -> PairWeighing:
+        """Which reading a fitted ``wire_asymmetry`` delta (m) and its standard error allow
+        (:class:`PairWeighing`): its size within :data:`WEIGH_SIGMA` of this pair's
+        ``delta_m`` (a length difference), of zero (a tension difference), of both, or of
+        neither."""
+        verdict = "undetermined"
+        if sigma_m is not None and sigma_m > 0:
+            length = abs(abs(delta_m) - self.delta_m) <= WEIGH_SIGMA * sigma_m
+            tension = abs(delta_m) <= WEIGH_SIGMA * sigma_m
+            verdict = {(True, False): "length", (False, True): "tension",
+                       (True, True): "either"}.get((length, tension), "neither")
+        return PairWeighing(self, delta_m, sigma_m, verdict)
+
+
+WEIGH_SIGMA = 2.0
+"""Standard errors within which a fitted delta agrees with a reading of a violin pair."""
+
+_VERDICTS = {
+    "length": "a length difference (the fit's POS-YAW coupling is the pair's)",
+    "tension": "a tension difference (the fit finds no POS-YAW coupling; a length "
+               "difference would make one)",
+    "either": "either: the fit's error is too large to tell (it must be below a quarter of "
+              "the length reading's delta)",
+    "neither": "neither alone: the fit's coupling is not the pair's length reading, nor "
+               "none (both differ, or another cause couples POS and YAW)",
+    "undetermined": "undetermined: the fit leaves delta without a standard error"}
+
+
+@dataclass(frozen=True)
+class PairWeighing:
+    """A violin pair's two readings against a fitted ``wire_asymmetry``.
+
+    Attributes
+    ----------
+    reading : PairReading
+    fitted_delta_m : float
+        The fitted delta (m).
+    fitted_sigma_m : float or None
+        Its standard error.
+    verdict : str
+        ``"length"``, ``"tension"``, ``"either"``, ``"neither"`` or ``"undetermined"``
+        (:meth:`PairReading.weigh`).
+    """
+
+    reading: PairReading
+    fitted_delta_m: float
+    fitted_sigma_m: float | None
+    verdict: str
+
+    def lines(self) -> list[str]:
+        """The readings and the verdict, for a person."""
+        sigma = "?" if self.fitted_sigma_m is None else f"{1e6 * self.fitted_sigma_m:.2g}"
+        return [*self.reading.lines(),
+                f"fitted wire_asymmetry delta_m {1e6 * self.fitted_delta_m:.3g} +- {sigma} um: "
+                f"the pair is {_VERDICTS[self.verdict]}"]
+
+    def to_json(self) -> dict:
+        """``violin_pair`` of ``twind diagnose --json``."""
+        return {**self.reading.__dict__, "fitted_delta_m": self.fitted_delta_m,
+                "fitted_sigma_m": self.fitted_sigma_m, "verdict": self.verdict}
 
 
 def read_pair(f_a_hz: float, f_b_hz: float, length_m: float, half_separation_m: float

@@ -27,7 +27,7 @@ import zenoh
 from twind import DOFS, strictjson
 from twind.bus.codec import SampleBlock
 from twind.bus.keys import ROOT, control_key, data_key
-from twind.channels import block_channels, dof_channel
+from twind.channels import DRIVE_POINTS, block_channels, dof_channel, drive_channel
 from twind.config import OpticConfig, TwinConfig
 from twind.errors import FotonError, TwindError
 from twind.excitation import ExcitationError, ExcitationRequest, Limits, check, make_waveform
@@ -58,7 +58,7 @@ class Active:
     id: str
     request: ExcitationRequest
     optic: int
-    dof: int
+    point: int  # Twin._test_point's
     start_sample: int
     waveform: object = field(repr=False)
     received: float = 0.0  # monotonic time the request was taken up
@@ -179,13 +179,13 @@ class TwinService:
 
     def _advance(self, exc: dict[tuple[int, int], np.ndarray] | None) -> None:
         """Compute the next block into the channels' views, with the excitations `exc` (by
-        optic and DOF index; under the lock)."""
-        drive = None
+        optic and test point, :meth:`_test_point`; under the lock)."""
+        damping = lsc = None
         if exc is not None:
-            drive = np.zeros((len(self.optics), len(DOFS), self.n))
-            for (o, d), samples in exc.items():
-                drive[o, d] = samples
-        self._watch(self.engine.step(self.n, exc=drive, out=self._buf))
+            damping, lsc = np.zeros((2, len(self.optics), len(DOFS), self.n))
+            for (o, p), samples in exc.items():
+                (damping, lsc)[p // len(DOFS)][o, p % len(DOFS)] = samples
+        self._watch(self.engine.step(self.n, exc=damping, lsc=lsc, out=self._buf))
 
     def _watchdogs(self) -> dict[str, str]:
         """Each optic's watchdog, as ``status`` reports it."""
@@ -278,7 +278,7 @@ class TwinService:
                 self._ended.add(act.id)
                 self._publish_event("error", act, reason=f"{type(err).__name__}: {err}")
                 continue
-            key = (act.optic, act.dof)
+            key = (act.optic, act.point)
             if key not in exc:
                 exc[key] = np.zeros(self.n)
             exc[key][a:] += samples
@@ -381,14 +381,14 @@ class TwinService:
         received = time.monotonic() if received is None else received
         try:
             req = ExcitationRequest.from_json(request)
-            optic, dof = self._test_point(req.channel)
+            optic, point = self._test_point(req.channel)
         except (ExcitationError, TwindError) as err:  # maybe another twin's channel: no event
             return {"ok": False, "accepted": False, "reason": _cut(str(err))}
         if req.waveform != "stream" and req.amp == 0:
             return {"ok": False, "accepted": False, "reason": "amp: 0 excites nothing, and "
                     "would hold one of the test point's slots"}
         try:
-            check(req, self._room_left(optic, dof), self.rate)
+            check(req, self._room_left(optic, point), self.rate)
         except ExcitationError as err:
             reason = _cut(str(err))
             self._publish_event("refused", None, request=_summary(req.to_json()), reason=reason)
@@ -406,7 +406,7 @@ class TwinService:
                     reason = (f"start GPS {req.start_gps} has passed; the next sample is at "
                               f"{self.gps0 + next_sample / self.rate}")
                     return {"ok": False, "accepted": False, "reason": reason}
-            crowded = self._crowded(optic, dof, start - next_sample) or self._past_end(req, start)
+            crowded = self._crowded(optic, point, start - next_sample) or self._past_end(req, start)
             if crowded:
                 return {"ok": False, "accepted": False, "reason": f"{req.channel}: {crowded}"}
             waveform = make_waveform(req, self.rate)
@@ -417,7 +417,7 @@ class TwinService:
                           f"{held / 1e6:.0f} MB, beyond the {self.accepts.waveform_bytes / 1e6:.0f}"
                           " MB the twin keeps for them (service.waveform_bytes)")
                 return {"ok": False, "accepted": False, "reason": reason}
-            act = Active(next(self._ids), req, optic, dof, start, waveform, received)
+            act = Active(next(self._ids), req, optic, point, start, waveform, received)
             self._active[act.id] = act
             if req.start_gps is None:  # "now": its latency is the service's
                 self._unpublished[act.id] = act
@@ -436,14 +436,14 @@ class TwinService:
                 f"the end of this service at GPS {self.gps0 + self._end / self.rate:.3f} "
                 "(serve --duration)")
 
-    def _crowded(self, optic: int, dof: int, ahead: int) -> str:
+    def _crowded(self, optic: int, point: int, ahead: int) -> str:
         """Why one more excitation, `ahead` samples from now, is too many ("" if not);
         under the lock."""
         limits = self.accepts
         if ahead > limits.schedule_ahead_s * self.rate:
             return (f"starts {ahead / self.rate:.0f} s ahead; at most "
                     f"{limits.schedule_ahead_s:g} s (service.schedule_ahead_s)")
-        on = sum((a.optic, a.dof) == (optic, dof) for a in self._active.values())
+        on = sum((a.optic, a.point) == (optic, point) for a in self._active.values())
         if on >= limits.excitations_per_channel:
             return (f"{on} excitations run or wait on it already, the most one test point "
                     "takes (service.excitations_per_channel)")
@@ -452,11 +452,11 @@ class TwinService:
                     "takes (service.excitations)")
         return ""
 
-    def _room_left(self, optic: int, dof: int) -> Limits:
+    def _room_left(self, optic: int, point: int) -> Limits:
         """The limits less what the excitations already on that test point use: two
         accepted sines must not add up past the limit."""
         with self._lock:
-            on = [a for a in self._active.values() if (a.optic, a.dof) == (optic, dof)]
+            on = [a for a in self._active.values() if (a.optic, a.point) == (optic, point)]
         peak = sum(_peak(a.request) for a in on)
         rms = math.sqrt(sum(_rms(a.request) ** 2 for a in on))
         return Limits(peak=max(0.0, self.limits.peak - peak),
@@ -587,11 +587,18 @@ class TwinService:
         return names.index(name)
 
     def _test_point(self, channel: str) -> tuple[int, int]:
+        """``(optic, point)`` of an EXC channel: point ``d`` is DOF ``d``'s damping EXC,
+        ``4 + d`` its excitation past the damping filters (:func:`drive_channel`)."""
+        ifo = self.twin.ifo
         for o, optic in enumerate(self.optics):
             for d, dof in enumerate(DOFS):
-                if channel == dof_channel(self.twin.ifo, optic.name, dof, "EXC"):
+                if channel == dof_channel(ifo, optic.name, dof, "EXC"):
                     return o, d
-        msg = f"unknown excitation channel {channel!r}; e.g. {dof_channel(self.twin.ifo, self.optics[0].name, 'POS', 'EXC')}"
+                if dof in DRIVE_POINTS and channel == drive_channel(ifo, optic.name, dof):
+                    return o, len(DOFS) + d
+        first = self.optics[0].name
+        msg = (f"unknown excitation channel {channel!r}; e.g. "
+               f"{dof_channel(ifo, first, 'POS', 'EXC')} or {drive_channel(ifo, first, 'POS')}")
         raise TwindError(msg)
 
     def _publish_event(self, event: str, act: Active | None, **extra: object) -> None:

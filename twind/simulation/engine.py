@@ -47,7 +47,9 @@ class Block:
     """One block of samples of every test point, for every optic.
 
     Arrays are indexed ``[optic, dof, sample]``; ``sen`` is ``[optic, osem, sample]`` in um
-    (OSEMs UL, UR, LL, LR, SIDE).
+    (OSEMs UL, UR, LL, LR, SIDE); ``lsc`` is each DOF's excitation past the damping filters
+    (ct, added to OUT on its way to the coils: the 40m's ``LSC_EXC`` of POS, ``ASCPIT_EXC``
+    and ``ASCYAW_EXC``, :data:`twind.channels.DRIVE_POINTS`).
     """
 
     optics: tuple[str, ...]
@@ -58,6 +60,7 @@ class Block:
     in2: NDArray[np.float64]
     out: NDArray[np.float64]
     sen: NDArray[np.float64]
+    lsc: NDArray[np.float64]
 
     def channel(self, optic: str, dof: str, point: str) -> NDArray[np.float64]:
         """Samples of e.g. ``("ETMX", "POS", "IN1")``.
@@ -69,7 +72,7 @@ class Block:
         dof : str
             POS, PIT, YAW or SIDE.
         point : str
-            EXC, IN1, IN2 or OUT.
+            EXC, IN1, IN2 or OUT, or LSC: the excitation past the damping filters.
 
         Returns
         -------
@@ -95,14 +98,14 @@ def _threads(n: int) -> Iterator[None]:
 
 
 def _block_arrays(n_opt: int, n: int) -> list[NDArray[np.float64]]:
-    """Zeroed EXC, IN1, IN2, OUT and OSEM arrays of `n` samples, views of one allocation.
+    """Zeroed EXC, IN1, IN2, OUT, OSEM and LSC arrays of `n` samples, views of one allocation.
 
     One allocation of a long block is large enough for numpy to ask the kernel for huge pages,
     which the engine's first pass then faults in a few times faster than five separate arrays.
     The rows do not lie a multiple of 4 KiB apart (see kernel).
     """
     pad = 8 if (n + 8) % 512 else 16
-    shapes = [(n_opt, N_DOF)] * 4 + [(n_opt, N_OSEM)]
+    shapes = [(n_opt, N_DOF)] * 4 + [(n_opt, N_OSEM), (n_opt, N_DOF)]
     rows = np.zeros((sum(a * b for a, b in shapes), n + pad))
     arrays, first = [], 0
     for shape in shapes:
@@ -193,7 +196,7 @@ class Engine:
             rng=z((n_opt, 2, 4, N_NOISE), dtype=np.uint64),
             noise=z((n_opt, CHUNK * N_NOISE)), bits=z((n_opt, CHUNK * N_NOISE), dtype=np.uint64),
             outside=z((n_opt, 2 * CHUNK), dtype=np.int64),
-            noise_pos=np.full(n_opt, CHUNK, dtype=np.int64))
+            noise_pos=np.full(n_opt, CHUNK, dtype=np.int64), driven=z(n_opt, dtype=bool))
 
     def _discrete_plant(self, lp: DampingLoop) -> tuple[tuple, NDArray, NDArray]:
         A, Bc, Bs, C = lp.plant.osem_state_space()
@@ -310,7 +313,8 @@ class Engine:
         """
         return Block(self.optics, self.samples, self.rate_hz, *_block_arrays(len(self.loops), n))
 
-    def step(self, n: int, exc: NDArray[np.float64] | None = None, out: Block | None = None) -> Block:
+    def step(self, n: int, exc: NDArray[np.float64] | None = None, out: Block | None = None,
+             lsc: NDArray[np.float64] | None = None) -> Block:
         """Advance all optics by `n` samples.
 
         Parameters
@@ -321,6 +325,9 @@ class Engine:
             Excitation added at each EXC test point (zero when omitted).
         out : Block, optional
             A block of `n` samples from :meth:`new_block` to fill instead of a new one.
+        lsc : ndarray, shape (n_optics, 4, n), optional
+            Excitation added to each DOF's OUT on its way to the coils, past the damping
+            filters (ct; zero when omitted): what the 40m's LSC and ASC paths inject.
 
         Returns
         -------
@@ -330,7 +337,7 @@ class Engine:
         Raises
         ------
         ValueError
-            If `n` is negative or `exc` or `out` have the wrong shape.
+            If `n` is negative or `exc`, `lsc` or `out` have the wrong shape.
         """
         n_opt = len(self.loops)
         if n < 0:
@@ -340,20 +347,23 @@ class Engine:
         if block.in1.shape != (n_opt, N_DOF, n):
             msg = f"out holds {block.in1.shape[-1]} samples, step asked for {n}"
             raise ValueError(msg)
-        if exc is None:
-            block.exc[:] = 0.0
-        elif np.shape(exc) != (n_opt, N_DOF, n):
-            msg = f"exc must have shape {(n_opt, N_DOF, n)}, got {np.shape(exc)}"
-            raise ValueError(msg)
-        else:
-            block.exc[:] = exc
-        points = (block.exc, block.in1, block.in2, block.out, block.sen)
+        for name, given, into in (("exc", exc, block.exc), ("lsc", lsc, block.lsc)):
+            if given is None:
+                into[:] = 0.0
+            elif np.shape(given) != (n_opt, N_DOF, n):
+                msg = f"{name} must have shape {(n_opt, N_DOF, n)}, got {np.shape(given)}"
+                raise ValueError(msg)
+            else:
+                into[:] = given
+        self._a.driven[:] = False if lsc is None else np.any(block.lsc, axis=(1, 2))
+        points = (block.exc, block.lsc, block.in1, block.in2, block.out, block.sen)
         if self.threads > 1:
             with _threads(self.threads):
                 advance_parallel(self._a, n, *points)
         else:
             advance_serial(self._a, n, *points)
-        block = Block(self.optics, self.samples, self.rate_hz, *points)
+        block = Block(self.optics, self.samples, self.rate_hz, block.exc, block.in1, block.in2,
+                      block.out, block.sen, block.lsc)
         self.samples += n
         return block
 

@@ -11,6 +11,8 @@ Per sample the four DOFs run side by side in 4-lane vectors (:mod:`twind.simulat
   drives ``u`` (OUT of ``ndelay`` cycles ago: the plant is bilinear, so its inputs of this
   cycle feed through) and the noise ``n``, all projected on the DOFs once at build time;
 - IN2 = IN1 + EXC; the filter cascades, one lane each; OUT = gain x cascade, limited;
+- the drive of the coils: OUT plus the excitation past the damping filters (the 40m's LSC and
+  ASC paths), which goes through the output matrix as OUT does;
 - the OSEM readings ``sen``, when wanted: from IN1 and one more combination of the
   readings, when the input matrix has full rank, or else from the same state, inputs and
   noise;
@@ -92,6 +94,7 @@ class Arrays(NamedTuple):
     bits: NDArray[np.uint64]  # [optic, CHUNK * 8] scratch of fill_normal8
     outside: NDArray[np.int64]  # [optic, 2 CHUNK] scratch of fill_normal8
     noise_pos: NDArray[np.int64]  # samples of the current chunk used
+    driven: NDArray[np.bool_]  # [optic]: whether this step's lsc holds anything
 
 
 @nb.njit(nogil=True, cache=True)
@@ -241,8 +244,9 @@ def _clip(v, lim):
 
 
 @nb.njit(nogil=True, cache=True, fastmath={"contract"})
-def _close(s, o, n, a, p, exc, in1, in2, out, sen):
-    """Close optic `o`'s loop for `n` cycles from block sample `a` and noise sample `p`.
+def _close(s, o, n, a, p, exc, lsc, in1, in2, out, sen):
+    """Close optic `o`'s loop for `n` cycles from block sample `a` and noise sample `p`;
+    `lsc` is added to OUT on its way to the coils.
 
     The loop is bound by its loads and multiply-adds (the cascades' coefficients and states
     most of them), not by the chain of the cascades: see docs/benchmarks.md. The vectors
@@ -261,6 +265,7 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
         return
     limited = np.any(limit > 0.0)
     ramping = np.any(ramp_left > 0)
+    driven = s.driven[o]
     u = load4(delay, LANES * pos)
     for k in range(n):
         t = a + k
@@ -284,6 +289,8 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
             v = vec4(_clip(v[0], limit[0]), _clip(v[1], limit[1]), _clip(v[2], limit[2]),
                      _clip(v[3], limit[3]))
         _put(out, t, v)
+        if driven:
+            v = add4(v, vec4(lsc[0, t], lsc[1, t], lsc[2, t], lsc[3, t]))
         if ndelay == 1:
             u = v
         else:
@@ -296,7 +303,7 @@ def _close(s, o, n, a, p, exc, in1, in2, out, sen):
 
 
 @nb.njit(nogil=True, cache=True)
-def run_optic(s, o, n, exc, in1, in2, out, sen):
+def run_optic(s, o, n, exc, lsc, in1, in2, out, sen):
     """Advance optic `o` by `n` samples, drawing its noise as the chunks run out; the test
     points go to ``in1[:, :n]`` etc. (arrays ``[dof, sample]`` of this optic).
 
@@ -310,6 +317,8 @@ def run_optic(s, o, n, exc, in1, in2, out, sen):
         Cycles to run.
     exc : ndarray, shape (4, n)
         EXC of each DOF.
+    lsc : ndarray, shape (4, n)
+        Each DOF's excitation past the damping filters (ct), added to OUT.
     in1, in2, out : ndarray, shape (4, n)
         Filled with the test points.
     sen : ndarray, shape (5, n)
@@ -324,13 +333,13 @@ def run_optic(s, o, n, exc, in1, in2, out, sen):
             s.noise_pos[o] = 0
         p = s.noise_pos[o]
         c = min(n - a, CHUNK - p)
-        _close(s, o, c, a, p, exc, in1, in2, out, sen)
+        _close(s, o, c, a, p, exc, lsc, in1, in2, out, sen)
         s.noise_pos[o] += c
         a += c
 
 
 @nb.njit(nogil=True, cache=True)
-def advance_serial(s, n, exc, in1, in2, out, sen):
+def advance_serial(s, n, exc, lsc, in1, in2, out, sen):
     """:func:`run_optic` on every optic, one after the other, on this thread.
 
     Parameters
@@ -339,15 +348,15 @@ def advance_serial(s, n, exc, in1, in2, out, sen):
         The engine's arrays.
     n : int
         Cycles to run.
-    exc, in1, in2, out, sen : ndarray
+    exc, lsc, in1, in2, out, sen : ndarray
         Per optic as :func:`run_optic` takes them (first axis the optic).
     """
     for o in range(s.x.shape[0]):
-        run_optic(s, o, n, exc[o], in1[o], in2[o], out[o], sen[o])
+        run_optic(s, o, n, exc[o], lsc[o], in1[o], in2[o], out[o], sen[o])
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
-def advance_parallel(s, n, exc, in1, in2, out, sen):
+def advance_parallel(s, n, exc, lsc, in1, in2, out, sen):
     """:func:`advance_serial`, the optics shared among numba's threads (same parameters)."""
     for o in nb.prange(s.x.shape[0]):
-        run_optic(s, o, n, exc[o], in1[o], in2[o], out[o], sen[o])
+        run_optic(s, o, n, exc[o], lsc[o], in1[o], in2[o], out[o], sen[o])

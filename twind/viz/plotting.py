@@ -359,6 +359,50 @@ def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: AN
     return path
 
 
+def plot_violin_lines(report, path: str | Path, most: int = 4) -> Path:  # noqa: ANN001
+    """Each violin line's ringdown: the amplitude of every segment at the line against time,
+    with the fitted decay, the strongest `most` lines one panel each.
+
+    Parameters
+    ----------
+    report : LineReport
+        As :func:`twind.analysis.identification.lines.violin_lines` finds it.
+    path : str or Path
+        The figure to write.
+    most : int
+        Lines drawn at most.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    lines = report.found[:most]
+    fig = Figure(figsize=(11, 1 + 3.2 * max(1, len(lines))), layout="constrained")
+    for k, line in enumerate(lines):
+        ax = fig.add_subplot(len(lines), 1, k + 1)
+        t = line.times_s
+        ax.semilogy(t, np.abs(line.segments), ".", ms=2, label=f"|amplitude| in {line.reading}")
+        ax.semilogy(t, line.amplitude * np.exp(-line.decay_per_s * t), "r",
+                    label=f"fit: {line.text('um')}")
+        near = report.nearest(line)
+        model = ""
+        if near is not None:
+            model = f"; the model's nearest: segment {near[0]}'s n={near[1]}"
+            ax.semilogy(t, line.amplitude * np.exp(-np.pi * near[2] / near[3] * t), "k--",
+                        lw=0.8, label=f"the model's Q, {near[3]:.3g}")
+        ax.set(ylabel="um", title=f"line at {line.frequency_hz:.4f} Hz{model}")
+        ax.legend(fontsize=8)
+    if lines:
+        fig.axes[-1].set_xlabel("time from the first segment [s]")
+    else:
+        fig.text(0.5, 0.5, report.lines()[0], ha="center", va="center", wrap=True)
+    fig.suptitle(f"{report.optic}: violin lines ringing down (twind {__version__})", fontsize=10)
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    return path
+
+
 def plot_comparison(cmp: "ModelComparison", path: str | Path) -> Path:
     """Write a 4x4 Bode-magnitude matrix of both models' admittances to a PNG.
 
