@@ -341,7 +341,7 @@ def test_twind_runs_ligo_s_foton_when_asked(monkeypatch: pytest.MonkeyPatch) -> 
     rms_ligo = _simulate(["--foton", "python-foton"])
     assert os.environ[FOTON_VARIABLE] == "python-foton"
     assert np.array_equal(design_sections(NOMINAL_FM2, RATE), _ligo(NOMINAL_FM2))
-    assert rms_ours.keys() == rms_ligo.keys() and len(rms_ours) == 21
+    assert rms_ours.keys() == rms_ligo.keys() and len(rms_ours) == 24
     for channel, value in rms_ours.items():  # the same loop, to foton's rounding
         assert rms_ligo[channel] == pytest.approx(value, rel=1e-3), channel
     with pytest.raises(FotonError, match="python-foton refuses design 'pole"):

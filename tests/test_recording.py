@@ -103,7 +103,8 @@ def test_session_writer_roundtrip(engine_session: tuple[Path, dict]) -> None:
         warnings.simplefilter("error")
         session = read_session(path)
     assert session.complete and not session.problems and not session.gaps
-    assert set(session.channels) == set(expected) and len(expected) == 42
+    # each optic has 24 channels: 4 DOFs x 4 points, 3 drives past the filters, 5 OSEMs
+    assert set(session.channels) == set(expected) and len(expected) == 48
     for name, x in expected.items():
         ch = session[name]
         assert np.array_equal(ch.samples, x), name  # bit for bit
@@ -122,7 +123,7 @@ def test_session_writer_roundtrip(engine_session: tuple[Path, dict]) -> None:
         summary = reader.get_summary()
         protobuf = [s for s in summary.schemas.values() if s.encoding == "protobuf"]
         assert [s.name for s in protobuf] == ["twind.v1.SampleBlock"]
-        assert summary.statistics.message_count == 42 * 5
+        assert summary.statistics.message_count == 48 * 5
         assert all(c.compression == "zstd" for c in summary.chunk_indexes)
         assert max(c.uncompressed_size for c in summary.chunk_indexes) < 300_000
         n = 0
@@ -131,13 +132,13 @@ def test_session_writer_roundtrip(engine_session: tuple[Path, dict]) -> None:
             assert message.sequence == proto.sequence
             assert message.log_time == message.publish_time == gps_to_unix_ns(proto.gps_start)
             n += 1
-        assert n == 42 * 5
+        assert n == 48 * 5
 
 
 def test_export_npz_and_hdf5(engine_session: tuple[Path, dict], tmp_path: Path) -> None:
     path, expected = engine_session
     result = export(path, tmp_path / "all.npz")
-    assert result.format == "npz" and not result.gaps and len(result.channels) == 42
+    assert result.format == "npz" and not result.gaps and len(result.channels) == 48
     with np.load(tmp_path / "all.npz") as npz:
         assert set(npz.files) == {f"{c}{s}" for c in expected for s in ("", ":t0", ":rate")}
         for name, x in expected.items():

@@ -209,8 +209,9 @@ def test_the_client_checks_a_request_before_sending_it() -> None:
 def test_an_excitation_past_the_damping_filters_is_served_as_lsc_exc() -> None:
     """``C1:SUS-ETMX_LSC_EXC`` is a test point of the served twin: a sine injected there is
     published on it, drives the coils past the damping filters (IN1 answers as the loop's
-    ``(I - P K)^-1 P``) and leaves SUSPOS_EXC alone; a name it does not serve is refused
-    with both kinds of point as examples."""
+    ``(I - P K)^-1 P``) and leaves SUSPOS_EXC alone; its limits are a DAC's (ct), not the
+    damping EXC's; a name it does not serve is refused with both kinds of point as
+    examples."""
     lsc = "C1:SUS-ETMX_LSC_EXC"
     points = (lsc, f"{POS}_EXC", f"{POS}_IN1")
     with serving("--optics", "ETMX", "--speed", "4") as endpoint:
@@ -220,6 +221,9 @@ def test_an_excitation_past_the_damping_filters_is_served_as_lsc_exc() -> None:
                 with pytest.raises(InjectionRefused, match="ETMX_LSC_EXC"):
                     twin.inject("C1:SUS-ETMX_SIDELSC_EXC", "sine", freq=3.0, amp=1.0)
                 twin.inject(lsc, "sine", freq=3.0, amp=25.0, duration=math.inf)
+                with pytest.raises(InjectionRefused, match="exceeds the limit 32743 of "
+                                                           "C1:SUS-ETMX_LSC_EXC"):
+                    twin.inject(lsc, "sine", freq=5.0, amp=40000.0, duration=1.0)
                 col.wait_for(16 * 16384)
         finally:
             col.close()

@@ -30,7 +30,7 @@ def test_simulate_records_every_block(tmp_path: Path) -> None:
                          "--record", str(path)])
     assert code == 0
     rms = dict(re.findall(r"^(C1:SUS-ETMX_\S+)\s+rms\s+(\S+)", out, re.M))
-    assert len(rms) == 21
+    assert len(rms) == 24
     assert float(rms["C1:SUS-ETMX_SUSPOS_EXC"]) == 0.0
     assert 0 < float(rms["C1:SUS-ETMX_SUSPOS_IN1"]) < 10  # um: noise-driven, damped
     assert re.search(r"x real time", out)
@@ -42,7 +42,7 @@ def test_simulate_records_every_block(tmp_path: Path) -> None:
             assert channel.topic == f"twin/{proto.channel}"
             assert message.sequence == proto.sequence
             blocks.setdefault(proto.channel, []).append(proto)
-    assert len(blocks) == 21
+    assert len(blocks) == 24
     for blist in blocks.values():
         assert [b.sequence for b in blist] == [0, 1, 2, 3]
         assert all(b.rate_hz == 16384 and len(b.samples) == 8192 for b in blist)

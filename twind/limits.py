@@ -16,6 +16,9 @@ class ServiceLimits:
     exc_peak, exc_rms : float
         The sum of the excitations on one ``_EXC`` test point, in its units (um or urad):
         well inside the OSEMs' range.
+    drive_peak, drive_rms : float
+        The same on one excitation past the damping filters (``LSC_EXC``, ``ASCPIT_EXC``,
+        ``ASCYAW_EXC``), in DAC counts: a 16-bit DAC's range, and a sine filling it.
     excitations_per_channel : int
         Excitations running or scheduled on one test point.
     excitations : int
@@ -43,6 +46,8 @@ class ServiceLimits:
 
     exc_peak: float = 100.0
     exc_rms: float = 30.0
+    drive_peak: float = 32768.0
+    drive_rms: float = 23170.0
     excitations_per_channel: int = 16
     excitations: int = 64
     schedule_ahead_s: float = 86400.0

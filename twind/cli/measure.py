@@ -340,6 +340,9 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     """Locate the mismatch, name the physics left out, fit it, show the improvement."""
 
     optic = statespace.statespace_optic(args)
+    if optic is not None and args.violin_pair:
+        msg = f"--violin-pair: {optic.name} is a state-space model, with no wire_asymmetry"
+        raise TwindError(msg)
     if optic is not None:
         return statespace.diagnose(args, optic)
     if args.output:  # a report already there is refused before the work, not after it

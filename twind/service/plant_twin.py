@@ -16,6 +16,7 @@ from twind.bus.keys import ROOT
 from twind.config import TwinConfig
 from twind.config.statespace import SENSOR_NOISE, StateSpaceOptic
 from twind.errors import TwindError
+from twind.excitation import Limits
 from twind.service.twin import TwinService
 
 UNIT = "ct"
@@ -72,6 +73,10 @@ class PlantTwinService(TwinService):
             msg = f"unknown excitation channel {channel!r}; e.g. {names[0]}"
             raise TwindError(msg)
         return 0, names.index(channel)
+
+    def _limits(self, point: int) -> Limits:
+        """Every EXC point of a state-space optic has the ``_EXC`` limits."""
+        return self.limits
 
     def _watchdogs(self) -> dict[str, str]:
         """A state-space optic has none."""

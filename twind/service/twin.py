@@ -120,6 +120,7 @@ class TwinService:
         self.twin, self.optics, self.root = twin, optics, root
         self.accepts = twin.service  # what clients may ask (the file's [service] table)
         self.limits = Limits(peak=twin.service.exc_peak, rms=twin.service.exc_rms)
+        self.drive_limits = Limits(peak=twin.service.drive_peak, rms=twin.service.drive_rms)
         self.rate = optics[0].rate_hz
         self.n = int(round(block_s * self.rate))
         if self.n < 1:
@@ -452,6 +453,11 @@ class TwinService:
                     "takes (service.excitations)")
         return ""
 
+    def _limits(self, point: int) -> Limits:
+        """The limits of test point `point` (:meth:`_test_point`): the damping EXC's in um or
+        urad, the drive's past the filters in ct."""
+        return self.drive_limits if point >= len(DOFS) else self.limits
+
     def _room_left(self, optic: int, point: int) -> Limits:
         """The limits less what the excitations already on that test point use: two
         accepted sines must not add up past the limit."""
@@ -459,8 +465,9 @@ class TwinService:
             on = [a for a in self._active.values() if (a.optic, a.point) == (optic, point)]
         peak = sum(_peak(a.request) for a in on)
         rms = math.sqrt(sum(_rms(a.request) ** 2 for a in on))
-        return Limits(peak=max(0.0, self.limits.peak - peak),
-                      rms=math.sqrt(max(0.0, self.limits.rms**2 - rms**2)))
+        limits = self._limits(point)
+        return Limits(peak=max(0.0, limits.peak - peak),
+                      rms=math.sqrt(max(0.0, limits.rms**2 - rms**2)))
 
     def stop(self, request: dict) -> dict:
         """Stop an excitation by id (``{"id": ...}``), or all with ``{"all": true}``; it

@@ -355,7 +355,9 @@ class Engine:
                 raise ValueError(msg)
             else:
                 into[:] = given
-        self._a.driven[:] = False if lsc is None else np.any(block.lsc, axis=(1, 2))
+        # a tripped optic's coils take nothing, as its watchdog cuts the whole drive
+        self._a.driven[:] = (False if lsc is None
+                             else np.any(block.lsc, axis=(1, 2)) & ~self._tripped)
         points = (block.exc, block.lsc, block.in1, block.in2, block.out, block.sen)
         if self.threads > 1:
             with _threads(self.threads):
@@ -415,9 +417,9 @@ class Engine:
             self._a.ramp_left[o, d] = steps
 
     def trip(self, optic: str) -> None:
-        """Zero an optic's damping outputs and reset its motion and filter histories, as a
-        CDS watchdog does; the outputs stay zero until :meth:`rearm` (a gain change before
-        then only sets what rearm restores)."""
+        """Zero an optic's damping outputs and its drive past the damping filters, and reset
+        its motion and filter histories, as a CDS watchdog does; the outputs stay zero until
+        :meth:`rearm` (a gain change before then only sets what rearm restores)."""
         o, _ = self._where(optic, DOFS[0])
         self._tripped[o] = True
         self._a.gain[o] = self._a.gain_target[o] = 0.0

@@ -1,19 +1,20 @@
 """Narrow lines above the pendulum band in an optic's readings, such as its wires' violin
 modes: each line's frequency and, from how it rings down, its Q.
 
-A violin mode rings for minutes (Q of 1e5 to 1e7 at 0.5 to 3 kHz), so a spectrum of a
-recording minutes long cannot resolve its width; its decay can, as LIGO measures violin Qs.
-Each line is found in the readings' averaged spectra (:data:`SEGMENT_S` segments) as a bin
-standing above the median of its neighbours as noise would once in 1e9 bins
-(:data:`FALSE_ALARM`), in the reading that sees it best, and kept if at least 5 segments hold
-it :data:`SNR` times above the noise. That reading is demodulated at the line (refined on the
-whole recording's spectrum) in the same segments, and ``A exp((-gamma + 2 pi i delta) t)`` is
-fitted to the segments' complex amplitudes, all of them, in the complex plane, where the noise
-adds alike to each: ``f = f_line + delta`` and ``Q = pi f / gamma``, with standard errors from
-the residuals. A decay within :data:`DECAY_SIGMA` of its standard error is not resolved and
-the line's Q is given as a lower bound: a mode still driven, a mode too slow for the
-recording, or a line that is no mode (the mains' harmonics are steady). Two modes closer than
-the recording resolves (``1 / T``) are one line, and their beat biases its Q.
+A violin mode rings for minutes (Q of 1e5 to 1e7 at 0.5 to 3 kHz), so a spectrum of a recording
+minutes long cannot resolve its width; its decay can, as LIGO measures violin Qs. Each line is
+found in the readings' averaged spectra (:data:`SEGMENT_S` segments) as a bin standing above
+the median of its neighbours as Gaussian noise would in one of 1e9 bins of all the readings
+(:data:`FALSE_ALARM`; the median's own scatter aside), in the reading that sees it best, and
+kept if at least 5 segments hold it :data:`SNR` times above the noise. That reading is
+demodulated at the line (refined on the whole recording's spectrum) in the same segments, and
+``A exp((-gamma + 2 pi i delta) t)`` is fitted to the segments' complex amplitudes, all of
+them, in the complex plane, where the noise adds alike to each: ``f = f_line + delta`` and
+``Q = pi f / gamma``, with standard errors from the residuals. A decay within :data:`DECAY_SIGMA`
+of its standard error is not resolved and the line's Q is given as a lower bound: a mode still
+driven, a mode too slow for the recording, or a line that is no mode (the mains' harmonics are
+steady). Two modes closer than the segments resolve (2 Hz: peaks are 3 bins apart at least, and
+a 1 s Hann segment's main lobe is 2 Hz wide) are one line, and their beat biases its Q.
 """
 
 from __future__ import annotations
@@ -43,9 +44,17 @@ NEIGHBOURS_HZ = 25.0
 """Width of the running median a bin is compared with."""
 
 FALSE_ALARM = 1e-9
-"""Probability per bin that Gaussian noise stands as high over its neighbours' median as a
-line must: the threshold falls as the segments averaged grow in number (4.9 for 8, 1.5
-for 200)."""
+"""Probability per bin, over all the readings, that Gaussian noise stands as high over its
+neighbours' median as a line must: the threshold falls as the segments averaged grow in
+number (4.2 for 8 s of five readings, 1.4 for 200 s)."""
+
+HANN_OVERLAP = 0.167
+"""Squared correlation of two Hann-windowed segments overlapping by half: Welch's averaged
+spectrum of ``K`` segments has the variance of ``K / (1 + 2 * 0.167)`` independent ones."""
+
+NEAR = 0.25
+"""A model's violin mode names a line within this fraction of its frequency (ETMX's measured
+pair lies 7 % and 18 % above its model's)."""
 
 DECAY_SIGMA = 3.0
 """Decay rates within this many standard errors of zero are not resolved."""
@@ -147,6 +156,10 @@ def find_lines(readings: NDArray[np.float64], rate_hz: float, names: Sequence[st
     if x.ndim != 2 or x.shape[0] != len(names):
         msg = f"expected {len(names)} readings ({', '.join(names)}), got shape {x.shape}"
         raise TwindError(msg)
+    if not np.all(np.isfinite(x)):
+        bad = [names[k] for k in np.flatnonzero(~np.isfinite(x).all(axis=1))]
+        msg = f"the readings of {', '.join(bad)} hold NaN or infinite samples (a gap?)"
+        raise TwindError(msg)
     nseg = int(round(SEGMENT_S * rate_hz))
     if x.shape[1] < 8 * nseg:
         msg = (f"a recording of {x.shape[1] / rate_hz:.1f} s is too short to find lines "
@@ -161,7 +174,8 @@ def find_lines(readings: NDArray[np.float64], rate_hz: float, names: Sequence[st
     ratio = psd / floor
     best = ratio.max(axis=0)
     best[(f < min_hz) | (f > 0.98 * rate_hz / 2)] = 0.0
-    peaks, _ = signal.find_peaks(best, height=_threshold(x.shape[1] // nseg), distance=3)
+    height = _threshold(x.shape[1] // nseg, len(names))
+    peaks, _ = signal.find_peaks(best, height=height, distance=3)
     peaks = peaks[np.argsort(best[peaks])[::-1]][:MOST]
     spectra: dict[int, NDArray[np.complex128]] = {}
     lines = []
@@ -176,11 +190,15 @@ def find_lines(readings: NDArray[np.float64], rate_hz: float, names: Sequence[st
     return lines
 
 
-def _threshold(segments: int) -> float:
-    """The power over the median that noise averaged over `segments` segments exceeds with
-    probability :data:`FALSE_ALARM` (its power is a gamma variable of shape `segments`)."""
-    noise = stats.gamma(segments, scale=1 / segments)
-    return float(noise.isf(FALSE_ALARM) / noise.median())
+def _threshold(m: int, readings: int) -> float:
+    """The power over the median that Gaussian noise exceeds with probability
+    :data:`FALSE_ALARM` in any of `readings` readings, in Welch's average of the ``2 m - 1``
+    half-overlapping segments of a recording `m` segments long: a gamma variable of the
+    shape of that many independent segments (:data:`HANN_OVERLAP`)."""
+    k = 2 * m - 1
+    shape = k / (1 + 2 * HANN_OVERLAP * (k - 1) / k)
+    noise = stats.gamma(shape, scale=1 / shape)
+    return float(noise.isf(FALSE_ALARM / readings) / noise.median())
 
 
 def _refined(spectrum: NDArray[np.complex128], n: int, rate_hz: float, near_hz: float) -> float:
@@ -237,12 +255,15 @@ def _fit_ringdown(t: NDArray[np.float64], a: NDArray[np.complex128], f0: float
     """
     scale = np.abs(a).max()
     a = a / scale
-    strong = np.abs(a) > 0.5
+    strong = np.flatnonzero(np.abs(a) > 0.5)
+    if strong.size < 3:  # a fast decay: its first segments from the largest
+        strong = np.arange(strong[0], min(a.size, strong[0] + 3))
     tf, af = t[strong], a[strong]
     slope, _ = np.polyfit(tf, np.log(np.abs(af)), 1, w=np.abs(af))
     dphase, _ = np.polyfit(tf, np.unwrap(np.angle(af)), 1, w=np.abs(af))
-    growth = slope + 1j * dphase
-    start = np.sum(a * np.exp(np.conj(growth) * t)) / np.sum(np.exp(2 * slope * t))
+    shape = np.exp((slope + 1j * dphase) * (tf - tf[0]))
+    start = (np.sum(af * np.conj(shape)) / np.sum(np.abs(shape) ** 2)
+             * np.exp(-(slope + 1j * dphase) * tf[0]))
 
     def residual(p: NDArray[np.float64]) -> NDArray[np.float64]:
         r = a - (p[0] + 1j * p[1]) * np.exp((-p[2] + 2j * np.pi * p[3]) * t)
@@ -252,9 +273,9 @@ def _fit_ringdown(t: NDArray[np.float64], a: NDArray[np.complex128], f0: float
                         x_scale="jac", method="lm")
     dof = 2 * t.size - 4
     variance = np.sum(fit.fun**2) / dof
-    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * variance
+    units = np.array([scale, scale, 1.0, 1.0])  # A was fitted in units of the largest |a|
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * variance * np.outer(units, units)
     p = fit.x
-    cov[:2], cov[:, :2] = cov[:2] * scale, cov[:, :2] * scale
     return float(scale * abs(p[0] + 1j * p[1])), float(p[2]), float(f0 + p[3]), cov
 
 
@@ -271,8 +292,9 @@ class LineReport:
         The model's violin modes up to the readings' Nyquist frequency: segment, order,
         frequency (Hz) and Q (:func:`twind.model.violin.segment_modes`).
     pair : PairReading or None
-        The two lines nearest the model's first violin modes, read as the segments' length
-        or tension difference, when two lines are nearer those than any other mode.
+        The two strongest lines ringing down (so modes, not the mains) near the model's
+        first violin modes (:data:`NEAR`), read as the segments' length or tension
+        difference.
     """
 
     optic: str
@@ -281,10 +303,12 @@ class LineReport:
     pair: PairReading | None = None
 
     def nearest(self, line: Line) -> tuple[str, int, float, float] | None:
-        """The model's violin mode nearest `line` (None without a model)."""
+        """The model's violin mode nearest `line`, None when none lies within :data:`NEAR`
+        of it."""
         if not self.model:
             return None
-        return min(self.model, key=lambda m: abs(m[2] - line.frequency_hz))
+        near = min(self.model, key=lambda m: abs(m[2] - line.frequency_hz))
+        return near if abs(line.frequency_hz / near[2] - 1) <= NEAR else None
 
     def lines(self) -> list[str]:
         """The lines, each with the model's nearest violin mode, for a person."""
@@ -295,9 +319,9 @@ class LineReport:
                 "amplitude and the OSEM seeing it best; the model's nearest violin mode"]
         for line in self.found:
             near = self.nearest(line)
-            model = "" if near is None else (
-                f"; model: segment {near[0]}'s n={near[1]} at {near[2]:.2f} Hz "
-                f"({100 * (line.frequency_hz / near[2] - 1):+.1f} %), Q {near[3]:.3g}")
+            model = (f"; no model violin mode within {100 * NEAR:.0f} %" if near is None else
+                     f"; model: segment {near[0]}'s n={near[1]} at {near[2]:.2f} Hz "
+                     f"({100 * (line.frequency_hz / near[2] - 1):+.1f} %), Q {near[3]:.3g}")
             rows.append(f"  {line.text('um')}{model}")
         if self.pair is not None:
             rows += [f"  {row}" for row in self.pair.lines()]
@@ -305,7 +329,12 @@ class LineReport:
 
     def to_json(self) -> dict:
         """The ``lines`` of ``twind freeswing --json``."""
-        return {"found": [line.to_json() for line in self.found],
+        def named(line: Line) -> dict:
+            near = self.nearest(line)
+            return {**line.to_json(), "model": None if near is None else {
+                "segment": near[0], "n": near[1], "frequency_hz": near[2], "q": near[3]}}
+
+        return {"found": [named(line) for line in self.found],
                 "model": [{"segment": s, "n": n, "frequency_hz": f, "q": q}
                           for s, n, f, q in self.model],
                 "pair": None if self.pair is None else self.pair.__dict__}
@@ -330,8 +359,8 @@ def violin_lines(optic: OpticConfig, sen: NDArray[np.float64], rate_hz: float) -
     found = tuple(find_lines(sen, rate_hz, OSEMS))
     model = tuple(segment_modes(optic.wire_segments(), optic.sus.wire, rate_hz / 2))
     report = LineReport(optic.name, found, model)
-    firsts = [line for line in found
-              if (near := report.nearest(line)) is not None and near[1] == 1]
+    firsts = [line for line in found if line.state == "ringing down"
+              and (near := report.nearest(line)) is not None and near[1] == 1]
     if len(firsts) < 2:
         return report
     return LineReport(optic.name, found, model,
@@ -358,8 +387,8 @@ def violin_ringdown(optic: OpticConfig, f_hz: float | None = None, ring_up_s: fl
     optic : OpticConfig
         An optic whose model keeps violin modes (``[suspension.wire] violin_modes``).
     f_hz : float, optional
-        The drive's frequency; by default the model's violin mode POS's drive moves the
-        OSEMs most.
+        The drive's frequency; by default the model's violin mode a POS drive moves POS's
+        IN1 most at.
     ring_up_s, duration_s : float
         Seconds of drive and of ringdown.
     seed : int
@@ -377,8 +406,12 @@ def violin_ringdown(optic: OpticConfig, f_hz: float | None = None, ring_up_s: fl
     Raises
     ------
     TwindError
-        If the optic's wires are rigid.
+        If the optic's wires are rigid, or the times are not finite and >= 0.
     """
+    if not (math.isfinite(ring_up_s) and ring_up_s >= 0 and math.isfinite(duration_s)
+            and duration_s > 0):
+        msg = f"ring-up and ringdown must be finite, >= 0 and > 0 s, got {ring_up_s}, {duration_s}"
+        raise TwindError(msg)
     modes = violin_modes(optic.mechanics())
     if not modes:
         msg = (f"{optic.name}'s plant has rigid wires: set [suspension.wire] violin_modes "
@@ -391,10 +424,12 @@ def violin_ringdown(optic: OpticConfig, f_hz: float | None = None, ring_up_s: fl
     engine = Engine([loop], {optic.name: optic.noise}, seed=seed, rate_hz=optic.rate_hz)
     rate = engine.rate_hz
     block = int(16 * rate)
-    lsc = np.zeros((1, len(DOFS), block))
-    for a in range(0, int(round(ring_up_s * rate)), block):
-        lsc[0, 0] = drive_ct * np.sin(2 * np.pi * f_hz * (a + np.arange(block)) / rate)
-        engine.step(block, lsc=lsc)
+    up = int(round(ring_up_s * rate))
+    for a in range(0, up, block):
+        k = min(block, up - a)
+        lsc = np.zeros((1, len(DOFS), k))
+        lsc[0, 0] = drive_ct * np.sin(2 * np.pi * f_hz * (a + np.arange(k)) / rate)
+        engine.step(k, lsc=lsc)
     n = int(round(duration_s * rate))
     sen = np.empty((len(OSEMS), n))
     for a in range(0, n, block):
