@@ -272,7 +272,7 @@ def cmd_freeswing(args: argparse.Namespace) -> int:
                          *(lines.lines() if lines else [])]))
     if args.output:
         done = (plot_freeswing(result, sen, rate, args.output) if result is not None
-                else plot_violin_lines(lines, args.output))
+                else plot_violin_lines(lines, args.output, sen, rate))
         print(f"wrote {done}", file=sys.stderr)
     return 0
 
@@ -297,7 +297,7 @@ def _violin(args: argparse.Namespace, optic: OpticConfig) -> int:
     else:
         print("\n".join([f"driven at {f_hz:.6f} Hz", *report.lines()]))
     if args.output:
-        print(f"wrote {plot_violin_lines(report, args.output)}", file=sys.stderr)
+        print(f"wrote {plot_violin_lines(report, args.output, sen, rate)}", file=sys.stderr)
     return 0
 
 

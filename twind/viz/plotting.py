@@ -359,9 +359,12 @@ def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: AN
     return path
 
 
-def plot_violin_lines(report, path: str | Path, most: int = 4) -> Path:  # noqa: ANN001
-    """Each violin line's ringdown: the amplitude of every segment at the line against time,
-    with the fitted decay, the strongest `most` lines one panel each.
+def plot_violin_lines(report, path: str | Path, sen: NDArray[np.float64] | None = None,  # noqa: ANN001
+                      rate_hz: float | None = None, most: int = 4) -> Path:
+    """Each violin line as a commissioner looks at it: the spectrum of the OSEM that sees it
+    best around the line (when the readings are given), and its ringdown, the amplitude of
+    every segment against time with the fitted decay and the model's; the strongest `most`
+    lines, one row each.
 
     Parameters
     ----------
@@ -369,6 +372,10 @@ def plot_violin_lines(report, path: str | Path, most: int = 4) -> Path:  # noqa:
         As :func:`twind.analysis.identification.lines.violin_lines` finds it.
     path : str or Path
         The figure to write.
+    sen : ndarray, shape (5, n), optional
+        The OSEM readings (um) the lines were found in, UL, UR, LL, LR, SIDE.
+    rate_hz : float, optional
+        Their rate.
     most : int
         Lines drawn at most.
 
@@ -378,9 +385,15 @@ def plot_violin_lines(report, path: str | Path, most: int = 4) -> Path:  # noqa:
         The file written.
     """
     lines = report.found[:most]
-    fig = Figure(figsize=(11, 1 + 3.2 * max(1, len(lines))), layout="constrained")
+    spectra = sen is not None and rate_hz is not None
+    fig = Figure(figsize=(13 if spectra else 11, 1 + 3.2 * max(1, len(lines))),
+                 layout="constrained")
+    grid = fig.add_gridspec(max(1, len(lines)), 3 if spectra else 1)
     for k, line in enumerate(lines):
-        ax = fig.add_subplot(len(lines), 1, k + 1)
+        if spectra:
+            _line_spectrum(fig.add_subplot(grid[k, 0]), line, sen[OSEMS.index(line.reading)],
+                           rate_hz)
+        ax = fig.add_subplot(grid[k, 1:] if spectra else grid[k, 0])
         t = line.times_s
         ax.semilogy(t, np.abs(line.segments), ".", ms=2, label=f"|amplitude| in {line.reading}")
         ax.semilogy(t, line.amplitude * np.exp(-line.decay_per_s * t), "r",
@@ -391,16 +404,25 @@ def plot_violin_lines(report, path: str | Path, most: int = 4) -> Path:  # noqa:
             model = f"; the model's nearest: segment {near[0]}'s n={near[1]}"
             ax.semilogy(t, line.amplitude * np.exp(-np.pi * near[2] / near[3] * t), "k--",
                         lw=0.8, label=f"the model's Q, {near[3]:.3g}")
-        ax.set(ylabel="um", title=f"line at {line.frequency_hz:.4f} Hz{model}")
+        ax.set(xlabel="time from the first segment [s]", ylabel="um",
+               title=f"line at {line.frequency_hz:.4f} Hz ringing down{model}")
         ax.legend(fontsize=8)
-    if lines:
-        fig.axes[-1].set_xlabel("time from the first segment [s]")
-    else:
+    if not lines:
         fig.text(0.5, 0.5, report.lines()[0], ha="center", va="center", wrap=True)
-    fig.suptitle(f"{report.optic}: violin lines ringing down (twind {__version__})", fontsize=10)
+    fig.suptitle(f"{report.optic}: violin lines (twind {__version__})", fontsize=10)
     path = Path(path)
     fig.savefig(path, dpi=90)
     return path
+
+
+def _line_spectrum(ax: Axes, line, x: NDArray[np.float64], rate_hz: float) -> None:  # noqa: ANN001
+    """The ASD of reading `x` within 10 Hz of `line`, at the line finder's resolution."""
+    f, p = signal.welch(x, fs=rate_hz, nperseg=int(round(rate_hz)))
+    keep = np.abs(f - line.frequency_hz) <= 10.0
+    ax.semilogy(f[keep], np.sqrt(p[keep]), lw=0.8)
+    ax.axvline(line.frequency_hz, color="r", lw=0.6, ls=":")
+    ax.set(xlabel="frequency [Hz]", ylabel=f"{line.reading} ASD [um/rtHz]",
+           title=f"{line.reading} spectrum, 1 Hz bins")
 
 
 def plot_comparison(cmp: "ModelComparison", path: str | Path) -> Path:

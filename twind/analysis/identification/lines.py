@@ -256,8 +256,9 @@ def _fit_ringdown(t: NDArray[np.float64], a: NDArray[np.complex128], f0: float
     scale = np.abs(a).max()
     a = a / scale
     strong = np.flatnonzero(np.abs(a) > 0.5)
-    if strong.size < 3:  # a fast decay: its first segments from the largest
-        strong = np.arange(strong[0], min(a.size, strong[0] + 3))
+    if strong.size < 3:  # a fast decay or growth: three segments from the largest
+        first = min(int(strong[0]), a.size - 3)
+        strong = np.arange(first, first + 3)
     tf, af = t[strong], a[strong]
     slope, _ = np.polyfit(tf, np.log(np.abs(af)), 1, w=np.abs(af))
     dphase, _ = np.polyfit(tf, np.unwrap(np.angle(af)), 1, w=np.abs(af))
