@@ -359,8 +359,9 @@ def plot_freeswing(result, sen: NDArray[np.float64], rate_hz: float,  # noqa: AN
     return path
 
 
-def plot_violin_lines(report, path: str | Path, sen: NDArray[np.float64] | None = None,  # noqa: ANN001
-                      rate_hz: float | None = None, most: int = 4) -> Path:
+def plot_violin_lines(report, path: str | Path,  # noqa: ANN001 - a LineReport
+                      sen: NDArray[np.float64] | None = None, rate_hz: float | None = None,
+                      most: int = 4) -> Path:
     """Each violin line as a commissioner looks at it: the spectrum of the OSEM that sees it
     best around the line (when the readings are given), and its ringdown, the amplitude of
     every segment against time with the fitted decay and the model's; the strongest `most`
