@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 from twind import DOFS
 from twind.errors import TwindError
-from twind.excitation.request import MAX_FINITE_SAMPLES, is_int, is_real
+from twind.excitation.request import is_int, is_real
 from twind.loop.foton_file import N_STAGES
 from twind.model.params import SOSParams
 
@@ -86,7 +86,7 @@ class StopRequest:
         if everything is not True and not isinstance(exc_id, str):
             msg = 'stop takes {"id": "<the id inject returned>"} or {"all": true}'
             raise RequestError(msg)
-        if ramp is not None and not (_number(ramp) and 0 <= ramp <= MAX_FINITE_SAMPLES):
+        if ramp is not None and not (_number(ramp) and 0 <= ramp < math.inf):
             msg = f"'ramp' takes a number of seconds >= 0, got {str(ramp)[:40]}"
             raise RequestError(msg)
         return cls(None if everything is True else exc_id, everything is True,
@@ -302,8 +302,7 @@ class StatusReply:
 
     def to_json(self) -> dict[str, Any]:
         """The reply's JSON object, ``"ok": true`` first."""
-        body = {f.name: getattr(self, f.name) for f in fields(self)}
-        return {"ok": True, **body, "excitations": [vars(e) for e in self.excitations]}
+        return {"ok": True, **asdict(self)}
 
 
 @dataclass(frozen=True)
@@ -351,7 +350,4 @@ class ParamsReply:
 
     def to_json(self) -> dict[str, Any]:
         """The reply's JSON object, ``"ok": true`` first."""
-        return {"ok": True, "twin": self.twin, "optic": self.optic, "params": self.params,
-                "filters": {d: vars(m) for d, m in self.filters.items()},
-                "watchdog": self.watchdog,
-                "effect": None if self.effect is None else self.effect.to_json()}
+        return {"ok": True, **asdict(self)}

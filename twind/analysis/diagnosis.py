@@ -362,8 +362,7 @@ class Diagnosis:
         """`effect`'s `param` and its standard error (None: undetermined): from the final
         model when the effect was chosen, else from its fit at the first step (what the
         measurement allows of it); None when it was not fitted."""
-        chosen = [e for e in self.effects if e.rival_of is None]
-        for fit_ in [*chosen, *self.first_step]:
+        for fit_ in [*self.chosen, *self.first_step]:
             if fit_.effect == effect:
                 values, sigma = fit_.values()
                 return values[param], sigma[param]

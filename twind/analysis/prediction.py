@@ -80,11 +80,10 @@ def fit_curves(tfs: TFSet, cfg: OpticConfig, result: FitResult,
     -------
     FitCurves
     """
-    used = FitData.from_tfset(tfs, result.min_coherence).mask
+    used = FitData.from_tfset(tfs, result.min_coherence).mask  # FitError if no bin is used
     f_used = tfs.frequency_hz[used.any(axis=(1, 2))]
-    if f_used.size:
-        used = used[(tfs.frequency_hz >= f_used[0]) & (tfs.frequency_hz <= f_used[-1])]
-        tfs = tfs.band(f_used[0], f_used[-1])
+    used = used[(tfs.frequency_hz >= f_used[0]) & (tfs.frequency_hz <= f_used[-1])]
+    tfs = tfs.band(f_used[0], f_used[-1])
     data = FitData.from_tfset(tfs, min_coherence=0.0)
     used &= data.mask  # the band's edges: a neighbour-averaged coherence cut short there
 
@@ -94,9 +93,7 @@ def fit_curves(tfs: TFSet, cfg: OpticConfig, result: FitResult,
 
     model = f"nominal + {result.effect}" if result.effect else "nominal"
     start = "nominal, refitted" if baseline else "configuration (the fit's start)"
-    rows = [tfs.responses.index(r) for r in data.responses]
-    cols = [tfs.excited.index(e) for e in data.excited]
     return FitCurves(result.optic, model, result.chi2_nu, data.frequency_hz,
                      list(data.responses), list(data.excited), data.H, data.sigma, used,
-                     tfs.coherence["IN1"][:, rows][:, :, cols],
+                     tfs.coherence["IN1"],  # FitData keeps tfs's rows and columns
                      {start: curve(baseline), f"{model}, fitted": curve(result)}, tfs.caption())

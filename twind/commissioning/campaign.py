@@ -29,7 +29,7 @@ from twind.analysis.identification.params import FIT_PARAMS, with_params
 from twind.analysis.identification.result import FitResult
 from twind.bus.keys import data_key
 from twind.bus.session import zenoh_config
-from twind.channels import dof_channel
+from twind.channels import TEST_POINTS, dof_channel
 from twind.client import TwinClient
 from twind.config import OpticConfig
 from twind.errors import TwindError
@@ -135,7 +135,7 @@ class BusTwin:
         self.rounds += 1
         path = self.workdir / f"{self.optic}-round{self.rounds}.mcap"
         keys = [data_key(dof_channel(self.ifo, self.optic, d, p))
-                for d in DOFS for p in ("EXC", "IN1", "IN2", "OUT")]
+                for d in DOFS for p in TEST_POINTS]
         n = int(round((SETTLE_S + averages * design.period_s) * rate))
         with Recorder(zenoh_config(connect=self.connect, mode="client"), path, keys,
                       ifo=self.ifo, log=lambda line: None):

@@ -70,7 +70,7 @@ def run_demo(cfg: OpticConfig, out: str | Path, effect: str = "actuator_pole", s
                            seed=seed + 1, plant=run)
         tfs = from_session([path], bw=ROUTE_BW["mcap"], settle_s=SETTLE_S)
         d = diagnose(tfs, cfg, input_matrix=recorded_input_matrix([path], cfg))
-        write_report(d, d.curves(tfs, cfg), tfs, out / name, [path])
+        write_report(d, d.curves(tfs, d.read_through(cfg)), tfs, out / name, [path])
         say(f"{name}: " + "\n  ".join(d.lines()))
         say(f"{name}: report in {out / name}/index.html")
         results.append(d)

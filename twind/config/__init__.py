@@ -104,18 +104,20 @@ class OpticConfig:
     def mechanics(self) -> Mechanics:
         """Dynamics of the configured model: the rigid body, with its wires' violin modes
         when ``[suspension.wire] violin_modes`` asks for them."""
-        if self.model == "geometric":
-            model = geometric_model(WireGeometry.from_params(self.sus))
-            return with_violin_modes(model.mechanics, wire_segments(model), self.sus.wire)
-        mech = analytical_mechanics(self.sus)
-        return with_violin_modes(mech, sos_segments(self.sus, mech.dofs), self.sus.wire)
+        return with_violin_modes(*self._rigid(), self.sus.wire)
 
     def wire_segments(self) -> list[Segment]:
         """The wire segments of the configured model, with their own tensions and lengths
         (what the violin modes' frequencies follow, whether or not the model keeps them)."""
+        return self._rigid()[1]
+
+    def _rigid(self) -> tuple[Mechanics, list[Segment]]:
+        """The rigid body's dynamics and its wire segments, of the one model configured."""
         if self.model == "geometric":
-            return wire_segments(geometric_model(WireGeometry.from_params(self.sus)))
-        return sos_segments(self.sus, analytical_mechanics(self.sus).dofs)
+            model = geometric_model(WireGeometry.from_params(self.sus))
+            return model.mechanics, wire_segments(model)
+        mech = analytical_mechanics(self.sus)
+        return mech, sos_segments(self.sus, mech.dofs)
 
     def plant(self, sus: SOSParams | None = None) -> Plant:
         """The optic's plant (with other suspension parameters `sus`, if given) behind its

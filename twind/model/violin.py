@@ -29,7 +29,7 @@ The suspension point's motion drives the strings only through the optic here.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -357,7 +357,7 @@ class PairWeighing:
 
     def to_json(self) -> dict:
         """``violin_pair`` of ``twind diagnose --json``."""
-        return {**self.reading.__dict__, "fitted_delta_m": self.fitted_delta_m,
+        return {**asdict(self.reading), "fitted_delta_m": self.fitted_delta_m,
                 "fitted_sigma_m": self.fitted_sigma_m, "verdict": self.verdict}
 
 

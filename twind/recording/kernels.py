@@ -67,8 +67,6 @@ def _f8(buf: NDArray[np.uint8], i: int) -> float:
     return buf[i:i + 8].copy().view(np.float64)[0]
 
 
-_NO_I = np.empty((6, 0), np.int64)
-_NO_F = np.empty((2, 0), np.float64)
 
 
 @nb.njit(cache=True, nogil=True)

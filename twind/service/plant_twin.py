@@ -65,18 +65,14 @@ class PlantTwinService(TwinService):
         drive = {self.points[p]: samples for (_, p), samples in (exc or {}).items()}
         self._publish(self.engine.step(self.n, drive))
 
-    def _test_point(self, channel: str) -> tuple[int, int]:
-        """``(0, index)`` of EXC point `channel`."""
+    def _test_point(self, channel: str) -> tuple[int, int, Limits]:
+        """``(0, index, limits)`` of EXC point `channel`: each has the ``_EXC`` limits."""
         optic = self.optics[0]
         names = [optic.channel(p) for p in self.points]
         if channel not in names:
             msg = f"unknown excitation channel {channel!r}; e.g. {names[0]}"
             raise TwindError(msg)
-        return 0, names.index(channel)
-
-    def _limits(self, point: int) -> Limits:
-        """Every EXC point of a state-space optic has the ``_EXC`` limits."""
-        return self.limits
+        return 0, names.index(channel), self.limits
 
     def _watchdogs(self) -> dict[str, str]:
         """A state-space optic has none."""

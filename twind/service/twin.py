@@ -18,7 +18,7 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -58,7 +58,7 @@ class Active:
     id: str
     request: ExcitationRequest
     optic: int
-    point: int  # Twin._test_point's
+    point: Hashable  # which test point of the optic (Twin._test_point)
     start_sample: int
     waveform: object = field(repr=False)
     received: float = 0.0  # monotonic time the request was taken up
@@ -133,7 +133,7 @@ class TwinService:
         self.stats = Stats()
         self._lock = threading.Lock()
         self._params_lock = threading.Lock()  # one parameter change at a time
-        self._effects: dict[str, tuple[str, dict]] = {}  # physics pushed in beyond nominal
+        self._effects: dict[str, EffectChange] = {}  # physics pushed in beyond nominal
         self._changes: collections.deque[float] = collections.deque()  # their times
         self._active: dict[str, Active] = {}
         self._unpublished: dict[str, Active] = {}  # accepted, first sample not yet published
@@ -181,12 +181,13 @@ class TwinService:
     def _advance(self, exc: dict[tuple[int, int], np.ndarray] | None) -> None:
         """Compute the next block into the channels' views, with the excitations `exc` (by
         optic and test point, :meth:`_test_point`; under the lock)."""
-        damping = lsc = None
-        if exc is not None:
-            damping, lsc = np.zeros((2, len(self.optics), len(DOFS), self.n))
-            for (o, p), samples in exc.items():
-                (damping, lsc)[p // len(DOFS)][o, p % len(DOFS)] = samples
-        self._watch(self.engine.step(self.n, exc=damping, lsc=lsc, out=self._buf))
+        drives: dict[int, np.ndarray] = {}  # 0: the damping EXC, 1: past the filters
+        for (o, (kind, d)), samples in (exc or {}).items():
+            if kind not in drives:
+                drives[kind] = np.zeros((len(self.optics), len(DOFS), self.n))
+            drives[kind][o, d] = samples
+        self._watch(self.engine.step(self.n, exc=drives.get(0), lsc=drives.get(1),
+                                     out=self._buf))
 
     def _watchdogs(self) -> dict[str, str]:
         """Each optic's watchdog, as ``status`` reports it."""
@@ -382,14 +383,14 @@ class TwinService:
         received = time.monotonic() if received is None else received
         try:
             req = ExcitationRequest.from_json(request)
-            optic, point = self._test_point(req.channel)
+            optic, point, limits = self._test_point(req.channel)
         except (ExcitationError, TwindError) as err:  # maybe another twin's channel: no event
             return {"ok": False, "accepted": False, "reason": _cut(str(err))}
         if req.waveform != "stream" and req.amp == 0:
             return {"ok": False, "accepted": False, "reason": "amp: 0 excites nothing, and "
                     "would hold one of the test point's slots"}
         try:
-            check(req, self._room_left(optic, point), self.rate)
+            check(req, self._room_left(optic, point, limits), self.rate)
         except ExcitationError as err:
             reason = _cut(str(err))
             self._publish_event("refused", None, request=_summary(req.to_json()), reason=reason)
@@ -437,7 +438,7 @@ class TwinService:
                 f"the end of this service at GPS {self.gps0 + self._end / self.rate:.3f} "
                 "(serve --duration)")
 
-    def _crowded(self, optic: int, point: int, ahead: int) -> str:
+    def _crowded(self, optic: int, point: Hashable, ahead: int) -> str:
         """Why one more excitation, `ahead` samples from now, is too many ("" if not);
         under the lock."""
         limits = self.accepts
@@ -453,19 +454,13 @@ class TwinService:
                     "takes (service.excitations)")
         return ""
 
-    def _limits(self, point: int) -> Limits:
-        """The limits of test point `point` (:meth:`_test_point`): the damping EXC's in um or
-        urad, the drive's past the filters in ct."""
-        return self.drive_limits if point >= len(DOFS) else self.limits
-
-    def _room_left(self, optic: int, point: int) -> Limits:
+    def _room_left(self, optic: int, point: Hashable, limits: Limits) -> Limits:
         """The limits less what the excitations already on that test point use: two
         accepted sines must not add up past the limit."""
         with self._lock:
             on = [a for a in self._active.values() if (a.optic, a.point) == (optic, point)]
         peak = sum(_peak(a.request) for a in on)
         rms = math.sqrt(sum(_rms(a.request) ** 2 for a in on))
-        limits = self._limits(point)
         return Limits(peak=max(0.0, limits.peak - peak),
                       rms=math.sqrt(max(0.0, limits.rms**2 - rms**2)))
 
@@ -504,8 +499,8 @@ class TwinService:
         removes it), kept across later changes of the nominal parameters; ``"watchdog":
         "rearm"`` re-arms a tripped watchdog."""
         req = ParamsRequest.from_json(request)
-        name = self.optics[0].name if req.optic is None else req.optic
-        index = self._optic_index(name)
+        index = self._optic_index(req.optic)
+        name = self.optics[index].name
         if req.rearm:
             with self._lock:
                 if self.engine.tripped(name):
@@ -515,10 +510,9 @@ class TwinService:
             self._rebuild(index, req.set, req.effect)
         modules = {d: ModuleState(m.gain, sorted(m.on), m.limit, m.ramp_s)
                    for d, m in self.engine.loops[index].modules.items()}
-        applied = self._effects.get(name)
         return ParamsReply(self.twin_id, name, asdict(self.optics[index].sus), modules,
                            "tripped" if self.engine.tripped(name) else "armed",
-                           EffectChange(*applied) if applied else None).to_json()
+                           self._effects.get(name)).to_json()
 
     def _count_change(self) -> None:
         """Refuse a change beyond ``service.changes_per_minute`` (under the params lock)."""
@@ -544,11 +538,11 @@ class TwinService:
                 raise TwindError("; ".join(f"{k}: {p}" for k, p in problems))
             applied = self._effects.get(cfg.name)
             if effect is not None:
-                applied = (effect.id, effect.values) if effect.id else None
+                applied = effect if effect.id else None
             new = replace(cfg, sus=sus)
             loop = new.loop()
             if applied:
-                loop.plant = with_effect(loop.plant, sus, *applied)
+                loop.plant = with_effect(loop.plant, sus, applied.id, applied.values)
             loop.modules = self.engine.loops[index].modules  # the filters as they run now
             _check_stable(loop, self.rate)
             with self._lock:
@@ -567,8 +561,8 @@ class TwinService:
         """Switch a stage (``fm``, ``on``) or ramp a gain (``gain``, ``ramp``) of a module;
         refused, with the reason, unless the damping loop stays stable with the change."""
         change = FilterRequest.from_json(request)
-        optic = self.optics[0].name if change.optic is None else change.optic
-        index = self._optic_index(optic)
+        index = self._optic_index(change.optic)
+        optic = self.optics[index].name
         with self._params_lock:
             self._count_change()
             loop = self.engine.loops[index]
@@ -586,23 +580,27 @@ class TwinService:
         return self.params({"optic": optic})
 
     # ---------------------------------------------------------------------------- helpers
-    def _optic_index(self, name: str) -> int:
+    def _optic_index(self, name: str | None) -> int:
+        """The index of optic `name`; the first optic's when None."""
+        if name is None:
+            return 0
         names = [o.name for o in self.optics]
         if name not in names:
             msg = f"unknown optic {name!r}; this twin runs {', '.join(names)}"
             raise TwindError(msg)
         return names.index(name)
 
-    def _test_point(self, channel: str) -> tuple[int, int]:
-        """``(optic, point)`` of an EXC channel: point ``d`` is DOF ``d``'s damping EXC,
-        ``4 + d`` its excitation past the damping filters (:func:`drive_channel`)."""
+    def _test_point(self, channel: str) -> tuple[int, Hashable, Limits]:
+        """``(optic, point, limits)`` of an EXC channel: point ``(0, d)`` is DOF ``d``'s
+        damping EXC (um or urad), ``(1, d)`` its excitation past the damping filters
+        (:func:`drive_channel`, ct)."""
         ifo = self.twin.ifo
         for o, optic in enumerate(self.optics):
             for d, dof in enumerate(DOFS):
                 if channel == dof_channel(ifo, optic.name, dof, "EXC"):
-                    return o, d
+                    return o, (0, d), self.limits
                 if dof in DRIVE_POINTS and channel == drive_channel(ifo, optic.name, dof):
-                    return o, len(DOFS) + d
+                    return o, (1, d), self.drive_limits
         first = self.optics[0].name
         msg = (f"unknown excitation channel {channel!r}; e.g. "
                f"{dof_channel(ifo, first, 'POS', 'EXC')} or {drive_channel(ifo, first, 'POS')}")

@@ -390,10 +390,13 @@ def plot_violin_lines(report, path: str | Path,  # noqa: ANN001 - a LineReport
     fig = Figure(figsize=(13 if spectra else 11, 1 + 3.2 * max(1, len(lines))),
                  layout="constrained")
     grid = fig.add_gridspec(max(1, len(lines)), 3 if spectra else 1)
+    psd: dict[str, tuple[NDArray, NDArray]] = {}  # per reading, once
     for k, line in enumerate(lines):
         if spectra:
-            _line_spectrum(fig.add_subplot(grid[k, 0]), line, sen[OSEMS.index(line.reading)],
-                           rate_hz)
+            if line.reading not in psd:
+                psd[line.reading] = signal.welch(sen[OSEMS.index(line.reading)], fs=rate_hz,
+                                                 nperseg=int(round(rate_hz)))
+            _line_spectrum(fig.add_subplot(grid[k, 0]), line, *psd[line.reading])
         ax = fig.add_subplot(grid[k, 1:] if spectra else grid[k, 0])
         t = line.times_s
         ax.semilogy(t, np.abs(line.segments), ".", ms=2, label=f"|amplitude| in {line.reading}")
@@ -416,9 +419,9 @@ def plot_violin_lines(report, path: str | Path,  # noqa: ANN001 - a LineReport
     return path
 
 
-def _line_spectrum(ax: Axes, line, x: NDArray[np.float64], rate_hz: float) -> None:  # noqa: ANN001
-    """The ASD of reading `x` within 10 Hz of `line`, at the line finder's resolution."""
-    f, p = signal.welch(x, fs=rate_hz, nperseg=int(round(rate_hz)))
+def _line_spectrum(ax: Axes, line, f: NDArray, p: NDArray) -> None:  # noqa: ANN001
+    """The ASD `p` (at frequencies `f`, 1 Hz bins as the lines were found) within 10 Hz of
+    `line`."""
     keep = np.abs(f - line.frequency_hz) <= 10.0
     ax.semilogy(f[keep], np.sqrt(p[keep]), lw=0.8)
     ax.axvline(line.frequency_hz, color="r", lw=0.6, ls=":")

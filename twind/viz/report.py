@@ -259,5 +259,6 @@ def _write_rrd(fits: Mapping[str, FitCurves], path: Path, title: str) -> None:
                 resid = np.abs(fit.H[:, i, j] - pred[:, i, j]) / fit.sigma[:, i, j]
                 series[f"{base}/{label}_db"] = (f[used], 20 * np.log10(np.abs(pred[used, i, j])))
                 series[f"{base}/{label}_residual_sigma"] = (f[used], resid[used])
-                series[f"{base}/measured_db"] = (f[used], 20 * np.log10(np.abs(fit.H[used, i, j])))
+                series.setdefault(f"{base}/measured_db",
+                                  (f[used], 20 * np.log10(np.abs(fit.H[used, i, j]))))
     write_spectra_rrd(path, title, series)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -217,8 +217,11 @@ def _ringing(x: NDArray[np.float64], rate_hz: float, f0: float, floor: float,
     nseg = int(round(SEGMENT_S * rate_hz))
     m = x.size // nseg
     window = np.hanning(nseg)
-    z = x[:m * nseg] * np.exp(-2j * np.pi * f0 * np.arange(m * nseg) / rate_hz)
-    a = 2 * (z.reshape(m, nseg) * window).sum(axis=1) / window.sum()
+    # segment k's sum of w x exp(-2 pi i f0 t): its own phasor times the first segment's
+    kernel = window * np.exp(-2j * np.pi * f0 * np.arange(nseg) / rate_hz)
+    a = (x[:m * nseg].reshape(m, nseg) @ kernel) * np.exp(-2j * np.pi * f0 * nseg / rate_hz
+                                                         * np.arange(m))
+    a *= 2 / window.sum()
     # white noise of density S gives E|a|^2 = 2 S rate sum(w^2) / sum(w)^2
     noise = math.sqrt(2 * floor * rate_hz * (window**2).sum()) / window.sum()
     if np.count_nonzero(np.abs(a) > SNR * noise) < 5:
@@ -338,7 +341,7 @@ class LineReport:
         return {"found": [named(line) for line in self.found],
                 "model": [{"segment": s, "n": n, "frequency_hz": f, "q": q}
                           for s, n, f, q in self.model],
-                "pair": None if self.pair is None else self.pair.__dict__}
+                "pair": None if self.pair is None else asdict(self.pair)}
 
 
 def violin_lines(optic: OpticConfig, sen: NDArray[np.float64], rate_hz: float) -> LineReport:
