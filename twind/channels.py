@@ -40,6 +40,9 @@ def parse_dof_channel(channel: str) -> tuple[str, str, str, str] | None:
 POINT_NAME = re.compile(r"^(?P<ifo>[A-Za-z0-9]+):(?P<system>[A-Za-z0-9]+)-(?P<optic>[A-Za-z0-9]+)_"
                         r"(?P<suffix>\w+)$")
 """Any CDS test point's name: interferometer, system, optic, and what follows the optic."""
+STORED = "_DQ"
+"""What the data system appends to a test point it stores (``K1:VIS-PR3_IM_DAMP_L_IN1_DQ``,
+``..._TM_OPLEV_PIT_DIAG_DQ``): a file saved from stored data names the test point so."""
 
 
 @dataclass(frozen=True)
@@ -71,19 +74,23 @@ class Convention:
         return f"{self.ifo}:{self.system}-{optic}_{suffix}"
 
     def parse(self, name: str) -> tuple[str, str] | None:
-        """``(optic, suffix)`` of a channel of this site and system, else None.
+        """``(optic, suffix)`` of a channel of this site and system, else None; a stored
+        channel (a final :data:`STORED`) is read as the test point it stores, since a file
+        saved from the data system names its readbacks so.
 
         Examples
         --------
         >>> Convention("K1", "VIS").parse("K1:VIS-SRM_TM_TEST_P_EXC")
         ('SRM', 'TM_TEST_P_EXC')
+        >>> Convention("K1", "VIS").parse("K1:VIS-PR3_IM_DAMP_L_IN1_DQ")
+        ('PR3', 'IM_DAMP_L_IN1')
         >>> Convention("K1", "VIS").parse("C1:SUS-ETMX_SUSPOS_IN1") is None
         True
         """
         m = POINT_NAME.match(name)
         if not m or m["ifo"] != self.ifo or m["system"] != self.system:
             return None
-        return m["optic"], m["suffix"]
+        return m["optic"], m["suffix"].removesuffix(STORED)
 
 
 C1 = Convention("C1", "SUS")

@@ -1,4 +1,5 @@
-"""``twind model response``, ``twind model compare`` and ``twind simulate``."""
+"""``twind model response``, ``twind model compare``, ``twind model config`` and
+``twind simulate``."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from twind.channels import block_channels
 from twind.cli import plant as statespace
 from twind.cli.options import shown
 from twind.config import default_optic, load_config
+from twind.config.draft import DC_HZ, Draft, write_config
 from twind.errors import TwindError
 from twind.model.compare import compare_models
 from twind.model.violin import violin_modes
@@ -89,6 +91,34 @@ def _optic(args: argparse.Namespace):  # noqa: ANN202 - OpticConfig or StateSpac
     """The optic ``--optic`` names (default: the file's only one, else ETMX)."""
     name = args.optic or default_optic(args.config)
     return load_config(args.config, [name]).optics[name]
+
+
+def cmd_model_config(args: argparse.Namespace) -> int:
+    """A starting configuration of an optic from its state-space model's names; what it
+    maps, what it could not, and the DC check of each drive's collocated readback."""
+    draft = write_config(args.model, args.optic, args.output, naming=args.naming,
+                         ifo=args.ifo, system=args.system)
+    print("\n".join(_draft_lines(draft, args.output)))
+    return 0
+
+
+def _draft_lines(draft: Draft, output: str) -> list[str]:
+    """A person's summary of a written configuration."""
+    out = [f"wrote {output}: {len(draft.drives)} drives, {len(draft.readbacks)} readbacks, "
+           f"{len(draft.shapes)} DOFs labelling modes, {len(draft.loops)} damping loops "
+           "(their controllers twind's), each line commented with the model's signal and "
+           f"the rule of {draft.naming.site}'s naming that made it",
+           f"check the mapping: each drive, its collocated readback and the model's response "
+           f"there at {DC_HZ:g} Hz. {draft.naming.check}"]
+    width = max(len(c.drive) for c in draft.checks) if draft.checks else 0
+    for c in draft.checks:
+        out.append(f"  {c.drive:{width}s} -> {c.readback:22s} {c.response:10.3g}   "
+                   f"({c.input} -> {c.output})")
+    out.append(f"not mapped (no rule names them): inputs {', '.join(draft.unmapped_inputs) or 'none'}")
+    out.append(f"  outputs {', '.join(draft.unmapped_outputs) or 'none'}")
+    out.append(f"next: twind model response --config {output}  (the modes, labelled), then "
+               f"twind diagnose --config {output} FILES")
+    return out
 
 
 def cmd_model_compare(args: argparse.Namespace) -> int:

@@ -10,6 +10,8 @@ The file (``twind/configs/kagra/SRM.toml`` is one)::
     [channels]            # the site's names: <ifo>:<system>-<OPTIC>_<suffix>
     ifo = "K1"
     system = "VIS"
+    naming = "naming.toml" # optional: the site's naming rules (twind.config.naming), by
+                           # default the table twind ships for the ifo (KAGRA's for K1)
 
     [statespace]
     file = "SRM_safe.mat" # beside this file: a .mat struct (a, b, c, d, names) or bare A..D
@@ -41,6 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from twind.channels import Convention
+from twind.config.naming import Naming, default_naming, existing_table, load_naming
 from twind.config.reader import (
     ModuleConfig,
     Reader,
@@ -102,6 +105,9 @@ class StateSpaceOptic:
         Where the model comes from, as the file says.
     source : str
         The configuration file.
+    naming : Naming or None
+        The site's naming rules, which guess the line a configuration lacks for a point a
+        file holds (:mod:`twind.config.naming`).
     """
 
     name: str
@@ -114,6 +120,7 @@ class StateSpaceOptic:
     rate_hz: float = 16384.0
     model_source: str = ""
     source: str = "<defaults>"
+    naming: Naming | None = None
 
     kind = "statespace"
 
@@ -179,8 +186,9 @@ def load_statespace_optic(r: Reader, name: str) -> StateSpaceOptic:
     """
     r.only(["optic", "channels", "statespace", "drives", "readbacks", "damping"])
     channels = r.sub("channels")
-    channels.only(["ifo", "system"])
+    channels.only(["ifo", "system", "naming"])
     convention = Convention(channels.get("ifo", _name), channels.get("system", _name))
+    naming = _naming(channels, convention.ifo)
     spec = r.sub("statespace")
     spec.only(["file", "variable", "source", "rate", "shapes"])
     model = _model(spec)
@@ -190,7 +198,7 @@ def load_statespace_optic(r: Reader, name: str) -> StateSpaceOptic:
     shapes = _shapes(spec.sub("shapes", required=False), model)
     loops = _loops(r.sub("damping", required=False), model, readbacks, rate)
     return StateSpaceOptic(name, convention, model, drives, readbacks, loops, shapes, rate,
-                           spec.get("source", str, ""), r.source)
+                           spec.get("source", str, ""), r.source, naming)
 
 
 def _name(v: object) -> str:
@@ -198,6 +206,16 @@ def _name(v: object) -> str:
         msg = f"expected letters and digits, e.g. \"K1\", got {v!r}"
         raise ValueError(msg)
     return v
+
+
+def _naming(channels: Reader, ifo: str) -> Naming | None:
+    """The naming table ``naming`` names (relative to the configuration file), else the one
+    twind ships for `ifo`."""
+    file = channels.get("naming", str, None)
+    if file is None:
+        return default_naming(ifo)
+    return load_naming(existing_table(channels.source, channels.key("naming"),
+                                      Path(channels.source).parent / file))
 
 
 def _model(spec: Reader) -> StateSpace:

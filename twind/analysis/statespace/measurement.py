@@ -17,6 +17,7 @@ conservative).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,7 @@ from numpy.typing import NDArray
 from twind.analysis.estimation.diaggui import Transfer, read_transfers
 from twind.analysis.estimation.tfset import TFError, coherence_floor
 from twind.analysis.identification.data import MIN_COHERENCE, SURE_COHERENCE, smoothed
+from twind.config.naming import UnmappedReadbackWarning, guessed_from, missing_line
 from twind.config.statespace import StateSpaceOptic
 
 
@@ -253,15 +255,41 @@ def _by_suffix(path: str | Path, transfers: list[Transfer], optic: StateSpaceOpt
         raise TFError(msg)
     drive = ours[0]
     if drive not in optic.drives and drive not in optic.loops:
-        msg = (f"{path}: {optic.channel(drive + '_EXC')} is not a drive of {optic.source}; "
-               f"its drives are {', '.join([*optic.drives, *optic.loops])}")
-        raise TFError(msg)
+        raise TFError(_not_a_drive(path, drive, optic))
     by = {}
     for t in transfers:
         a, b = optic.convention.parse(t.denominator), optic.convention.parse(t.numerator)
         if a == (optic.name, f"{drive}_EXC") and b and b[0] == optic.name:
             by[b[1]] = t
+    _note_unmapped(path, by, optic)
     return drive, by
+
+
+def _not_a_drive(path: str | Path, drive: str, optic: StateSpaceOptic) -> str:
+    """The refusal of a file exciting a point the configuration lacks, with the line to add
+    (the model input guessed by the site's naming where it can)."""
+    head = (f"{path}: {optic.channel(drive + '_EXC')} is not a drive of "
+            f"{Path(optic.source).name}: add ")
+    line = missing_line(optic.naming, "drives", drive, optic.model)
+    if line:
+        return f"{head}{line} to its [drives] (the model input {guessed_from(optic.naming)})"
+    return (f'{head}{drive} = "MODEL INPUT" to its [drives], naming the model input it '
+            f"drives; its drives are {', '.join([*optic.drives, *optic.loops])}")
+
+
+def _note_unmapped(path: str | Path, by: Mapping[str, Transfer], optic: StateSpaceOptic
+                   ) -> None:
+    """A note (:class:`~twind.config.naming.UnmappedReadbackWarning`) for each channel of
+    the file the configuration does not read but the site's naming maps to a model output,
+    with the line that would read it."""
+    for suffix in by:
+        line = None if suffix in optic.readbacks else missing_line(
+            optic.naming, "readbacks", suffix, optic.model)
+        if line:
+            warnings.warn(f"{path}: {optic.channel(suffix)} is not a readback of "
+                          f"{Path(optic.source).name}, left out: add {line} to its "
+                          f"[readbacks] (the model output {guessed_from(optic.naming)})",
+                          UnmappedReadbackWarning, stacklevel=4)
 
 
 def _column(path: str | Path, drive: str, by: Mapping[str, Transfer], optic: StateSpaceOptic
