@@ -210,6 +210,9 @@ def test_kagra_srm_the_ip_mode_moved_and_im_v_reads_im_p(srm) -> None:  # noqa: 
     found = 4.92016 * math.exp(d.final.own(pitch.effect)["log_f"])
     i = plant.readbacks.index("IM_DAMP_P_IN1")
     assert found == pytest.approx(peak(plant.frequency_hz, plant.H[:, i, 0], 4.18), rel=0.02)
+    # one drive: the mode's amplitude and IM P's calibration reach the data as a product
+    assert d.traded(pitch, d.final)["amplitude"][0] == "calibration IM_DAMP_P_IN1"
+    assert "trades against the calibration IM_DAMP_P_IN1" in d.describe(pitch)
     cross = [c for c in d.chosen if c.effect.family == "cross_coupling"]
     assert any(plant.readbacks[c.effect.target[0]] == "IM_DAMP_V_IN1" for c in cross)
     assert d.nominal.chi2_nu / d.final.chi2_nu > 2

@@ -13,6 +13,7 @@ from twind.cli.options import (
     TF_RESULTS,
     bus_arguments,
     count,
+    existing,
     fraction,
     frequency,
     input_arguments,
@@ -23,7 +24,7 @@ from twind.cli.options import (
 )
 
 BENCH_SUITES = ("engine", "tf", "pull", "information", "diagnose", "rates", "freeswing",
-                "statespace", "commands")
+                "statespace", "commands", "kagra", "cases")
 """``twind bench --suite``: what each measures is in ``--help``."""
 
 BENCH_PROGRESS = {"tf": "segment", "pull": "evaluation", "information": "evaluation",
@@ -58,6 +59,25 @@ def _compare(p: argparse.ArgumentParser) -> None:
     p.add_argument("--optic", help="the optic (default: the file's only one, else ETMX)")
     p.add_argument("-o", "--output", default="geometric_vs_analytical.png",
                    help="PNG of both models' responses (default geometric_vs_analytical.png)")
+
+
+def _model_config(p: argparse.ArgumentParser) -> None:
+    """Arguments of ``twind model config``."""
+    p.add_argument("model", type=existing,
+                   help="the optic's state-space model (.mat: a struct a, b, c, d with "
+                        "InputName and OutputName, or bare A..D)")
+    p.add_argument("--optic", required=True, help="the optic's name in its channels, e.g. PR3")
+    p.add_argument("--ifo", help="the channels' interferometer prefix (default: the naming "
+                                 "table's, K1 for KAGRA's)")
+    p.add_argument("--system", help="the channels' system (default: the naming table's, VIS "
+                                    "for KAGRA's)")
+    p.add_argument("--naming", type=existing,
+                   help="a naming table: rules from test points to the model's names "
+                        "(default: the one twind ships for --ifo, "
+                        "twind/configs/kagra/naming.toml)")
+    p.add_argument("-o", "--output", type=new_file(".toml"), required=True,
+                   help="the configuration to write (never over a file); the model is named "
+                        "relative to it, not copied")
 
 
 def _simulate(p: argparse.ArgumentParser) -> None:
@@ -393,7 +413,12 @@ def _bench(p: argparse.ArgumentParser) -> None:
                         "nulls and moved modes measured open and closed loop (--nulls, "
                         "default 6, --per-effect: moved modes, default 4); commands: "
                         "--help, a refused input and inject, timed from process start "
-                        "(--realisations runs each, default 5)")
+                        "(--realisations runs each, default 5); kagra: twind diagnose on "
+                        "KAGRA's real files in tests/data/kagra, scored against their "
+                        "independent reference (--optic: comma-separated file names); "
+                        "cases: realistic KAGRA cases made from the models and scored "
+                        "against their truth (--optic, default SRM,PRM,BS; --per-effect: "
+                        "cases per optic and kind, default 1)")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--duration", type=float, default=None,
                    help="engine: simulated seconds per run (default 20); tf: seconds of "
@@ -472,11 +497,15 @@ def _soak(p: argparse.ArgumentParser) -> None:
 
 
 COMMANDS: tuple[Command, ...] = (
-    Command("model", "suspension model responses", subcommands=(
+    Command("model", "suspension model responses; a configuration from a state-space model",
+            subcommands=(
         Command("response", "plant, controller and closed-loop responses", _response,
                 "twind.cli.model:cmd_model_response"),
         Command("compare", "geometric vs analytical model, with a plot", _compare,
-                "twind.cli.model:cmd_model_compare"))),
+                "twind.cli.model:cmd_model_compare"),
+        Command("config", "a starting configuration of an optic from its state-space model's "
+                "names, by the site's naming", _model_config,
+                "twind.cli.model:cmd_model_config"))),
     Command("simulate", "run the twin as fast as possible", _simulate,
             "twind.cli.model:cmd_simulate"),
     Command("serve", "run the twin on Zenoh (embedded session)", _serve,

@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 
 from twind import DOFS
 from twind.config import CONFIG_DIR, load_config, optic_kinds
 from twind.errors import TwindError
-from twind.lab import plant_bench
+from twind.lab import kagra_files, kagra_reference, plant_bench, plant_cases
 from twind.lab.calibration import information_benchmark, pull_test
 from twind.commissioning.concealed import AVERAGES, EXCITED, RMS
 from twind.commissioning.hidden import MADE
@@ -185,10 +186,35 @@ def _bench_commands(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_kagra(args: argparse.Namespace) -> int:
+    """twind diagnose on KAGRA's real measurements shared in tests/data/kagra, scored against
+    the independent reference of each."""
+
+    names = args.optic.split(",") if args.optic else list(kagra_reference.FILES)
+    with tempfile.TemporaryDirectory(prefix="twind-kagra-") as tmp:
+        lines = kagra_files.run(names, args.workdir or tmp,
+                                say=lambda line: print(line, flush=True))
+    print("\n".join(lines))
+    return 0
+
+
+def _bench_cases(args: argparse.Namespace) -> int:
+    """Realistic cases made from KAGRA's models (several modes moved in shapes of their own,
+    a measurement chain no model has), diagnosed and scored against their truth."""
+
+    optics = args.optic.split(",") if args.optic else ["SRM", "PRM", "BS"]
+    with tempfile.TemporaryDirectory(prefix="twind-cases-") as tmp:
+        lines = plant_cases.run(optics, args.per_effect or 1, args.workdir or tmp,
+                                say=lambda line: print(line, flush=True))
+    print("\n".join(lines))
+    return 0
+
+
 SUITES = {"engine": _bench_engine, "tf": _bench_tf, "pull": _bench_pull,
           "information": _bench_information, "diagnose": _bench_diagnose,
           "rates": _bench_rates, "freeswing": _bench_freeswing,
-          "statespace": _bench_statespace, "commands": _bench_commands}
+          "statespace": _bench_statespace, "commands": _bench_commands,
+          "kagra": _bench_kagra, "cases": _bench_cases}
 """The functions of ``twind bench --suite`` (:data:`twind.cli.commands.BENCH_SUITES`)."""
 
 

@@ -9,21 +9,27 @@ alone:
    bins cannot drag (a narrow mode off its frequency): each readback's calibration, a delay
    and a low-pass (:mod:`~twind.analysis.statespace.fit`). Its residuals are searched band
    by band (:func:`~twind.analysis.identification.locate.band_tests`, Holm over all).
-2. Changes are chosen one at a time (forward selection) from the families of
-   :data:`~twind.analysis.statespace.model.FAMILIES`: each of the model's modes in reach of
-   the data moved (its frequency and Q, searched over a factor 1.5 either side) or scaled
-   (0: missing), a mode in no model (searched over the band), a readback that also reads
-   another, a readback's own first-order stage. The members of a family are screened on
-   the residuals (:mod:`~twind.analysis.statespace.search`), the best fitted in full with
-   the calibrations, the delay and the changes chosen before. The evidence is the drop in
-   deviance under the errors' own distribution (Student's t,
-   :class:`~twind.analysis.statespace.fit.Noise`), over the bins' correlation: a likelihood
-   ratio whose p-value pays for the searches (Davies) and for every member and family tried
-   (Bonferroni). The claimed change of highest delta BIC joins, up to :data:`MAX_EFFECTS`;
-   those the later ones made redundant leave. In a closed loop whose other damping loops
-   are closed too, a mode's change is screened and fitted through the whole closed loop:
-   the other loops answer the suspension as changed, and damp and move the mode they see.
-3. What the final model still misses is searched again: ``unexplained``.
+2. The model's modes the data show elsewhere are moved all at once: each visible mode
+   matched, by the shape of its response as well as its frequency, to the peaks the data
+   show over the whole band (:mod:`~twind.analysis.statespace.moves`), each peak given to
+   one mode, those fitted together with the calibrations, and each kept only while the data
+   need it given the others. A real suspension differs from its model in several modes at
+   once; chosen one at a time, a moved mode would be read as a new one beside the old.
+3. Further changes are chosen one at a time (forward selection) from the families of
+   :data:`~twind.analysis.statespace.model.FAMILIES`: a mode moved or scaled (0: missing),
+   a mode in no model (tried near the data's peaks), a readback that also reads another, a
+   drive's flat crosstalk into a readback, a drive that also drives another input of its
+   stage (:mod:`~twind.analysis.statespace.couplings`), a readback's own first-order stage.
+   The members are screened on the residuals (:mod:`~twind.analysis.statespace.search`), the
+   nearest a claim fitted in full with the calibrations, the delay and the changes chosen
+   before. The evidence is the drop in deviance under the errors' own distribution
+   (Student's t, :class:`~twind.analysis.statespace.fit.Noise`), over the bins'
+   correlation: a likelihood ratio whose p-value pays for the searches (Davies) and for
+   every member and family tried (Bonferroni). The claimed change of highest delta BIC
+   joins, up to :data:`MAX_EFFECTS`; those the later ones made redundant leave. In a closed
+   loop whose other damping loops are closed too, a mode's change is screened and fitted
+   through the whole closed loop.
+4. What the final model still misses is searched again: ``unexplained``.
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,16 +47,25 @@ from twind import progress
 from twind.analysis.identification import narrow
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.fit import bin_correlation
-from twind.analysis.identification.model import NARROW_REACH_BINS
 from twind.analysis.identification.narrow import SEARCH_Q
 from twind.analysis.identification.locate import Located, band_tests, significant
 from twind.analysis.identification.params import FitError
-from twind.analysis.statespace.fit import ROBUST_SCALE, Noise, PlantFit, fit_baseline, fit_plant
+from twind.analysis.statespace.couplings import screen as screen_couplings
+from twind.analysis.statespace.fit import (
+    ROBUST_SCALE,
+    Noise,
+    PlantFit,
+    fit_baseline,
+    fit_plant,
+    modelled_entries,
+)
 from twind.analysis.statespace.measurement import PlantSet
-from twind.analysis.statespace.model import Effect, PlantModel, other_loops
-from twind.analysis.statespace.search import Residuals, grid
+from twind.analysis.statespace.model import FAMILIES, Effect, PlantModel, other_loops
+from twind.analysis.statespace.moves import assign, candidates, reach, unheld, unshown
+from twind.analysis.statespace.peaks import Peak, measured_peaks
+from twind.analysis.statespace.report import Claim, PlantDiagnosis
+from twind.analysis.statespace.search import MOST_AMPLITUDE, SHIFT, Residuals, grid
 from twind.config.statespace import StateSpaceOptic
-from twind.model.statespace import ModalForm
 
 ALPHA = 0.01
 """False-alarm probability of claiming a change."""
@@ -60,8 +75,9 @@ EQUIVALENT_LR = 6.0
 MAX_EFFECTS = 6
 """Changes a diagnosis chooses at most: a real suspension may differ from its model in
 several modes."""
-FAMILY_FITS = 2
-"""Members of a family fitted in full at a step (the others ranked out on the residuals)."""
+STEP_FITS = 3
+"""Members fitted in full at a step: those whose screens come nearest a claim, whatever their
+family (the others ranked out on the residuals)."""
 VISIBLE = 1.0
 """A model mode is tried only where its response adds at least this to the data's chi^2 in
 the noise's units: one the data cannot see can be neither moved nor missing."""
@@ -72,264 +88,6 @@ HOPELESS = 0.25
 fitted: its full fit (the calibrations refitted with it) seldom gains that much more."""
 
 
-@dataclass
-class Claim:
-    """One change fitted with the calibrations and the changes chosen before it.
-
-    Attributes
-    ----------
-    effect : Effect
-    fit : PlantFit
-        The fit holding it (once chosen: the final fit).
-    lr, k, p_value, delta_bic
-        Its likelihood ratio over the model without it, the directions it adds, its p-value
-        (searches, members and families paid for) and ``lr - k ln(n)``.
-    members : int
-        Of its family at its step.
-    seen_in : str
-        The element whose chi^2 it lowers most.
-    """
-
-    effect: Effect
-    fit: PlantFit
-    lr: float
-    k: int
-    p_value: float
-    delta_bic: float
-    members: int = 1
-    seen_in: str = ""
-    equivalent: list[str] = field(default_factory=list)
-    rival_of: str | None = None
-    partial: bool = False
-    p_given_others: float | None = None
-    paths: tuple[float, ...] = field(default=(), repr=False)
-    local: tuple[float, float, int] | None = None
-    """chi2/nu of the model and of the final fit over the bins this change moves by more than
-    their error, and how many: where it acts (the whole band's chi2/nu dilutes a change
-    seen in a few bins)."""
-
-
-@dataclass
-class PlantDiagnosis:
-    """What ``twind diagnose`` found on a state-space optic.
-
-    Attributes
-    ----------
-    optic : StateSpaceOptic
-    plant : PlantSet
-        The measurement.
-    data : FitData
-        Its bins fitted.
-    model : PlantModel
-    nominal : PlantFit
-        The model with its calibrations, delay and low-pass fitted.
-    noise : Noise
-        The errors' distribution the likelihood takes.
-    located, unexplained : list of Located
-    effects : list of Claim
-        Chosen (best first), then their rivals.
-    final : PlantFit
-    first_step : dict of str to float
-        Every member fitted at the first step, and its p-value.
-    """
-
-    optic: StateSpaceOptic
-    plant: PlantSet
-    data: FitData
-    model: PlantModel
-    nominal: PlantFit
-    noise: Noise
-    located: list[Located]
-    effects: list[Claim]
-    final: PlantFit
-    unexplained: list[Located]
-    first_step: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def modal(self) -> ModalForm:
-        """The model's modal form between the measured drives and readbacks."""
-        return self.model.modal
-
-    @property
-    def chosen(self) -> list[Claim]:
-        """The changes of the final model, best first."""
-        return [e for e in self.effects if e.rival_of is None]
-
-    @property
-    def consistent(self) -> bool:
-        """True when nothing was located and nothing claimed."""
-        return not self.located and not self.effects
-
-    def describe(self, claim: Claim, fit: PlantFit | None = None) -> str:
-        """A change in words, with its values and sigmas from `fit` (default its own)."""
-        fit = fit or claim.fit
-        e, key = claim.effect, claim.effect.key()
-        own, err = fit.own(e), (lambda p: fit.error(f"{key}.{p}"))
-        if e.family == "mode_frequency":
-            mode = self.modal.modes[e.target[0]]
-            f = mode.f_hz * math.exp(own["log_f"])
-            q = mode.q * math.exp(own["log_q"])
-            sf, sq = (err("log_f") or math.nan) * f, (err("log_q") or math.nan) * q
-            resolved = math.isfinite(sq) and q < f / self.data.resolution_hz
-            qtext = (f"Q {_pm(q, sq, 3)}" if resolved else
-                     f"narrower than the {self.data.resolution_hz:.3g} Hz bins (Q not resolved)")
-            return (f"the model's mode at {mode.describe()} is at {_pm(f, sf, 4)} Hz, {qtext}, "
-                    f"{_pm(own['amplitude'], err('amplitude') or math.nan, 2)} of its amplitude, "
-                    f"in the measurement (seen in {claim.seen_in})")
-        if e.family == "mode_amplitude":
-            mode = self.modal.modes[e.target[0]]
-            a, sa = own["amplitude"], err("amplitude")
-            missing = abs(a) < 2 * (sa or math.inf) and abs(a) < 0.5
-            what = ("is missing from the measurement" if missing
-                    else "has another amplitude in the measurement")
-            return (f"the model's mode at {mode.describe()} {what}: {_pm(a, sa or math.nan, 2)} "
-                    f"of the model's (seen in {claim.seen_in})")
-        if e.family == "resonance":
-            return (f"a mode the model lacks at {_pm(own['f_hz'], err('f_hz') or math.nan, 4)} "
-                    f"Hz, Q {_pm(own['q'], err('q') or math.nan, 3)} (seen in {claim.seen_in})")
-        if e.family == "cross_coupling":
-            r, r2 = (self.plant.readbacks[i] for i in e.target)
-            eps, se = own["epsilon"], err("epsilon")
-            return (f"{r} also reads {_pm(100 * eps, 100 * (se or math.nan), 2)} % of what "
-                    f"{r2} reads")
-        r = self.plant.readbacks[e.target[0]]
-        ip, iz = own["inv_pole_hz"], own["inv_zero_hz"]
-        pole, zero = (f"{1 / x:.3g} Hz" if x > 0 else "none" for x in (ip, iz))
-        lag = 1e3 * (ip - iz) / (2 * math.pi)
-        return (f"{r} has a stage of its own: pole {pole}, zero {zero}; "
-                f"{'a delay' if lag >= 0 else 'an advance'} of {abs(lag):.3g} ms below them")
-
-    def summary(self) -> str:
-        """One line for a person."""
-        chi2 = f"chi2/nu {self.nominal.chi2_nu:.3g} -> {self.final.chi2_nu:.3g}"
-        rest = "; ".join(f"{x.element} near {math.sqrt(x.band_hz[0] * x.band_hz[1]):.3g} Hz"
-                         for x in self.unexplained[:3])
-        if self.consistent:
-            return (f"consistent with the model (chi2/nu {self.nominal.chi2_nu:.3g}, the "
-                    "calibrations, delay and low-pass fitted)")
-        if not self.chosen:
-            return f"no change explains the misfit; it lies in {rest}"
-        names = "; ".join(self.describe(c, self.final) for c in self.chosen)
-        if rest:
-            return f"{names} ({chi2}); a residual remains in {rest}"
-        return f"{names} ({chi2}); nothing remains"
-
-    def modes_table(self) -> list[dict]:
-        """Every model mode within the measured band: the model's frequency, Q and label,
-        and the measurement's where a change was claimed."""
-        f = self.data.frequency_hz[self.data.mask.any(axis=(1, 2))]
-        out = []
-        changed = {c.effect.target[0]: c for c in self.chosen
-                   if c.effect.family in ("mode_frequency", "mode_amplitude")}
-        for m in self.modal.modes:
-            if not f[0] / 1.2 <= m.f_hz <= f[-1] * 1.2:
-                continue
-            row = {"mode": m.index, "f_hz": m.f_hz, "q": m.q, "label": m.label,
-                   "share": m.share, "measured": None}
-            c = changed.get(m.index)
-            if c is not None and c.effect.family == "mode_frequency":
-                own, key = self.final.own(c.effect), c.effect.key()
-                fm, qm = m.f_hz * math.exp(own["log_f"]), m.q * math.exp(own["log_q"])
-                sf, sq = self.final.error(f"{key}.log_f"), self.final.error(f"{key}.log_q")
-                row["measured"] = {"f_hz": fm, "f_hz_sigma": sf and sf * fm, "q": qm,
-                                   "q_sigma": sq and sq * qm, "q_resolved": bool(
-                                       sq and qm < fm / self.data.resolution_hz)}
-            elif c is not None:
-                own = self.final.own(c.effect)
-                row["measured"] = {"amplitude": own["amplitude"], "amplitude_sigma":
-                                   self.final.error(f"{c.effect.key()}.amplitude")}
-            out.append(row)
-        return out
-
-    def nuisance(self) -> dict[str, dict]:
-        """The final fit's calibrations, delay and low-pass, each with its sigma (None: not
-        determined, or held)."""
-        out = {}
-        for name, value in self.final.nuisance.items():
-            out[self._nuisance_name(name)] = {"value": value, "sigma": self.final.error(name)}
-        return out
-
-    def _nuisance_name(self, name: str) -> str:
-        if name.startswith("g_d"):
-            return f"calibration {self.plant.drives[int(name[3:])]}"
-        if name.startswith("g_"):
-            return f"calibration {self.plant.readbacks[int(name[2:])]}"
-        return {"tau_s": "delay_s", "inv_lp_hz": "inv_lowpass_hz",
-                "loops": "other loops' gain (1: as configured)"}.get(name, name)
-
-    def to_json(self) -> dict:
-        """``twind diagnose --json`` of a state-space optic."""
-        return {"optic": self.optic.name, "plant": "statespace",
-                "consistent": self.consistent,
-                "chi2_nu_nominal": self.nominal.chi2_nu, "chi2_nu_final": self.final.chi2_nu,
-                "coherent": self.plant.coherent_bands(),
-                "located": [x.to_json() for x in self.located],
-                "effects": [self._claim_json(c) for c in self.effects],
-                "unexplained": [{"element": x.element, "band_hz": list(x.band_hz)}
-                                for x in self.unexplained],
-                "p_values": self.first_step,
-                "nuisance": self.nuisance(), "modes": self.modes_table(),
-                "summary": self.summary()}
-
-    def _claim_json(self, c: Claim) -> dict:
-        fit = c.fit
-        key = c.effect.key()
-        params = {p: fit.own(c.effect)[p] for p in fit.own(c.effect)}
-        sigma = {p: fit.error(f"{key}.{p}") for p in params}
-        out = {"effect": key, "family": c.effect.family, "params": params, "sigma": sigma,
-               "delta_bic": c.delta_bic, "p_value": c.p_value, "lr": c.lr, "k": c.k,
-               "members": c.members, "seen_in": c.seen_in, "equivalent": c.equivalent,
-               "chi2_nu_where_it_acts": None if c.local is None else
-               {"model": c.local[0], "refitted": c.local[1], "bins": c.local[2]},
-               "rival_of": c.rival_of, "partial": c.partial,
-               "p_given_others": c.p_given_others, "reading": self.describe(c)}
-        if c.effect.family in ("mode_frequency", "mode_amplitude"):
-            m = self.modal.modes[c.effect.target[0]]
-            out["mode"] = {"f_hz": m.f_hz, "q": m.q, "label": m.label, "share": m.share}
-        if c.effect.family == "mode_frequency":
-            own = fit.own(c.effect)
-            out["f_hz"] = self.modal.modes[c.effect.target[0]].f_hz * math.exp(own["log_f"])
-            s = fit.error(f"{key}.log_f")
-            out["f_hz_sigma"] = None if s is None else s * out["f_hz"]
-        return out
-
-    def lines(self) -> list[str]:
-        """A summary for a person."""
-        out = [self.summary(),
-               f"{self.optic.name}: the model with its calibrations, delay and low-pass "
-               f"fitted: chi2/nu {self.nominal.chi2_nu:.3g}; "
-               + ("consistent with the data" if self.consistent else
-                  f"misses in {len(self.located)} band(s)")]
-        out += [x.line(34) for x in self.located[:8]]
-        for c in self.effects:
-            role = f"rival of {c.rival_of}" if c.rival_of else "change" + (
-                " (partial)" if c.partial else "")
-            given = ("" if c.p_given_others is None
-                     else f", p {c.p_given_others:.2g} given the others")
-            where = "" if c.local is None else (
-                f"; chi2/nu {c.local[0]:.3g} -> {c.local[1]:.3g} over the {c.local[2]} bins it "
-                "moves")
-            out.append(f"  {role} {c.effect.key()}: delta BIC {c.delta_bic:.1f}, p "
-                       f"{c.p_value:.2g}{given}{where}")
-            out.append(f"    {self.describe(c)}")
-        nuis = self.nuisance()
-        out.append("  what the measurement adds: " + ", ".join(
-            f"{k} {_pm(v['value'], v['sigma'] or math.nan, 3)}" for k, v in nuis.items()))
-        for x in self.unexplained[:8]:
-            out.append(f"  unexplained: {x.element} {x.band_hz[0]:.3g}-{x.band_hz[1]:.3g} Hz")
-        if not self.consistent:
-            out.append(f"  chi2/nu {self.nominal.chi2_nu:.3g} -> {self.final.chi2_nu:.3g}")
-        return out
-
-
-def _pm(x: float, s: float, digits: int) -> str:
-    """``x +- s`` (``x`` alone when ``s`` is NaN)."""
-    if s is None or not math.isfinite(s):
-        return f"{x:.{digits}g}"
-    return f"{x:.{digits}g} +- {s:.2g}"
-
-
-# ------------------------------------------------------------------------------ the diagnosis
 def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = MAX_EFFECTS
                    ) -> PlantDiagnosis:
     """Diagnose a measured plant against `optic`'s state-space model.
@@ -355,12 +113,28 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
     data, model, free, noise, nominal = base.data, base.model, base.free, base.noise, base.fit
     unit = _unit(nominal, data, noise)
     located = _located(data, model, nominal)
-    model, chosen, rivals, first = _select(data, model, optic, plant, free, nominal, noise,
-                                           unit, max_effects)
+    model, moves, current = _moves(data, model, optic, plant, free, nominal, noise, unit)
+    if moves:  # the noise as the moved modes leave the residuals, not as their misfit did
+        noise = Noise.of(current.residual[modelled_entries(data, base.modelled)],
+                         data.averages)
+        current = fit_plant(data, model, current.nuisance, free, current.effects, noise=noise,
+                            limits=_limits(model, data, current.effects))
+        unit = _unit(current, data, noise)
+        for c in moves:
+            c.fit = current
+    model, chosen, rivals, first = _select(data, model, optic, plant, free, current, noise,
+                                           unit, max_effects, moves)
     if not chosen:
         return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, [], nominal,
                               located, first)
     final_model, final = _prune(data, model, optic, plant, free, chosen, noise, unit)
+    while pinned := {c.effect.key() for c in chosen if _pinned(final, c.effect, final_model)}:
+        # refitted with all the others, their places proved other modes'
+        chosen = [c for c in chosen if c.effect.key() not in pinned]
+        rest = [(e, v) for e, v in final.effects if e.key() not in pinned]
+        final_model = _looped(data, final_model, optic, plant, rest)
+        final = fit_plant(data, final_model, final.nuisance, free, rest, noise=noise,
+                          limits=_limits(final_model, data, rest)) if rest else nominal
     unexplained = _located(data, final_model, final)
     for c in chosen:
         c.fit, c.partial = final, bool(unexplained)
@@ -375,8 +149,7 @@ def _local(data: FitData, nominal_model: PlantModel, model: PlantModel, nominal:
     """chi2/nu of `nominal` (on `nominal_model`) and of `final` (on `model`) over the bins
     where `effect` (at its final values) moves the final prediction by more than the error,
     and their number."""
-    without = [(e, e.start(len(v) - 2) if e.key() == effect.key() else v)
-               for e, v in final.effects]
+    without = [(e, e.null(v) if e.key() == effect.key() else v) for e, v in final.effects]
     with_it = model(final.nuisance, final.effects)
     moved = np.abs(with_it - model(final.nuisance, without)) > data.sigma
     moved &= data.mask
@@ -412,17 +185,116 @@ def _located(data: FitData, model: PlantModel, fit: PlantFit) -> list[Located]:
     return significant(band_tests(data, z, fit.noise_scale**2, inflation))
 
 
+# ------------------------------------------------------------------------------ moved modes
+def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+           free: list[str], nominal: PlantFit, noise: Noise, unit: float
+           ) -> tuple[PlantModel, list[Claim], PlantFit]:
+    """The model's modes the data show elsewhere, all at once: each visible mode tried at
+    the data's peaks (:func:`~twind.analysis.statespace.moves.candidates`), the places
+    given out best first, each mode one and each place one mode
+    (:func:`~twind.analysis.statespace.moves.assign`), those fitted together with the
+    calibrations, then each kept only while the data need it given the others
+    (:func:`_prune`). A real suspension differs from its model in several modes at once:
+    chosen one at a time, the first changes would be fitted against residuals of all the
+    others, and a mode the model has in the wrong place would be read as a new one beside
+    the old.
+
+    Returns
+    -------
+    PlantModel
+        With its other loops' feedback made from the moved modes.
+    list of Claim
+        The moves kept, each with its p-value given the others.
+    PlantFit
+        The fit holding them (`nominal` when none).
+    """
+    res = _residuals(data, model, free, nominal)
+    screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
+    visible = _visible(res, model, [], unit)
+    members = len(visible) * len(FAMILIES)
+    least = HOPELESS * _needed(members, 3)
+    peaks = unheld(res, model, visible, measured_peaks(data))
+    found = []
+    for k in visible:
+        progress.tick()
+        found += candidates(res, model, k, peaks, screen_unit, least)
+    chosen = assign(found, data.resolution_hz)
+    effects = [c.effect(model, data.resolution_hz) for c in chosen]
+    if not effects:
+        return model, [], nominal
+    progress.note(f"{len(effects)} modes moved together")
+    looped = _looped(data, model, optic, plant, effects)
+    fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
+                    limits=_limits(looped, data, effects))
+    pinned = [_pinned(fit, e, looped) for e, _ in effects]
+    if any(pinned):  # those places are other modes'
+        chosen = [c for c, p in zip(chosen, pinned, strict=True) if not p]
+        effects = [e for e, p in zip(effects, pinned, strict=True) if not p]
+        if not effects:
+            return model, [], nominal
+        looped = _looped(data, model, optic, plant, effects)
+        fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
+                        limits=_limits(looped, data, effects))
+    model, fit = _relooped(data, looped, optic, plant, free, fit, noise)
+    claims = [Claim(e, fit, 0.0, 3, 1.0, 0.0, members=members, paths=c.paths)
+              for (e, _), c in zip(effects, chosen, strict=True)]
+    model, fit = _prune(data, model, optic, plant, free, claims, noise, unit, nominal, members)
+    for c in claims:
+        c.fit, c.p_value = fit, c.p_given_others or 0.0
+        c.seen_in = _seen_in(data, nominal, fit)
+    return model, claims, fit
+
+
+def _resonance_places(data: FitData, peaks: Sequence[Peak],
+                      avoid: Sequence[tuple[float, float]]) -> tuple[NDArray[np.float64], float]:
+    """Where a mode in no model is tried: trial frequencies within two widths (and two bins)
+    of each peak the data show, but where a moved mode lies (`avoid`, Hz); and how many
+    times more trials a sweep of the whole band would take."""
+    lo, hi = _band(data)
+    every = grid(lo, hi, SEARCH_Q[-1], data.resolution_hz)
+    near = np.zeros(every.size, dtype=bool)
+    for p in peaks:
+        near |= np.abs(every - p.f_hz) <= 2 * p.width_hz + 2 * data.resolution_hz
+    for a, b in avoid:
+        near &= (every <= a) | (every >= b)
+    return every[near], every.size / max(int(near.sum()), 1)
+
+
+def _residuals(data: FitData, model: PlantModel, free: list[str], fit: PlantFit) -> Residuals:
+    """`fit`'s residuals, for the screens."""
+    return Residuals(data, model, model(fit.nuisance, fit.effects),
+                     model.gain(fit.nuisance, fit.effects),
+                     {r: fit.nuisance[f"g_{r}"] for r in range(data.H.shape[1])
+                      if f"g_{r}" in free})
+
+
+def _visible(res: Residuals, model: PlantModel, taken: Sequence[int], unit: float) -> list[int]:
+    """The model's modes, but `taken`, within :data:`SHIFT` of the coherent band whose
+    response there adds at least :data:`VISIBLE` to the chi^2: one the data cannot see can be
+    neither moved nor missing."""
+    lo, hi = _band(res.data)
+    return [k for k, m in enumerate(model.modal.modes)
+            if k not in taken and lo / SHIFT <= m.f_hz <= SHIFT * hi
+            and res.power(model.closed_term(k)) >= VISIBLE * unit]
+
+
+def _band(data: FitData) -> tuple[float, float]:
+    """The coherent band: the lowest and highest frequency of a bin used."""
+    f = data.frequency_hz[data.mask.any(axis=(1, 2))]
+    return max(float(f[0]), 1e-3), float(f[-1])
+
+
 # ------------------------------------------------------------------------------ selection
 def _select(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
-            free: list[str], nominal: PlantFit, noise: Noise, unit: float, most: int
+            free: list[str], current: PlantFit, noise: Noise, unit: float, most: int,
+            moves: Sequence[Claim] = ()
             ) -> tuple[PlantModel, list[Claim], list[Claim], dict[str, float]]:
-    """Forward selection: the model as the chosen changes leave it (its other loops'
-    feedback), the chosen changes (best first), their rivals, and the p-value of every member
-    fitted at the first step."""
-    chosen: list[Claim] = []
+    """Forward selection from the modes `moves` moved (fitted in `current`): the model as the
+    chosen changes leave it (its other loops' feedback), the chosen changes (best first),
+    their rivals, and the p-value of every member fitted at the first step."""
+    chosen: list[Claim] = list(moves)
     rivals: list[Claim] = []
     first: dict[str, float] = {}
-    current = nominal
     for step in range(most):
         claims = _step(data, model, optic, plant, free, chosen, current, noise, unit)
         if step == 0:
@@ -494,26 +366,57 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
     screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
     families = {name: members for name, members in _screen(res, model, chosen, current,
                                                             screen_unit).items() if members}
+    ranked = sorted(((m, m.drop / _needed(len(members) * len(families), len(m.start)), f)
+                     for f, members in families.items() for m in members),
+                    key=lambda x: -x[1])
     claims: list[Claim] = []
-    for family, members in families.items():
-        ranked = sorted(members, key=lambda x: -x.drop)
-        for m in ranked[:FAMILY_FITS]:
-            if m is not ranked[0] and m.drop < 0.5 * ranked[0].drop:
-                continue  # far behind its family's best: a rival at most, not worth a fit
-            if m.drop < HOPELESS * _needed(len(members) * len(families), len(m.start)):
-                continue
-            progress.note(f"step {len(chosen) + 1}: {m.effect.key()}")
-            if family == "channel_response":
-                m = replace(m, start=_stage_start(data, model, current, m.effect))
-            claim = _try(data, model, optic, plant, free, chosen, m, current, noise, unit)
-            if claim is None:
-                continue
-            if family == "resonance":
-                claim = _narrower(claim, res, model)
-            claim.members = len(members)
-            claim.p_value = min(1.0, claim.p_value * len(members) * len(families))
-            claims.append(claim)
+    for m, margin, family in ranked[:STEP_FITS]:
+        if margin < HOPELESS:
+            break
+        progress.note(f"step {len(chosen) + 1}: {m.effect.key()}")
+        if family == "channel_response":
+            m = replace(m, start=_stage_start(data, model, current, m.effect))
+        claim = _try(data, model, optic, plant, free, chosen, m, current, noise, unit)
+        if claim is None:
+            continue
+        if family == "resonance":
+            claim = _narrower(claim, res, model)
+            moved = _as_moved(data, model, optic, plant, free, chosen, claim, current, noise,
+                              unit, res)
+            claim, family = (claim, family) if moved is None else (moved, "mode_frequency")
+        claim.members = len(families[family])
+        claim.p_value = min(1.0, claim.p_value * claim.members * len(families))
+        claims.append(claim)
     return claims
+
+
+MOVE_TRIES = 2
+"""The model modes, nearest first, a mode in no model is tried as instead."""
+
+
+def _as_moved(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+              free: list[str], chosen: list[Claim], claim: Claim, current: PlantFit,
+              noise: Noise, unit: float, res: Residuals) -> Claim | None:
+    """`claim` (a mode in no model) read as one of the model's modes moved there, when a
+    visible mode the data no longer show where the model has it
+    (:func:`~twind.analysis.statespace.moves.unshown`) explains the data within
+    :data:`EQUIVALENT_LR` of it: the model's own shape is the likelier reading, and fewer
+    parameters. None when none does."""
+    own = claim.fit.own(claim.effect)
+    taken = [c.effect.target[0] for c in chosen
+             if c.effect.family in ("mode_frequency", "mode_amplitude")]
+    visible = _visible(res, model, taken, unit)
+    f, q = own["f_hz"], max(own["q"], MODE_Q[0])
+    for k in unshown(res, model, visible, measured_peaks(data), f)[:MOVE_TRIES]:
+        r = reach(f, q, data.resolution_hz)
+        start = {"log_f": math.log(2 * math.pi * f / model.modal.w[k]),
+                 "log_q": math.log(q / model.modal.q[k]), "amplitude": 1.0}
+        member = _Member(Effect("mode_frequency", (k,), (f - r, f + r)), 0.0, start,
+                         claim.paths)
+        moved = _try(data, model, optic, plant, free, chosen, member, current, noise, unit)
+        if moved is not None and moved.lr >= claim.lr - EQUIVALENT_LR:
+            return moved
+    return None
 
 
 def _narrower(claim: Claim, res: Residuals, model: PlantModel) -> Claim:
@@ -540,48 +443,37 @@ def _needed(tried: int, k: int) -> float:
 def _screen(res: Residuals, model: PlantModel, chosen: list[Claim],
             base: PlantFit, unit: float) -> dict[str, list[_Member]]:
     """Each family's members, screened on the residuals of `base`."""
-    modal = model.modal
+    data = res.data
     taken = {c.effect.target[0] for c in chosen
              if c.effect.family in ("mode_frequency", "mode_amplitude")}
-    f = res.data.frequency_hz[res.data.mask.any(axis=(1, 2))]
-    terms = {k: model.closed_term(k) for k, m in enumerate(modal.modes)
-             if k not in taken and f[0] / 1.5 <= m.f_hz <= 1.5 * f[-1]}
+    peaks = measured_peaks(data)
+    visible = _visible(res, model, taken, unit)
+    free_peaks = unheld(res, model, visible, peaks)
     out: dict[str, list[_Member]] = {"mode_frequency": [], "mode_amplitude": []}
-    for k, term in terms.items():
-        if res.power(term) < VISIBLE * unit:
-            continue
+    for k in visible:
         progress.tick()
-        sweep = res.moved(k, unit)
-        out["mode_frequency"].append(_Member(
-            Effect("mode_frequency", (k,)), sweep.drop,
-            {"log_f": math.log(2 * math.pi * sweep.f_hz / modal.w[k]),
-             "log_q": math.log(sweep.q / modal.q[k]), "amplitude": 1.0}, sweep.paths))
-        drop, coef = res.linear(res.G * term)
+        found = candidates(res, model, k, free_peaks, unit, 0.0)
+        if found:
+            best = max(found, key=lambda c: c.drop)
+            effect, start = best.effect(model, data.resolution_hz)
+            out["mode_frequency"].append(_Member(effect, best.drop, start, best.paths))
+        drop, coef = res.linear(res.G * model.closed_term(k))
         out["mode_amplitude"].append(_Member(Effect("mode_amplitude", (k,)), drop / unit,
                                              {"amplitude": 1.0 + coef}))
     repeat = sum(c.effect.family == "resonance" for c in chosen)
-    sweep = res.resonance(unit, _moved_to(model, base.effects))
+    trials, scale = _resonance_places(data, peaks, _moved_to(model, base.effects))
     nr, nd = res.z.shape[1:]
     out["resonance"] = []
-    if sweep.coefficients is not None:  # None: no trial left outside the moved modes
+    if trials.size:
+        sweep = res.resonance(unit, trials)
         start = {"f_hz": sweep.f_hz, "q": sweep.q,
                  **{f"b{i}": float(b) for i, b in enumerate(sweep.coefficients)}}
         out["resonance"].append(_Member(Effect("resonance", (repeat,)), sweep.drop, start,
-                                        sweep.paths))
-    read = [i for i in range(nr) if res.data.mask[:, i].any()]
-    gains = [i for i in range(nr) if f"g_{i}" in base.names]
-    out["cross_coupling"] = []
-    for r in read:
-        for r2 in gains:
-            if r2 == r:
-                continue
-            column = np.zeros_like(res.z)
-            column[:, r] = res.predicted[:, r2] * res.whitener[:, r]
-            drop, coef = res.linear(column)
-            out["cross_coupling"].append(_Member(Effect("cross_coupling", (r, r2)), drop / unit,
-                                                 {"epsilon": coef}))
+                                        tuple(p * scale for p in sweep.paths)))
+    for family, members in screen_couplings(res, model, base, unit).items():
+        out[family] = [_Member(e, drop, start) for e, drop, start in members]
     out["channel_response"] = []
-    for r in gains:
+    for r in (i for i in range(nr) if f"g_{i}" in base.names):
         column = np.zeros_like(res.z)
         column[:, r] = (1j * res.data.frequency_hz[:, None] * res.predicted[:, r]
                         * res.whitener[:, r])
@@ -595,37 +487,84 @@ def _moved_to(model: PlantModel, effects: Sequence[tuple[Effect, dict]]
               ) -> list[tuple[float, float]]:
     """Where the modes that `effects` move now lie, each widened to three widths or
     :data:`~twind.analysis.identification.model.NARROW_REACH_BINS` bins, whichever is more:
-    a mode in no model found there would be the moved one again."""
+    a mode in no model found there would be the moved one again. Likewise each mode in no
+    model already found, widened to one width: a second there would split the first."""
     out = []
     for effect, own in effects:
+        if effect.family == "resonance":
+            r = max(own["f_hz"] / own["q"], model.res)
+            out.append((own["f_hz"] - r, own["f_hz"] + r))
         if effect.family == "mode_frequency":
             k = effect.target[0]
             f = model.modal.modes[k].f_hz * math.exp(own["log_f"])
             q = model.modal.q[k] * math.exp(own["log_q"])
-            reach = max(3 * f / q, NARROW_REACH_BINS * model.res)
-            out.append((f - reach, f + reach))
+            r = reach(f, q, model.res)
+            out.append((f - r, f + r))
     return out
 
 
 def _limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, dict]]
             ) -> dict[str, tuple[float, float]]:
-    """Each resonance's frequency range: the data's band (a factor 2 beyond), less where a
-    moved mode lies (:func:`_moved_to`), the stretch that holds it."""
-    f = data.frequency_hz[data.mask.any(axis=(1, 2))]
+    """Where each change may go in a fit. A resonance's frequency: inside the coherent band,
+    less where a moved mode lies (:func:`_moved_to`), the stretch that holds it. A moved
+    mode: within its anchor (the stretch of the peak it was found at: a fit refines a place,
+    it does not wander to another mode's), :data:`~twind.analysis.statespace.search.SHIFT`
+    and the band; its Q within :data:`MODE_Q`; its amplitude within
+    :data:`~twind.analysis.statespace.search.MOST_AMPLITUDE` of the model's either way (a
+    mode that needs more is not that mode, or trades against a calibration)."""
+    lo, hi = _band(data)
     avoid = _moved_to(model, effects)
     out = {}
     for effect, own in effects:
+        key = effect.key()
+        if effect.family == "mode_frequency":
+            k = effect.target[0]
+            f0 = model.modal.modes[k].f_hz
+            a, b = effect.anchor or (f0 / SHIFT, f0 * SHIFT)
+            a, b = max(a, lo, f0 / SHIFT), min(b, hi, f0 * SHIFT)
+            if a < b:
+                out[f"{key}.log_f"] = (math.log(a / f0), math.log(b / f0))
+            out[f"{key}.log_q"] = (math.log(MODE_Q[0] / model.modal.q[k]),
+                                   math.log(MODE_Q[1] / model.modal.q[k]))
+            out[f"{key}.amplitude"] = (1 / MOST_AMPLITUDE, MOST_AMPLITUDE)
         if effect.family != "resonance":
             continue
-        lo, hi = max(f[0] / 2, 1e-3), 2 * f[-1]
-        at = own["f_hz"]
-        for a, b in avoid:
-            if b <= at:
-                lo = max(lo, b)
-            elif a >= at:
-                hi = min(hi, a)
-        out[f"{effect.key()}.f_hz"] = (lo, hi)
+        at, a, b = own["f_hz"], lo, hi
+        for x, y in avoid:
+            if y <= at:
+                a = max(a, y)
+            elif x >= at:
+                b = min(b, x)
+        out[f"{key}.f_hz"] = (a, b)
     return out
+
+
+def _pinned(fit: PlantFit, effect: Effect, model: PlantModel,
+            limits: dict[str, tuple[float, float]] | None = None) -> bool:
+    """Whether a moved mode ends at a bound of :func:`_limits`: its amplitude at one (the
+    data want more, or less, of it there than the model's shape of that mode gives) or its
+    frequency within half a bin of its anchor's edge (it left the peak it was found at for
+    a flank). Either way the place is another mode's. Likewise a mode in no model within a
+    bin of the edge of its stretch (`limits`): the coherent band's edge, where a slope of
+    the band is no mode, or a moved mode's place."""
+    if effect.family == "resonance" and limits:
+        a, b = limits.get(f"{effect.key()}.f_hz", (-math.inf, math.inf))
+        f = fit.own(effect)["f_hz"]
+        return min(f - a, b - f) < model.res
+    if effect.family != "mode_frequency":
+        return False
+    own = fit.own(effect)
+    if not 1.01 / MOST_AMPLITUDE < own["amplitude"] < MOST_AMPLITUDE / 1.01:
+        return True
+    if effect.anchor is None:
+        return False
+    f = model.modal.modes[effect.target[0]].f_hz * math.exp(own["log_f"])
+    return min(abs(f - x) for x in effect.anchor) < 0.5 * model.res
+
+
+MODE_Q = (3.0, 1e7)
+"""A moved mode's Q: below 3 a peak is wider than a third of its frequency, a slope of the
+band no data resolve as that mode."""
 
 
 def _stage_start(data: FitData, model: PlantModel, base: PlantFit, effect: Effect
@@ -654,11 +593,14 @@ def _try(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantS
     try:
         looped = _looped(data, model, optic, plant, effects) \
             if member.effect.family.startswith("mode_") else model
+        limits = _limits(model, data, effects)
         fit = fit_plant(data, looped, current.nuisance, free, effects, noise=noise,
-                        new=member.effect, limits=_limits(model, data, effects))
+                        new=member.effect, limits=limits)
         if looped is not model:
             _, fit = _relooped(data, model, optic, plant, free, fit, noise, member.effect)
     except FitError:
+        return None
+    if _pinned(fit, member.effect, model, limits):
         return None
     k = fit.rank - current.rank
     if k <= 0:
@@ -693,30 +635,53 @@ def _seen_in(data: FitData, before: PlantFit, after: PlantFit) -> str:
 
 
 def _prune(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
-           free: list[str], chosen: list[Claim], noise: Noise, unit: float
-           ) -> tuple[PlantModel, PlantFit]:
-    """Each chosen change's p-value given the others; the most redundant leaves while its
-    p-value is at least :data:`ALPHA`. Returns the final model (its other loops' feedback
-    made with the changes that stay) and fit."""
+           free: list[str], chosen: list[Claim], noise: Noise, unit: float,
+           floor: PlantFit | None = None, tried: int = 1) -> tuple[PlantModel, PlantFit]:
+    """Each chosen change's likelihood ratio and p-value given the others (times `tried`,
+    the members its search chose among); the most redundant leaves while its p-value is at
+    least :data:`ALPHA`. With `floor` (the fit without any of them) the last may leave too.
+    Returns the final model (its other loops' feedback made with the changes that stay) and
+    fit."""
     final = chosen[-1].fit
-    while len(chosen) > 1:
+    while len(chosen) > (0 if floor is not None else 1):
         without = {}
         for c in chosen:
+            if _sure(c, final, tried):
+                continue
             rest = [(e, v) for e, v in final.effects if e.key() != c.effect.key()]
             looped = _looped(data, model, optic, plant, rest)
             try:
-                fit = fit_plant(data, looped, final.nuisance, free, rest, noise=noise,
-                                limits=_limits(looped, data, rest))
+                fit = floor if floor is not None and not rest else fit_plant(
+                    data, looped, final.nuisance, free, rest, noise=noise,
+                    limits=_limits(looped, data, rest))
             except FitError:
                 c.p_given_others = None
                 continue
             without[c.effect.key()] = looped, fit
-            k = final.rank - fit.rank
-            lr = max(fit.deviance - final.deviance, 0.0) / unit
-            c.p_given_others = min(1.0, _p_value(lr, k, c.paths)) if k > 0 else 1.0
+            k = c.k = final.rank - fit.rank
+            c.lr = max(fit.deviance - final.deviance, 0.0) / unit
+            c.p_given_others = min(1.0, tried * _p_value(c.lr, k, c.paths)) if k > 0 else 1.0
         worst = max(chosen, key=lambda c: c.p_given_others or 0.0)
-        if (worst.p_given_others or 0.0) < ALPHA:
+        if (worst.p_given_others or 0.0) < ALPHA or worst.effect.key() not in without:
             break
         chosen.remove(worst)
         model, final = without[worst.effect.key()]
     return model, final
+
+
+WALD_SURE = 4.0
+"""A change whose Wald statistic in the final fit is this many times what a claim needs is
+kept without refitting the model without it (its likelihood ratio taken as the Wald
+statistic): the refit only confirms what the covariance already says."""
+
+
+def _sure(claim: Claim, fit: PlantFit, tried: int) -> bool:
+    """Whether `claim` is beyond doubt in `fit` by its Wald statistic (:data:`WALD_SURE`);
+    if so, its likelihood ratio, directions and p-value given the others are set from it."""
+    w = fit.wald(claim.effect)
+    k = len(fit.own(claim.effect))
+    if w is None or w < WALD_SURE * _needed(max(tried, 1), k):
+        return False
+    claim.lr, claim.k = w, k
+    claim.p_given_others = min(1.0, tried * _p_value(w, k, claim.paths))
+    return True

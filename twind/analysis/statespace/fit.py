@@ -31,7 +31,14 @@ from twind.analysis.identification.data import MIN_COHERENCE, FitData
 from twind.analysis.identification.fit import bin_correlation, sandwich
 from twind.analysis.identification.params import FitError
 from twind.analysis.statespace.measurement import PlantSet
-from twind.analysis.statespace.model import Effect, PlantModel, loop_feedback, other_loops
+from twind.analysis.statespace.model import (
+    Effect,
+    PlantModel,
+    loop_feedback,
+    modelled,
+    other_loops,
+    stage_inputs,
+)
 from twind.config.statespace import StateSpaceOptic
 
 _STEP = 1e-6
@@ -42,11 +49,6 @@ MAX_EVALUATIONS = 200
 
 NULL_COMPONENT = 0.05
 """A parameter with more than this share of an undetermined direction gets no sigma."""
-
-MIN_GAIN_SNR = 5.0
-"""A readback's calibration is fitted only where the model's response there, over the
-errors, adds up to this: elsewhere (a coupling the model has none of) it is undetermined and
-held at 1."""
 
 MOST_MOVED = 3.0
 """The most a fit moves a model mode's frequency, as a factor."""
@@ -139,6 +141,26 @@ class PlantFit:
     residual: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False)
     deviance: float = math.nan
     """``-2 ln L`` under the fit's noise (NaN for the first, provisional fit)."""
+    cov: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+    """The values' covariance (NaN in the rows and columns of those with no sigma)."""
+
+    def wald(self, effect: Effect) -> float | None:
+        """Wald's statistic of `effect` against the model without it (its parameters at
+        :meth:`Effect.start`): ``d^T C^-1 d`` over its parameters; None when one has no
+        sigma."""
+        own = self.own(effect)
+        if effect.family == "resonance":  # no mode is its numerators at 0, whatever f and Q
+            own = {p: v for p, v in own.items() if p.startswith("b")}
+        idx = [self.names.index(f"{effect.key()}.{p}") for p in own]
+        c = self.cov[np.ix_(idx, idx)] if self.cov.size else np.full((1, 1), np.nan)
+        if not np.all(np.isfinite(c)):
+            return None
+        null = effect.null(own)
+        d = np.array([own[p] - null[p] for p in own])
+        try:
+            return float(d @ np.linalg.solve(c, d))
+        except np.linalg.LinAlgError:
+            return None
 
     @property
     def rank(self) -> int:
@@ -175,21 +197,31 @@ def fit_data(H: NDArray, sigma: NDArray, mask: NDArray, f: NDArray, readbacks: S
 @dataclass(frozen=True)
 class Baseline:
     """What a state-space optic's diagnosis and fit start from: the measurement's bins, the
-    model at them, the nuisance parameters fitted (the model unchanged) and the noise."""
+    model at them, the nuisance parameters fitted (the model unchanged), the noise, which
+    elements the model has, and the range each nuisance parameter may take."""
 
     data: FitData
     model: PlantModel
     free: list[str]
     noise: Noise
     fit: PlantFit
+    modelled: NDArray[np.bool_]
+    limits: dict[str, tuple[float, float]]
 
 
 def fit_baseline(plant: PlantSet, optic: StateSpaceOptic,
                  min_coherence: float = MIN_COHERENCE) -> Baseline:
     """The model, its calibrations, delay and low-pass (and, for a closed loop, the other
-    loops' gain) fitted to `plant`: first with a Cauchy loss from the median ratios
-    (:func:`start_gains`), whose residuals give the noise (:meth:`Noise.of`), then with the
-    noise's own likelihood.
+    loops' gain) fitted to `plant`.
+
+    Only the elements the model has (:func:`~twind.analysis.statespace.model.modelled`)
+    calibrate: a readback or drive none of whose coherent elements the model reaches is
+    held at 1. The calibrations start from the data's own ratios to the model
+    (:func:`start_gains`), the delay and low-pass from the best of a grid, and every one
+    stays within a physical range (:func:`nuisance_limits`): a fit cannot run away to a
+    corner a million times above the band. The first fit takes a Cauchy loss (grossly wrong
+    bins, a mode far off its frequency, cannot drag it); its residuals on the modelled
+    elements give the noise (:meth:`Noise.of`), and the second maximises that likelihood.
 
     Raises
     ------
@@ -200,39 +232,163 @@ def fit_baseline(plant: PlantSet, optic: StateSpaceOptic,
                     plant.readbacks, plant.drives, plant.averages, plant.resolution_hz)
     loops = other_loops(optic, plant.drives, plant.readbacks, data.frequency_hz,
                         data.resolution_hz)
+    extra = stage_inputs(optic, plant.drives)
     model = PlantModel(optic.modal(plant.drives, plant.readbacks), data.frequency_hz,
                        data.resolution_hz, loops,
-                       loop_feedback(optic, plant.drives, plant.readbacks, data.frequency_hz))
+                       loop_feedback(optic, plant.drives, plant.readbacks, data.frequency_hz),
+                       optic.modal(extra, plant.readbacks) if extra else None)
+    inside = modelled(optic, plant.drives, plant.readbacks, data.frequency_hz)
     progress.note("calibrations, delay and low-pass")
     start = {"tau_s": 0.0, "inv_lp_hz": 0.0, **({"loops": 1.0} if loops is not None else {})}
-    gains = start_gains(data, model, start)
-    free = [*gains, *(f"g_d{j}" for j in range(1, len(plant.drives))), "tau_s", "inv_lp_hz",
-            *(["loops"] if loops is not None else [])]
-    first = fit_plant(data, model, start | gains, free)
-    noise = Noise.of(first.residual, data.averages)
+    gains = start_gains(data, model, start, inside)
+    free = [*gains, "tau_s", "inv_lp_hz", *(["loops"] if loops is not None else [])]
+    model.bounds = limits = nuisance_limits(data, gains)
+    start = start | gains | _lag_start(data, model, start | gains, limits)
+    first = fit_plant(data, model, start, free)
+    noise = Noise.of(first.residual[modelled_entries(data, inside)], data.averages)
     return Baseline(data, model, free, noise,
-                    fit_plant(data, model, first.nuisance, free, noise=noise))
+                    fit_plant(data, model, first.nuisance, free, noise=noise), inside, limits)
 
 
-def start_gains(data: FitData, model: PlantModel, nuisance: Mapping[str, float]
-                ) -> dict[str, float]:
-    """Each readback's calibration where the data determine it (the model's response over
-    the errors adds up to :data:`MIN_GAIN_SNR`), from the median over its bins of the
-    measured-to-modelled ratio, its sign the median cosine of the ratio's phase: a mode far
-    off its frequency, a few bins grossly wrong, leaves it where the rest put it. The others
-    are held at 1."""
-    M = model(nuisance | {f"g_{i}": 1.0 for i in range(len(data.responses))})
-    out = {}
-    for i in range(len(data.responses)):
-        used = data.mask[:, i]
-        m, h, s = M[:, i][used], data.H[:, i][used], data.sigma[:, i][used]
-        if float(np.sum(np.abs(m / s) ** 2)) < MIN_GAIN_SNR**2:
+def modelled_entries(data: FitData, inside: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Which of :meth:`FitData.whiten`'s residuals (real parts, then imaginary) belong to
+    elements the model has (all, if none does)."""
+    own = np.broadcast_to(inside[None], data.mask.shape)[data.mask]
+    if not own.any():
+        own = np.ones_like(own)
+    return np.concatenate([own, own])
+
+
+MOST_CALIBRATED = 1e4
+"""A calibration stays within this factor of where the data's ratios to the model put it."""
+DELAY_S = (-0.02, 0.05)
+"""The delay's range (s): a digital system's delays and the anti-aliasing filters' lags are
+a few ms; tens of ms is already a phase of a cycle at the top of a 0-20 Hz band."""
+LOWPASS_REACH = 3.0
+"""A low-pass corner lies at least this far below the band's top (a corner beyond is no
+low-pass the band can tell from a delay)."""
+
+
+def nuisance_limits(data: FitData, gains: Mapping[str, float]
+                    ) -> dict[str, tuple[float, float]]:
+    """The physical range of each nuisance parameter: each calibration within
+    :data:`MOST_CALIBRATED` of its start, its sign kept; the delay in :data:`DELAY_S`; the
+    low-pass's corner (``1 / inv_lp_hz``) above the band's top over :data:`LOWPASS_REACH`
+    (at 1e4 times the top it is none)."""
+    top = float(data.frequency_hz[data.mask.any(axis=(1, 2))].max())
+    out = {"tau_s": DELAY_S, "inv_lp_hz": (1e-4 / top, LOWPASS_REACH / top)}
+    for name, g in gains.items():
+        lo, hi = abs(g) / MOST_CALIBRATED, abs(g) * MOST_CALIBRATED
+        out[name] = (lo, hi) if g > 0 else (-hi, -lo)
+    return out
+
+
+def _lag_start(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
+               limits: Mapping[str, tuple[float, float]]) -> dict[str, float]:
+    """The delay and low-pass of a grid over their ranges that fits best (the calibrations
+    where they start, a Cauchy loss): where the fit of them all starts."""
+    lo, hi = limits["inv_lp_hz"]
+    best, out = math.inf, {"tau_s": 0.0, "inv_lp_hz": lo}
+    for tau in np.linspace(*DELAY_S, 15):
+        for inv in np.geomspace(lo, hi, 6):
+            r = data.whiten(model(nuisance | {"tau_s": tau, "inv_lp_hz": inv}))
+            cost = float(np.sum(np.log1p((r / ROBUST_SCALE) ** 2)))
+            if cost < best:
+                best, out = cost, {"tau_s": float(tau), "inv_lp_hz": float(inv)}
+    return out
+
+
+MIN_RATIO_BINS = 3
+"""Coherent bins an element needs to start its calibration from."""
+
+
+def start_gains(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
+                inside: NDArray[np.bool_]) -> dict[str, float]:
+    """The calibrations the data's own ratios to the model give: ``g_<r>`` of each readback
+    and ``g_d<j>`` of each drive but the first of its group (only products of a readback's
+    and a drive's calibrations reach the data) that a coherent element the model has joins.
+
+    Each such element's own calibration (:func:`_element_gain`) is split into a
+    readback's and a drive's part: their log magnitudes by least squares, their signs along
+    the elements that join them.
+    """
+    M = model(nuisance)
+    nr, nd = inside.shape
+    elements = {}
+    for r in range(nr):
+        for d in range(nd):
+            used = np.flatnonzero(data.mask[:, r, d]) if inside[r, d] else np.zeros(0, int)
+            g = _element_gain(data.H[used, r, d], M[used, r, d], data.sigma[used, r, d])
+            if g is not None:
+                elements[r, d] = (math.log(abs(g[0])), math.copysign(1.0, g[0]), g[1])
+    return _split(elements, nr, nd)
+
+
+def _element_gain(h: NDArray[np.complex128], m: NDArray[np.complex128],
+                  sigma: NDArray[np.float64]) -> tuple[float, int] | None:
+    """One element's calibration (sign included) and its bins: the median of the ratio's
+    magnitude (its sign the median cosine of its phase over the lower half of the band,
+    where a delay turns it least) or the least-squares ratio, whichever fits with the
+    smaller Cauchy loss. The median holds where a few bins are grossly wrong (a mode off its
+    frequency); the least squares where the model's shape differs from the data's over most
+    bins and its few large ones decide (a coupling the model has only weakly)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = h / m
+    ok = np.isfinite(ratio) & (ratio != 0) & (sigma > 0)
+    if ok.sum() < MIN_RATIO_BINS:
+        return None
+    h, m, sigma, ratio = h[ok], m[ok], sigma[ok], ratio[ok]
+    low = ratio[: max(MIN_RATIO_BINS, ratio.size // 2)]
+    median = math.copysign(float(np.median(np.abs(ratio))),
+                           float(np.median(low.real / np.abs(low))) or 1.0)
+    w = 1.0 / sigma**2
+    norm = float(np.sum(w * np.abs(m) ** 2))
+    lsq = float(np.sum(w * (np.conj(m) * h).real)) / norm if norm > 0 else 0.0
+
+    def cost(g: float) -> float:
+        return float(np.sum(np.log1p(np.abs((h - g * m) / sigma / ROBUST_SCALE) ** 2)))
+
+    best = min((g for g in (median, lsq) if g != 0 and math.isfinite(g)), key=cost,
+               default=None)
+    return None if best is None else (best, int(ok.sum()))
+
+
+def _split(elements: Mapping[tuple[int, int], tuple[float, float, int]], nr: int, nd: int
+           ) -> dict[str, float]:
+    """Readbacks' and drives' calibrations from each element's log ratio and sign
+    (:func:`start_gains`): the first drive of each group of elements joined by shared
+    readbacks and drives is held at 1."""
+    rows, cols = sorted({r for r, _ in elements}), sorted({d for _, d in elements})
+    sign: dict[tuple[str, int], float] = {}
+    refs, queue, seen = [], [], set()
+    for d0 in cols:  # each group's first drive: calibration 1
+        if ("d", d0) in seen:
             continue
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = h / m
-        ratio = ratio[np.isfinite(ratio) & (ratio != 0)]
-        sign = 1.0 if np.median(ratio.real / np.abs(ratio)) >= 0 else -1.0
-        out[f"g_{i}"] = sign * float(np.median(np.abs(ratio)))
+        refs.append(d0)
+        sign[("d", d0)] = 1.0
+        queue, seen = [("d", d0)], seen | {("d", d0)}
+        while queue:
+            node = queue.pop()
+            for (r, d), (_, s, _) in elements.items():
+                ends = (("r", r), ("d", d))
+                if node in ends:
+                    other = ends[1 - ends.index(node)]
+                    if other not in seen:  # s = sign(readback) sign(drive)
+                        sign[other] = s * sign[node]
+                        seen.add(other)
+                        queue.append(other)
+    names = [("r", r) for r in rows] + [("d", d) for d in cols if d not in refs]
+    index = {n: k for k, n in enumerate(names)}
+    A, y, w = np.zeros((len(elements), len(names))), np.zeros(len(elements)), np.zeros(len(elements))
+    for k, ((r, d), (log, _, n)) in enumerate(elements.items()):
+        A[k, index[("r", r)]] = 1.0
+        if ("d", d) in index:
+            A[k, index[("d", d)]] = 1.0
+        y[k], w[k] = log, math.sqrt(n)
+    logs = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)[0] if names else []
+    out = {}
+    for (kind, i), log in zip(names, logs, strict=True):
+        out[f"g_{i}" if kind == "r" else f"g_d{i}"] = sign[(kind, i)] * math.exp(log)
     return out
 
 
@@ -265,8 +421,8 @@ def fit_plant(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
         they start (a search's start, far from where the nuisance parameters' least squares
         would first pull it).
     limits : mapping of str to (float, float), optional
-        Positive parameters (``key.param``) held within a range, e.g. a resonance's
-        frequency away from where a moved mode lies.
+        Parameters (``key.param``) held within a range, e.g. a resonance's frequency away
+        from where a moved mode lies, besides the nuisance's ranges (``model.bounds``).
 
     Returns
     -------
@@ -277,7 +433,7 @@ def fit_plant(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
     FitError
         If the model is not finite where the fit starts.
     """
-    problem = _Problem(data, model, nuisance, free, effects, limits or {})
+    problem = _Problem(data, model, nuisance, free, effects, {**model.bounds, **(limits or {})})
     width = noise.width if noise else ROBUST_SCALE
     x = problem.x0
     if new is not None:
@@ -386,28 +542,36 @@ _TINY = 1e-6
 """Where a positive parameter at zero starts (a low-pass at 1 MHz: none)."""
 RANGES = {"log_f": (-math.log(MOST_MOVED), math.log(MOST_MOVED), False),
           "log_q": (-math.log(1e4), math.log(1e4), False),
-          "q": (0.5, 1e6, True), "f_hz": (1e-3, 1e4, True)}
+          "q": (2.0, 1e6, True), "f_hz": (1e-3, 1e4, True)}
 """Bounded parameters (lowest, highest, in the logarithm): a mode moved at most a factor
-:data:`MOST_MOVED` and its Q changed at most 1e4 times; a resonance's Q at least 0.5 (below,
-two real poles and no mode)."""
+:data:`MOST_MOVED` and its Q changed at most 1e4 times; a resonance's Q at least 2 (below,
+a peak wider than its frequency: a slope of the band, which no data resolve as a mode)."""
 
 
 @dataclass(frozen=True)
 class _Coordinate:
     """How a parameter is fitted: as it is, in its logarithm, or within (lo, hi) through a
-    tanh (so that the fit is unbounded and the value is not)."""
+    tanh (so that the fit is unbounded and the value is not), in the logarithm of its
+    magnitude for a range of one sign (`sign` -1: a negative range)."""
 
     kind: str  # "linear", "log" or "range"
     lo: float = 0.0
     hi: float = 0.0
     log: bool = False
+    sign: float = 1.0
 
     @classmethod
     def of(cls, name: str, limits: Mapping[str, tuple[float, float]]) -> _Coordinate:
-        """The coordinate of parameter `name` (ranges in `limits` first)."""
+        """The coordinate of parameter `name` (ranges in `limits` first: positive or
+        negative ones in the logarithm, others as they are)."""
         param = name.rpartition(".")[2] if "." in name else name
         if name in limits:
-            return cls("range", *limits[name], True)
+            lo, hi = limits[name]
+            if lo > 0:
+                return cls("range", lo, hi, True)
+            if hi < 0:
+                return cls("range", -hi, -lo, True, -1.0)
+            return cls("range", lo, hi, False)
         if param in RANGES:
             return cls("range", *RANGES[param])
         return cls("log") if param in _LOG_PARAMS else cls("linear")
@@ -422,7 +586,7 @@ class _Coordinate:
         if self.kind == "log":
             return math.log(max(value, _TINY))
         a, b = self._ends()
-        v = math.log(max(value, 1e-300)) if self.log else value
+        v = math.log(max(self.sign * value, 1e-300)) if self.log else value
         return math.atanh(max(min(2 * (v - a) / (b - a) - 1, 0.999999), -0.999999))
 
     def value(self, x: float) -> float:
@@ -433,7 +597,7 @@ class _Coordinate:
             return math.exp(min(x, 700.0))
         a, b = self._ends()
         v = a + (b - a) * (1 + math.tanh(x)) / 2
-        return math.exp(v) if self.log else v
+        return self.sign * math.exp(v) if self.log else v
 
     def width(self, x: float) -> float:
         """d value / d coordinate at `x`."""
@@ -459,6 +623,7 @@ def _result(data: FitData, names: list[str], coords: list[_Coordinate], x: NDArr
     chi2 = float(r @ r)
     z2 = r[: r.size // 2] ** 2 + r[r.size // 2:] ** 2
     sigma = np.full(len(names), np.nan)
+    cov = np.full((len(names), len(names)), np.nan)
     rank = 0
     values = np.array([c.value(v) for c, v in zip(coords, x, strict=True)])
     median = float(np.median(z2) / 2 / math.log(2))  # the residuals' variance, robustly
@@ -481,10 +646,12 @@ def _result(data: FitData, names: list[str], coords: list[_Coordinate], x: NDArr
         cov_s = var * inv @ sandwich(Js, rho, [data]) @ inv
         lost = (np.abs(vt[weak]).max(axis=0) > NULL_COMPONENT if weak.any()
                 else np.zeros(len(names), bool))
-        sd = np.sqrt(np.clip(np.diag(cov_s), 0, None)) * scale * width
-        sigma = np.where(lost, np.nan, sd)
+        unit = scale * width
+        cov = cov_s * np.outer(unit, unit)
+        cov[lost] = cov[:, lost] = np.nan
+        sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     return PlantFit(names, values, sigma, chi2, nu, math.sqrt(scale2), rho, data.bins,
-                    effects, nuisance, r, noise.deviance(r) if noise else math.nan)
+                    effects, nuisance, r, noise.deviance(r) if noise else math.nan, cov)
 
 
 def _scale(name: str, coord: _Coordinate, value: float, width: float, names: Sequence[str],
@@ -497,7 +664,9 @@ def _scale(name: str, coord: _Coordinate, value: float, width: float, names: Seq
         return 1.0
     if coord.kind == "range":  # a unit of its (log-)value, in coordinates
         unit = abs(value) if coord.log else 1.0
-        return unit / max(width, 1e-300)
+        if name in ("tau_s",):
+            unit = 1e-3
+        return unit / max(abs(width), 1e-300)
     if name.startswith("g_"):
         return max(abs(value), 1e-300)
     if param == "tau_s":

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,13 +32,55 @@ from twind.config.statespace import StateSpaceOptic
 from twind.model.statespace import ModalForm
 
 FAMILIES = ("mode_frequency", "mode_amplitude", "resonance", "cross_coupling",
-            "channel_response")
+            "channel_response", "drive_coupling", "drive_crosstalk")
 """What a state-space diagnosis tries: a model mode's frequency and Q changed; its amplitude
 changed (0: missing); a mode the model lacks; a readback that also reads another; one
-readback with its own first-order stage."""
+readback with its own first-order stage; a drive that also drives another input of its
+stage (a coil driver's imbalance: what that input moves, seen in each readback); a drive's
+electronic crosstalk into one readback (a flat term in phase with the drive)."""
 
 _D2, _W2 = two_point(1.0)  # the two-point rule's offsets (bins) and weights
 _KERNEL_SAMPLES = 8  # a mode narrower than 1/8 bin is widened to it on the kernel's points
+
+
+STRUCTURAL = 1e-9
+"""An element whose model response stays below this share of its readback's largest response
+to any of the optic's drives is not part of the model: a model's couplings between DOFs that
+its symmetry forbids come out of the matrices as numerical noise (KAGRA's: 1e-14 to 1e-18 of
+the readback's largest, against 1e-6 and more for the weakest coupling the physics makes),
+which a free calibration would blow up into anything."""
+
+
+def modelled(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequence[str],
+             f_hz: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which elements (readbacks, drives) the model has (:data:`STRUCTURAL`), over a log grid
+    spanning `f_hz`.
+
+    Returns
+    -------
+    ndarray of bool, shape (readbacks, drives)
+    """
+    f = np.asarray(f_hz, dtype=float)
+    grid = np.geomspace(max(float(f[f > 0].min()), 1e-3), float(f.max()), 64)
+    outputs = [optic.readbacks[r] for r in readbacks]
+    inputs = sorted({optic.input_of(d) for d in [*optic.drives, *optic.loops]})
+    reach = np.abs(optic.model.response(grid, inputs, outputs)).max(axis=(0, 2))
+    own = np.abs(optic.model.response(grid, [optic.input_of(d) for d in drives], outputs))
+    return own.max(axis=0) >= STRUCTURAL * reach[:, None]
+
+
+def stage_inputs(optic: StateSpaceOptic, drives: Sequence[str]) -> tuple[str, ...]:
+    """The optic's other drives of the stages `drives` drive, one per model input none of
+    `drives` drives: a drive's stage is its name's first part (``TM`` of ``TM_LOCK_P``), as
+    the site's configuration names it."""
+    own = {optic.input_of(d) for d in drives}
+    stages = {d.split("_")[0] for d in drives}
+    out: dict[str, str] = {}
+    for d in [*optic.drives, *optic.loops]:
+        u = optic.input_of(d)
+        if d.split("_")[0] in stages and u not in own and u not in out:
+            out[u] = d
+    return tuple(out.values())
 
 
 @dataclass(frozen=True)
@@ -50,11 +92,17 @@ class Effect:
     family : str
     target : tuple of int
         ``(k,)`` the model's mode k; ``(r, r2)`` readback r also reads readback r2; ``(r,)``
-        readback r's own stage; ``(n,)`` the n-th resonance (from 0).
+        readback r's own stage; ``(n,)`` the n-th resonance (from 0); ``(d, u)`` drive d
+        also drives the model's extra input u (:attr:`PlantModel.extra`); ``(r, d)`` drive
+        d's crosstalk into readback r.
+    anchor : (float, float) or None
+        A moved mode's stretch of the band (Hz): where the data's peak it was found at lies,
+        which its fits refine and do not leave.
     """
 
     family: str
     target: tuple[int, ...] = ()
+    anchor: tuple[float, float] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.family not in FAMILIES:
@@ -62,11 +110,23 @@ class Effect:
             raise ValueError(msg)
 
     def params(self, elements: int = 0) -> list[str]:
-        """Its parameters' own names (a resonance has one numerator per element)."""
+        """Its parameters' own names (a resonance has one numerator per element; a drive's
+        coupling one factor per readback it reaches, ``e<r>``, given by its start)."""
         return {"mode_frequency": ["log_f", "log_q", "amplitude"], "mode_amplitude": ["amplitude"],
                 "resonance": ["f_hz", "q", *(f"b{i}" for i in range(elements))],
                 "cross_coupling": ["epsilon"],
-                "channel_response": ["inv_pole_hz", "inv_zero_hz"]}[self.family]
+                "channel_response": ["inv_pole_hz", "inv_zero_hz"],
+                "drive_coupling": [], "drive_crosstalk": ["c"]}[self.family]
+
+    def null(self, own: Mapping[str, float]) -> dict[str, float]:
+        """Its parameters `own` where the model is unchanged (a resonance: its numerators 0,
+        its f and Q as they are)."""
+        out = {p: 0.0 for p in own}
+        if "amplitude" in out and self.family.startswith("mode_"):
+            out["amplitude"] = 1.0
+        if self.family == "resonance":
+            out.update(f_hz=own["f_hz"], q=own["q"])
+        return out
 
     def start(self, elements: int = 0) -> dict[str, float]:
         """Its parameters where the model is unchanged (a resonance's f and q: placeholders)."""
@@ -81,7 +141,7 @@ class Effect:
         """A unique name: ``mode_frequency[12]``, ``cross_coupling[3<4]``, ``resonance[0]``."""
         if not self.target:
             return self.family
-        sep = "<" if self.family == "cross_coupling" else ","
+        sep = {"cross_coupling": "<", "drive_coupling": ">"}.get(self.family, ",")
         return f"{self.family}[{sep.join(map(str, self.target))}]"
 
 
@@ -103,6 +163,8 @@ class Parts:
     inv_lp: float = 0.0
     calibrated: NDArray[np.complex128] | None = None
     out: NDArray[np.complex128] | None = None
+    extra: NDArray[np.complex128] | None = None
+    """The extra inputs' responses as the effects leave them (nf, readbacks, extra)."""
 
     def propagate(self, calibrated: NDArray[np.complex128]) -> NDArray[np.complex128]:
         """What a calibrated plant (or a change of it) becomes after each readback's stage
@@ -132,14 +194,26 @@ class PlantModel:
     feedback : dict of int to Feedback, optional
         Per closed-loop column, how a change of a mode reaches it through the other loops
         (:func:`loop_feedback`), for the searches.
+    extra : ModalForm, optional
+        From other inputs of the drives' stages to the readbacks (:func:`stage_inputs`):
+        what a drive that also drives one of them adds (``drive_coupling``).
+
+    Attributes
+    ----------
+    bounds : dict of str to (float, float)
+        The range each nuisance parameter may take in a fit of this model (set by
+        :func:`~twind.analysis.statespace.fit.fit_baseline` from the data's band).
     """
 
     def __init__(self, modal: ModalForm, f_hz: NDArray[np.float64], resolution_hz: float,
                  loops: NDArray[np.complex128] | None = None,
-                 feedback: dict[int, Feedback] | None = None) -> None:
+                 feedback: dict[int, Feedback] | None = None,
+                 extra: ModalForm | None = None) -> None:
         self.modal, self.f, self.res = modal, np.asarray(f_hz, dtype=float), resolution_hz
+        self.extra = extra
         self.loops, self.feedback = loops, feedback or {}
         self.loops_made_with: tuple = ()  # the mode changes `loops` was made with
+        self.bounds: dict[str, tuple[float, float]] = {}  # the nuisance's physical ranges
         self.s = 2j * np.pi * self.f
         points = self.f[:, None] + resolution_hz * _D2 if resolution_hz > 0 else self.f[:, None]
         weights = _W2 if resolution_hz > 0 else np.ones(1)
@@ -149,6 +223,11 @@ class PlantModel:
                                             modal.q[k]) for k in range(len(modal.modes))])
         self.plant = (self.terms.sum(axis=0) if len(modal.modes) else 0) + others
         self._cache: dict[tuple, NDArray] = {}
+        self._extras: dict[tuple, NDArray] = {}  # the last few: each is extra-columns wide
+        self.extra_plant = None if extra is None else sum(
+            (self.section(extra.num_s[k], extra.num_1[k], extra.w[k], extra.q[k])
+             for k in range(len(extra.modes))),
+            sum(w * extra.others(s2[:, i]) for i, w in enumerate(weights)))
 
     def _cached(self, key: tuple, make):  # noqa: ANN001, ANN202 - a memo of the last few
         """`make()` remembered under `key` (a fit's Jacobian moves one parameter at a time:
@@ -166,17 +245,20 @@ class PlantModel:
         q0, q1 = self.kernels_many(np.array([w]), q)
         return q0[0], q1[0]
 
-    def kernels_many(self, w: NDArray[np.float64], q: float
+    def kernels_many(self, w: NDArray[np.float64], q: float, at: slice = slice(None)
                      ) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
-        """:meth:`kernels` of modes at each of `w` (rad/s), all at `q`: (len(w), nf)."""
+        """:meth:`kernels` of modes at each of `w` (rad/s), all at `q`, at the bins `at`
+        (default all): (len(w), bins)."""
         w = np.asarray(w, dtype=float)[:, None]
+        f = self.f[at]
         if self.res <= 0:
-            den = 1.0 / (self.s * self.s + self.s * w / q + w * w)
-            return den, self.s * den
-        q0 = np.zeros((w.shape[0], self.f.size), dtype=complex)
+            s = self.s[at]
+            den = 1.0 / (s * s + s * w / q + w * w)
+            return den, s * den
+        q0 = np.zeros((w.shape[0], f.size), dtype=complex)
         q1 = np.zeros_like(q0)
         for d2, w2 in zip(_D2, _W2, strict=True):  # the two-point rule
-            s = 2j * np.pi * (self.f + self.res * d2)
+            s = 2j * np.pi * (f + self.res * d2)
             den = 1.0 / (s * s + s * w / q + w * w)
             q0 += w2 * den
             q1 += w2 * s * den
@@ -185,13 +267,13 @@ class PlantModel:
         if narrow.size:
             reach = NARROW_REACH_BINS
             d, wk = hann_kernel(self.res, 0.0)  # the finest kernel serves every narrow trial
-            centre = np.searchsorted(self.f, f0[narrow])
+            centre = np.searchsorted(f, f0[narrow])
             near = centre[:, None] + np.arange(-reach, reach + 1)[None, :]  # (T, bins)
-            inside = (near >= 0) & (near < self.f.size)
-            near = np.clip(near, 0, self.f.size - 1)
+            inside = (near >= 0) & (near < f.size)
+            near = np.clip(near, 0, f.size - 1)
             q_k = np.minimum(q, _KERNEL_SAMPLES * f0[narrow] / self.res)[:, None, None]
             wn = w[narrow, 0][:, None, None]
-            sk = 2j * np.pi * (self.f[near][:, :, None] + self.res * d)
+            sk = 2j * np.pi * (f[near][:, :, None] + self.res * d)
             den = 1.0 / (sk * sk + sk * wn / q_k + wn * wn)
             rows = np.repeat(narrow[:, None], near.shape[1], axis=1)
             q0[rows[inside], near[inside]] = (den @ wk)[inside]
@@ -263,13 +345,49 @@ class PlantModel:
                 parts.stage[:, t[0]] *= self.stage(v["inv_pole_hz"], v["inv_zero_hz"])
         if self.loops is not None:
             P += nuisance.get("loops", 1.0) * self.loops
+        couplings = [(e.target, v) for e, v in effects if e.family == "drive_coupling"]
+        if couplings:
+            parts.extra = self.extra_response(effects)
+            for (d, u), v in couplings:
+                for name, eps in v.items():
+                    P[:, int(name[1:]), d] += eps * parts.extra[:, int(name[1:]), u]
         g = np.array([nuisance.get(f"g_{i}", 1.0) for i in range(nr)])
         gd = np.array([nuisance.get(f"g_d{j}", 1.0) for j in range(nd)])
         parts.g, parts.gd, parts.gains = g, gd, g[:, None] * gd[None, :]
         parts.lag = self.lag(nuisance)
         parts.inv_lp = nuisance.get("inv_lp_hz", 0.0)
         parts.out = parts.propagate(P * parts.gains[None] * parts.lag[:, None, None])
+        for e, v in effects:
+            if e.family == "drive_crosstalk":
+                parts.out[:, e.target[0], e.target[1]] += v["c"] * parts.lag
         return parts
+
+    def extra_response(self, effects: Sequence[tuple[Effect, Mapping[str, float]]]
+               ) -> NDArray[np.complex128]:
+        """The extra inputs' responses with the modes `effects` move or scale changed
+        (remembered)."""
+        changes = tuple((e.key(), tuple(sorted(v.items()))) for e, v in effects
+                        if e.family in ("mode_frequency", "mode_amplitude"))
+
+        def make() -> NDArray[np.complex128]:
+            X, m = self.extra_plant.copy(), self.extra
+            for e, v in effects:
+                k = e.target[0] if e.family in ("mode_frequency", "mode_amplitude") else None
+                if k is None:
+                    continue
+                old = self.section(m.num_s[k], m.num_1[k], m.w[k], m.q[k])
+                if e.family == "mode_amplitude":
+                    X += (v["amplitude"] - 1.0) * old
+                    continue
+                w, q = m.w[k] * math.exp(v["log_f"]), m.q[k] * math.exp(v["log_q"])
+                X += v["amplitude"] * self.section(m.num_s[k], m.num_1[k], w, q) - old
+            return X
+
+        if changes not in self._extras:
+            if len(self._extras) > 3:
+                self._extras.clear()
+            self._extras[changes] = make()
+        return self._extras[changes]
 
     def _moved(self, k: int, v: Mapping[str, float]) -> NDArray[np.complex128]:
         """Mode `k`'s section at its moved frequency and Q (remembered)."""
@@ -351,6 +469,15 @@ class PlantModel:
             r, r2 = effect.target
             d = np.zeros_like(parts.plant)
             d[:, r] = parts.calibrated[:, r2]
+            return d
+        if effect.family == "drive_coupling":
+            (j, u), r = effect.target, int(param[1:])
+            d = np.zeros_like(parts.plant)
+            d[:, r, j] = parts.extra[:, r, u]
+            return parts.propagate(d * parts.gains[None] * parts.lag[:, None, None])
+        if effect.family == "drive_crosstalk":
+            d = np.zeros_like(parts.plant)
+            d[:, effect.target[0], effect.target[1]] = parts.lag
             return d
         return None
 

@@ -14,18 +14,20 @@ the p-value of what it finds pays for where it looked.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from twind.analysis.identification.data import FitData
+from twind.analysis.identification.model import NARROW_REACH_BINS
 from twind.analysis.identification.narrow import SEARCH_Q
 from twind.analysis.statespace.model import PlantModel, closed
 
-SHIFT = 1.5
-"""A model mode is searched for from its frequency over this factor to its frequency times it."""
+SHIFT = 2.0
+"""A model mode is looked for from its frequency over this factor to its frequency times it
+(within the coherent band): a real suspension's mode may sit 60 % off its model's."""
 
 FINE_Q = 200.0
 """A moved mode of higher Q is searched again at this Q near the best of the broad sweeps
@@ -46,6 +48,41 @@ class Sweep:
     q: float
     paths: tuple[float, ...]
     coefficients: NDArray[np.float64] | None = None
+
+
+WINDOW = 1.3
+"""A screen weighs a trial's mode over the bins within this factor of its frequency."""
+MOST_AMPLITUDE = 5.0
+"""A moved mode's amplitude at most this many times the model's, and at least its inverse."""
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A model mode screened over trial frequencies at several Qs
+    (:meth:`Residuals.profile`).
+
+    Attributes
+    ----------
+    f_hz : ndarray, shape (trials,)
+    q : ndarray, shape (qs,)
+    drop, amplitude : ndarray, shape (qs, trials)
+        Each trial's drop in chi^2 (noise units) at each Q, and the amplitude (of the
+        model's) it was reached with.
+    paths : tuple of float
+        Each Q's sweep's look-elsewhere path (rad).
+    """
+
+    f_hz: NDArray[np.float64]
+    q: NDArray[np.float64]
+    drop: NDArray[np.float64]
+    amplitude: NDArray[np.float64]
+    paths: tuple[float, ...]
+
+    def best(self, near: NDArray[np.bool_], qs: NDArray[np.bool_]) -> tuple[int, int]:
+        """The (Q, trial) of the largest drop among the trials `near` and the Qs `qs`."""
+        d = np.where(qs[:, None] & near[None, :], self.drop, -np.inf)
+        j, i = np.unravel_index(int(np.argmax(d)), d.shape)
+        return int(j), int(i)
 
 
 class Residuals:
@@ -87,97 +124,100 @@ class Residuals:
         return (proj * proj / norm, proj / norm) if norm > 0 else (0.0, 0.0)
 
     # ---------------------------------------------------------------- a model mode moved
-    def moved(self, k: int, unit: float) -> Sweep:
-        """Mode `k` moved over ``[f / SHIFT, f SHIFT]`` at each of
-        :data:`~twind.analysis.identification.narrow.SEARCH_Q`, then as narrow as the data
-        resolve (:data:`FINE_Q`, or its own Q if lower) within a few widths of the best: the
-        best trial (its drop in chi^2 in units of `unit`) and every sweep's path. In a closed
-        loop with other loops closed, each trial's change is the whole closed loop's
-        (:class:`_ClosedChange`): the other loops damp and move a mode they see."""
+    def profile(self, k: int, unit: float, trials: NDArray[np.float64]) -> Profile:
+        """Mode `k` moved to each of the frequencies `trials` (Hz, ascending) at each of
+        :data:`~twind.analysis.identification.narrow.SEARCH_Q` and as narrow as the data
+        resolve (:data:`FINE_Q`, or its own Q if lower): each trial's best drop in chi^2 (in
+        units of `unit`), its Q and amplitude, and every sweep's path.
+
+        Open loop, the mode's amplitude is refitted at each trial (between 0 and
+        :data:`MOST_AMPLITUDE` of the model's): a calibration or a modal mass a little off
+        leaves its place where it is. In a closed loop with other loops closed, each trial's
+        change is the whole closed loop's (:class:`_ClosedChange`, its amplitude the
+        model's): the other loops damp and move a mode they see."""
         m = self.model.modal
-        f0 = m.w[k] / (2 * math.pi)
+        qs = [*SEARCH_Q, *([min(FINE_Q, m.q[k])] if m.q[k] > SEARCH_Q[-1] else [])]
         if self.model.feedback:
             change = _ClosedChange(self, k)
-
-            def sweep(trials: NDArray[np.float64], q: float) -> tuple[NDArray, float]:
-                return change.sweep(trials, q)
+            sweeps = [(*change.sweep(trials, q), np.ones(trials.size)) for q in qs]
         else:
-            A, B = self.model.numerators(k)
-            sums = _Sums(self.z, self.G * A, self.G * B)
-            old = self.model.kernels(m.w[k], m.q[k])
+            sweeps = [self._free_sweep(k, trials, q) for q in qs]
+        return Profile(trials, np.asarray(qs), np.array([x[0] for x in sweeps]) / unit,
+                       np.array([x[2] for x in sweeps]), tuple(x[1] for x in sweeps))
 
-            def sweep(trials: NDArray[np.float64], q: float) -> tuple[NDArray, float]:
-                return self._sweep(sums, old, trials, q)
-        best, paths = (-np.inf, f0, m.q[k]), []
-        for q in SEARCH_Q:
-            trials = grid(f0 / SHIFT, f0 * SHIFT, q, self.model.res)
-            drop, path = sweep(trials, q)
-            paths.append(path)
-            i = int(np.argmax(drop))
-            if drop[i] > best[0]:
-                best = (float(drop[i]), float(trials[i]), q)
-        q = min(FINE_Q, m.q[k]) if m.q[k] > SEARCH_Q[-1] else None
-        if q is not None:
-            reach = 5 * best[1] / SEARCH_Q[-1]
-            trials = grid(best[1] - reach, best[1] + reach, q, self.model.res)
-            drop, path = sweep(trials, q)
-            paths.append(path)
-            i = int(np.argmax(drop))
-            if drop[i] > best[0]:
-                best = (float(drop[i]), float(trials[i]), q)
-        return Sweep(best[0] / unit, best[1], best[2], tuple(paths))
+    def _free_sweep(self, k: int, trials: NDArray[np.float64], q: float
+                    ) -> tuple[NDArray[np.float64], float, NDArray[np.float64]]:
+        """Each trial's drop in chi^2 for mode `k` moved to the frequencies `trials` at `q`,
+        its amplitude refitted (:meth:`profile`); the sweep's path; the amplitudes. A run of
+        neighbouring trials is weighed over the bins within :data:`WINDOW` of it and of the
+        mode's own frequency, the mode removed and put back there alone: beyond, the change
+        is a smooth tail (below both places, a change of the static compliance, which the
+        calibrations take up) that the full fit of the change weighs. So a run costs its own
+        stretch of bins, not the whole band."""
+        A, B = self.model.numerators(k)
+        GA, GB = self.G * A, self.G * B
+        q0, q1 = self.model.kernels(self.model.modal.w[k], self.model.modal.q[k])
+        u = self.z + q1[:, None, None] * GA + q0[:, None, None] * GB  # the mode removed
+        sums = _Sums(u, GA, GB)
+        z2, u2 = (np.sum(np.abs(x) ** 2, axis=(1, 2)) for x in (self.z, u))
+        f0 = self.model.modal.w[k] / (2 * math.pi)
+        drops, amps, path = [], [], 0.0
+        for run in _runs(trials, q, self.model.res):
+            at = self._window(np.array([min(run[0], f0), max(run[-1], f0)]))
+            part, last = sums.window(at), None
+            const = float(np.sum(z2[at]) - np.sum(u2[at]))
+            for chunk in np.array_split(run, max(1, run.size // _CHUNK)):
+                d0, d1 = self.model.kernels_many(2 * math.pi * chunk, q, at)
+                proj, norm = part.project(d0, d1), part.norm2(d0, d1)
+                a = np.clip(np.divide(proj, norm, out=np.zeros_like(proj), where=norm > 0),
+                            0.0, MOST_AMPLITUDE)
+                drops.append(const + 2 * a * proj - a * a * norm)
+                amps.append(a)
+                if last is not None:
+                    d0, d1 = np.vstack([last[0], d0]), np.vstack([last[1], d1])
+                path += part.path(d0, d1)
+                last = (d0[-1:], d1[-1:])
+        return np.concatenate(drops), path, np.concatenate(amps)
 
-    def _sweep(self, sums: _Sums, old: tuple, trials: NDArray[np.float64], q: float
-               ) -> tuple[NDArray[np.float64], float]:
-        """Each trial's drop in chi^2 for a mode moved from `old` (its kernels) to the
-        frequencies `trials` at `q`, and the sweep's path."""
-        drops, path, last = [], 0.0, None
-        for chunk in np.array_split(trials, max(1, trials.size // _CHUNK)):
-            d0, d1 = self.model.kernels_many(2 * math.pi * chunk, q)
-            d0, d1 = d0 - old[0], d1 - old[1]
-            drops.append(2 * sums.project(d0, d1) - sums.norm2(d0, d1))
-            if last is not None:  # the turn between this chunk and the last
-                d0, d1 = np.vstack([last[0], d0]), np.vstack([last[1], d1])
-            path += sums.path(d0, d1)
-            last = (d0[-1:], d1[-1:])
-        return np.concatenate(drops), path
+    def _window(self, run: NDArray[np.float64]) -> slice:
+        """The bins within :data:`WINDOW` of a run of trial frequencies (at least
+        :data:`~twind.analysis.identification.model.NARROW_REACH_BINS` either side)."""
+        f = self.model.f
+        lo = np.searchsorted(f, run[0] / WINDOW) - NARROW_REACH_BINS
+        hi = np.searchsorted(f, run[-1] * WINDOW) + NARROW_REACH_BINS
+        return slice(max(int(lo), 0), min(int(hi), f.size))
 
     # ---------------------------------------------------------------- a mode in no model
-    def resonance(self, unit: float, avoid: Sequence[tuple[float, float]] = ()) -> Sweep:
-        """A mode with a real numerator per element, anywhere in the data's band but the
-        ranges `avoid` (Hz: where a mode of the model was moved, which it would only
-        duplicate), at each of :data:`~twind.analysis.identification.narrow.SEARCH_Q`."""
-        f = self.data.frequency_hz[self.data.mask.any(axis=(1, 2))]
-        lo, hi = max(float(f[0]), 1e-3), float(f[-1])
+    def resonance(self, unit: float, trials: NDArray[np.float64]) -> Sweep:
+        """A mode with a real numerator per element at each of the frequencies `trials` (Hz,
+        ascending) at each of :data:`~twind.analysis.identification.narrow.SEARCH_Q`, each
+        weighed over the bins within :data:`WINDOW` of it: the best, its numerators and each
+        sweep's path over the trials."""
         Gz = (np.conj(self.z) * self.G).reshape(self.z.shape[0], -1)  # (nf, elements)
         G2 = (np.abs(self.G) ** 2).reshape(self.z.shape[0], -1)
-        best, paths = (-np.inf, lo, SEARCH_Q[0], None), []
+        best, paths = (-np.inf, float(trials[0]) if trials.size else 1.0, SEARCH_Q[0], None), []
         for q in SEARCH_Q:
-            trials = grid(lo, hi, q, self.model.res)
-            trials = trials[~np.any([(trials > a) & (trials < b) for a, b in avoid], axis=0)] \
-                if avoid else trials
-            path, last = 0.0, None
-            if not trials.size:  # the moved modes cover the band
-                paths.append(path)
-                continue
-            for chunk in np.array_split(trials, max(1, trials.size // _CHUNK)):
-                q0, _ = self.model.kernels_many(2 * math.pi * chunk, q)
-                proj = (q0 @ Gz).real  # (trials, elements)
-                norm = np.abs(q0) ** 2 @ G2
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    drop = np.where(norm > 0, proj**2 / norm, 0.0).sum(axis=1)
-                    coef = np.where(norm > 0, proj / norm, 0.0)
-                i = int(np.argmax(drop))
-                if drop[i] > best[0]:
-                    best = (float(drop[i]), float(chunk[i]), q, coef[i])
-                # the angle the stacked signature turns between neighbouring trials
-                both = q0 if last is None else np.vstack([last, q0])
-                cross = (np.conj(both[:-1]) * both[1:]).real @ G2
-                n2 = np.abs(both) ** 2 @ G2
-                cos = cross.sum(axis=1) / np.sqrt(np.maximum(n2[:-1].sum(axis=1)
-                                                             * n2[1:].sum(axis=1), 1e-300))
-                path += float(np.sum(np.arccos(np.clip(np.abs(cos), 0, 1))))
-                last = q0[-1:]
+            path = 0.0
+            for run in _runs(trials, q, self.model.res):
+                at, last = self._window(run), None
+                for chunk in np.array_split(run, max(1, run.size // _CHUNK)):
+                    q0, _ = self.model.kernels_many(2 * math.pi * chunk, q, at)
+                    proj = (q0 @ Gz[at]).real  # (trials, elements)
+                    norm = np.abs(q0) ** 2 @ G2[at]
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        drop = np.where(norm > 0, proj**2 / norm, 0.0).sum(axis=1)
+                        coef = np.where(norm > 0, proj / norm, 0.0)
+                    i = int(np.argmax(drop))
+                    if drop[i] > best[0]:
+                        best = (float(drop[i]), float(chunk[i]), q, coef[i])
+                    # the angle the stacked signature turns between neighbouring trials
+                    both = q0 if last is None else np.vstack([last, q0])
+                    cross = (np.conj(both[:-1]) * both[1:]).real @ G2[at]
+                    n2 = np.abs(both) ** 2 @ G2[at]
+                    cos = cross.sum(axis=1) / np.sqrt(np.maximum(n2[:-1].sum(axis=1)
+                                                                 * n2[1:].sum(axis=1), 1e-300))
+                    path += float(np.sum(np.arccos(np.clip(np.abs(cos), 0, 1))))
+                    last = q0[-1:]
             paths.append(path)
         return Sweep(best[0] / unit, best[1], best[2], tuple(paths), best[3])
 
@@ -287,6 +327,13 @@ class _Sums:
         self.V00 = np.sum(np.abs(B) ** 2, axis=ax)
         self.V10 = np.sum(np.conj(A) * B, axis=ax)
 
+    def window(self, at: slice) -> _Sums:
+        """The sums at the bins `at` alone."""
+        part = object.__new__(_Sums)
+        for name in ("U1", "U0", "V11", "V00", "V10"):
+            setattr(part, name, getattr(self, name)[at])
+        return part
+
     def project(self, d0: NDArray, d1: NDArray) -> NDArray[np.float64]:
         """``<z, delta>`` for each trial's change (trials, nf)."""
         return (d1 @ self.U1 + d0 @ self.U0).real
@@ -306,6 +353,15 @@ class _Sums:
         norms = self.norm2(d0, d1)
         cos = dot / np.sqrt(np.maximum(norms[:-1] * norms[1:], 1e-300))
         return float(np.sum(np.arccos(np.clip(np.abs(cos), 0, 1))))
+
+
+def _runs(trials: NDArray[np.float64], q: float, res: float) -> list[NDArray[np.float64]]:
+    """`trials` split where neighbours lie more than two steps of :func:`grid` apart."""
+    if trials.size < 2:
+        return [trials] if trials.size else []
+    step = 0.25 * np.maximum(res, trials[:-1] / q)
+    cut = np.flatnonzero(np.diff(trials) > 2 * step) + 1
+    return np.split(trials, cut)
 
 
 def grid(lo: float, hi: float, q: float, res: float) -> NDArray[np.float64]:
