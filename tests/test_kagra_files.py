@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from twind.analysis.statespace.couplings import screen
-from twind.analysis.statespace.diagnose import _residuals
+from twind.analysis.statespace.diagnose import _residuals, diagnose_plant
 from twind.analysis.statespace.fit import fit_baseline
 from twind.analysis.statespace.measurement import read_plant
 from twind.analysis.statespace.moves import unshown
@@ -62,6 +62,21 @@ def test_a_model_mode_the_data_still_show_is_not_offered_as_moved(srm_baseline) 
     assert pitch in unshown(res, base.model, every, peaks, 4.18)
     shown = [k for k, m in enumerate(modes) if abs(m.f_hz - 0.8659) < 0.001]
     assert shown and not set(shown) & set(unshown(res, base.model, every, peaks, 0.84))
+
+
+def test_a_diagnosis_out_of_time_keeps_its_moves_and_says_it_stopped(srm_baseline) -> None:  # noqa: ANN001
+    """With no time left after the modes are moved, no further change is tried, and the
+    diagnosis says so; the moves themselves stand (the IM pitch mode at 4.18 Hz)."""
+    plant, base, _ = srm_baseline
+    optic = load_config(CONFIG_DIR / "kagra" / "SRM.toml").optics["SRM"]
+    d = diagnose_plant(plant, optic, budget_s=0.0)
+    assert "time budget ran out" in d.stopped and d.to_json()["stopped"] == d.stopped
+    assert any(line.startswith("  stopped:") for line in d.lines())
+    moved = [c for c in d.chosen if c.effect.family == "mode_frequency"]
+    assert all(c.effect.family == "mode_frequency" for c in d.chosen)
+    f = [d.modal.modes[c.effect.target[0]].f_hz * math.exp(d.final.own(c.effect)["log_f"])
+         for c in moved]
+    assert any(abs(x - 4.181) < 0.01 for x in f)
 
 
 def test_the_reference_is_scored_as_a_bench_case_is() -> None:

@@ -277,6 +277,9 @@ def _diagnose(p: argparse.ArgumentParser) -> None:
                    help="the optic's two first violin modes (Hz, e.g. from twind freeswing): "
                         "weigh their length and tension readings against the fitted "
                         "wire_asymmetry")
+    p.add_argument("--budget", type=positive, default=None, metavar="SECONDS",
+                   help="state-space optics: seconds after which no further change is tried "
+                        "(default 90; the diagnosis says when it stopped)")
 
 
 def _modes(p: argparse.ArgumentParser) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 
 from twind import __version__, strictjson
 from twind.analysis.estimation.diaggui import read_transfers
-from twind.analysis.statespace.diagnose import diagnose_plant
+from twind.analysis.statespace.diagnose import BUDGET_S, diagnose_plant
 from twind.analysis.statespace.fit import fit_baseline
 from twind.analysis.statespace.measurement import PlantSet, read_plant
 from twind.config import load_config, optic_kinds
@@ -150,7 +150,7 @@ def fit(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
 def diagnose(args: argparse.Namespace, optic: StateSpaceOptic) -> int:
     """``twind diagnose`` of a state-space optic."""
     plant = _plant(args, optic)
-    result = diagnose_plant(plant, optic)
+    result = diagnose_plant(plant, optic, budget_s=args.budget or BUDGET_S)
     show(result, args.json)
     if args.output:
         print(f"wrote {write_plant_report(result, args.output)}", file=sys.stderr)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -58,10 +59,18 @@ from twind.analysis.statespace.fit import (
     fit_baseline,
     fit_plant,
     modelled_entries,
+    recalibrated,
 )
 from twind.analysis.statespace.measurement import PlantSet
 from twind.analysis.statespace.model import FAMILIES, Effect, PlantModel, other_loops
-from twind.analysis.statespace.moves import assign, candidates, reach, unheld, unshown
+from twind.analysis.statespace.moves import (
+    assign,
+    candidates,
+    holders,
+    reach,
+    unheld,
+    unshown,
+)
 from twind.analysis.statespace.peaks import Peak, measured_peaks
 from twind.analysis.statespace.report import Claim, PlantDiagnosis
 from twind.analysis.statespace.search import MOST_AMPLITUDE, SHIFT, Residuals, grid
@@ -83,13 +92,15 @@ VISIBLE = 1.0
 the noise's units: one the data cannot see can be neither moved nor missing."""
 _STAGES = [(p, z) for p in (0.3, 1.0, 3.0, 10.0, 30.0, 100.0) for z in (math.inf, 0.5 * p, 2 * p)]
 """A readback's stage's starts: poles across and above the band, zeros none or near."""
+BUDGET_S = 90.0
+"""A diagnosis's default time budget (s): no step of choosing starts past it."""
 HOPELESS = 0.25
 """A member whose screen drops the chi^2 by less than this part of what a claim needs is not
 fitted: its full fit (the calibrations refitted with it) seldom gains that much more."""
 
 
-def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = MAX_EFFECTS
-                   ) -> PlantDiagnosis:
+def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = MAX_EFFECTS,
+                   budget_s: float = BUDGET_S) -> PlantDiagnosis:
     """Diagnose a measured plant against `optic`'s state-space model.
 
     Parameters
@@ -99,6 +110,9 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
     optic : StateSpaceOptic
     max_effects : int
         Changes chosen at most.
+    budget_s : float
+        Seconds after which no further change is tried (the diagnosis says so): a large
+        multi-drive set's fits take tens of seconds each.
 
     Returns
     -------
@@ -109,11 +123,13 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
     FitError
         If no bin of the measurement is coherent.
     """
+    deadline = time.monotonic() + budget_s
     base = fit_baseline(plant, optic)
     data, model, free, noise, nominal = base.data, base.model, base.free, base.noise, base.fit
     unit = _unit(nominal, data, noise)
     located = _located(data, model, nominal)
-    model, moves, current = _moves(data, model, optic, plant, free, nominal, noise, unit)
+    model, moves, current = _moves(data, model, optic, plant, free, nominal, noise, unit,
+                                   base.modelled)
     if moves:  # the noise as the moved modes leave the residuals, not as their misfit did
         noise = Noise.of(current.residual[modelled_entries(data, base.modelled)],
                          data.averages)
@@ -122,11 +138,11 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
         unit = _unit(current, data, noise)
         for c in moves:
             c.fit = current
-    model, chosen, rivals, first = _select(data, model, optic, plant, free, current, noise,
-                                           unit, max_effects, moves)
+    model, chosen, rivals, first, stopped = _select(data, model, optic, plant, free, current,
+                                                    noise, unit, max_effects, moves, deadline)
     if not chosen:
         return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, [], nominal,
-                              located, first)
+                              located, first, stopped)
     final_model, final = _prune(data, model, optic, plant, free, chosen, noise, unit)
     while pinned := {c.effect.key() for c in chosen if _pinned(final, c.effect, final_model)}:
         # refitted with all the others, their places proved other modes'
@@ -141,7 +157,7 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
         c.local = _local(data, base.model, final_model, nominal, final, c.effect)
     rivals = [r for r in rivals if any(c.effect.key() == r.rival_of for c in chosen)]
     return PlantDiagnosis(optic, plant, data, final_model, nominal, noise, located,
-                          chosen + rivals, final, unexplained, first)
+                          chosen + rivals, final, unexplained, first, stopped)
 
 
 def _local(data: FitData, nominal_model: PlantModel, model: PlantModel, nominal: PlantFit,
@@ -187,8 +203,8 @@ def _located(data: FitData, model: PlantModel, fit: PlantFit) -> list[Located]:
 
 # ------------------------------------------------------------------------------ moved modes
 def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
-           free: list[str], nominal: PlantFit, noise: Noise, unit: float
-           ) -> tuple[PlantModel, list[Claim], PlantFit]:
+           free: list[str], nominal: PlantFit, noise: Noise, unit: float,
+           modelled: NDArray[np.bool_]) -> tuple[PlantModel, list[Claim], PlantFit]:
     """The model's modes the data show elsewhere, all at once: each visible mode tried at
     the data's peaks (:func:`~twind.analysis.statespace.moves.candidates`), the places
     given out best first, each mode one and each place one mode
@@ -213,11 +229,13 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
     visible = _visible(res, model, [], unit)
     members = len(visible) * len(FAMILIES)
     least = HOPELESS * _needed(members, 3)
-    peaks = unheld(res, model, visible, measured_peaks(data))
+    peaks = measured_peaks(data)
+    held = holders(res, model, visible, peaks)
     found = []
     for k in visible:
         progress.tick()
-        found += candidates(res, model, k, peaks, screen_unit, least)
+        found += candidates(res, model, k, unheld(peaks, held, k, data.resolution_hz),
+                            screen_unit, least)
     chosen = assign(found, data.resolution_hz)
     effects = [c.effect(model, data.resolution_hz) for c in chosen]
     if not effects:
@@ -235,6 +253,7 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
         looped = _looped(data, model, optic, plant, effects)
         fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
                         limits=_limits(looped, data, effects))
+    fit = recalibrated(data, looped, fit, free, modelled, noise, _limits(looped, data, effects))
     model, fit = _relooped(data, looped, optic, plant, free, fit, noise)
     claims = [Claim(e, fit, 0.0, 3, 1.0, 0.0, members=members, paths=c.paths)
               for (e, _), c in zip(effects, chosen, strict=True)]
@@ -287,16 +306,22 @@ def _band(data: FitData) -> tuple[float, float]:
 # ------------------------------------------------------------------------------ selection
 def _select(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
             free: list[str], current: PlantFit, noise: Noise, unit: float, most: int,
-            moves: Sequence[Claim] = ()
-            ) -> tuple[PlantModel, list[Claim], list[Claim], dict[str, float]]:
+            moves: Sequence[Claim], deadline: float
+            ) -> tuple[PlantModel, list[Claim], list[Claim], dict[str, float], str]:
     """Forward selection from the modes `moves` moved (fitted in `current`): the model as the
     chosen changes leave it (its other loops' feedback), the chosen changes (best first),
-    their rivals, and the p-value of every member fitted at the first step."""
+    their rivals, the p-value of every member fitted at the first step, and why the choice
+    stopped early (no step starts past `deadline`, :func:`time.monotonic`)."""
     chosen: list[Claim] = list(moves)
     rivals: list[Claim] = []
     first: dict[str, float] = {}
     for step in range(most):
-        claims = _step(data, model, optic, plant, free, chosen, current, noise, unit)
+        if time.monotonic() > deadline:
+            return model, chosen, rivals, first, (
+                f"the time budget ran out after {step} step(s) of choosing: further changes "
+                "were not tried (twind diagnose --budget)")
+        claims = _step(data, model, optic, plant, free, chosen, current, noise, unit,
+                       deadline)
         if step == 0:
             first = {c.effect.key(): c.p_value for c in claims}
         claimed = sorted((c for c in claims if c.p_value < ALPHA), key=lambda c: -c.delta_bic)
@@ -309,7 +334,7 @@ def _select(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Pla
                    if c.effect.key() in best.equivalent]
         model, current = _relooped(data, model, optic, plant, free, best.fit, noise)
         best.fit = current
-    return model, chosen, rivals, first
+    return model, chosen, rivals, first, ""
 
 
 def _relooped(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
@@ -353,10 +378,11 @@ class _Member:
 
 
 def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
-          free: list[str], chosen: list[Claim], current: PlantFit, noise: Noise, unit: float
-          ) -> list[Claim]:
-    """Every family's likeliest members, each fitted with the changes `chosen`; their
-    p-values paid for the members and the families screened."""
+          free: list[str], chosen: list[Claim], current: PlantFit, noise: Noise, unit: float,
+          deadline: float = math.inf) -> list[Claim]:
+    """Every family's likeliest members, each fitted with the changes `chosen` (the first
+    always, the others while `deadline` has not passed); their p-values paid for the
+    members and the families screened."""
     res = Residuals(data, model, model(current.nuisance, current.effects),
                     model.gain(current.nuisance, current.effects),
                     {r: current.nuisance[f"g_{r}"] for r in range(data.H.shape[1])
@@ -370,8 +396,8 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
                      for f, members in families.items() for m in members),
                     key=lambda x: -x[1])
     claims: list[Claim] = []
-    for m, margin, family in ranked[:STEP_FITS]:
-        if margin < HOPELESS:
+    for n, (m, margin, family) in enumerate(ranked[:STEP_FITS]):
+        if margin < HOPELESS or (n and time.monotonic() > deadline):
             break
         progress.note(f"step {len(chosen) + 1}: {m.effect.key()}")
         if family == "channel_response":
@@ -448,11 +474,12 @@ def _screen(res: Residuals, model: PlantModel, chosen: list[Claim],
              if c.effect.family in ("mode_frequency", "mode_amplitude")}
     peaks = measured_peaks(data)
     visible = _visible(res, model, taken, unit)
-    free_peaks = unheld(res, model, visible, peaks)
+    held = holders(res, model, visible, peaks)
     out: dict[str, list[_Member]] = {"mode_frequency": [], "mode_amplitude": []}
     for k in visible:
         progress.tick()
-        found = candidates(res, model, k, free_peaks, unit, 0.0)
+        found = candidates(res, model, k, unheld(peaks, held, k, data.resolution_hz), unit,
+                           0.0)
         if found:
             best = max(found, key=lambda c: c.drop)
             effect, start = best.effect(model, data.resolution_hz)
@@ -541,21 +568,29 @@ def _limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, di
 
 def _pinned(fit: PlantFit, effect: Effect, model: PlantModel,
             limits: dict[str, tuple[float, float]] | None = None) -> bool:
-    """Whether a moved mode ends at a bound of :func:`_limits`: its amplitude at one (the
-    data want more, or less, of it there than the model's shape of that mode gives) or its
-    frequency within half a bin of its anchor's edge (it left the peak it was found at for
-    a flank). Either way the place is another mode's. Likewise a mode in no model within a
-    bin of the edge of its stretch (`limits`): the coherent band's edge, where a slope of
-    the band is no mode, or a moved mode's place."""
+    """Whether a moved mode ends at a bound of :func:`_limits`: its amplitude at one or
+    within a sigma of it (the data want more, or less, of it there than the model's shape
+    of that mode gives), its Q at the lowest, or its frequency within half a bin of its
+    anchor's edge (it left the peak it was found at for a flank). Either way the place is
+    another mode's. A mode's amplitude within two sigmas of the model's is no change.
+    Likewise a mode in no model within a bin of the edge of its stretch
+    (`limits`): the coherent band's edge, where a slope of the band is no mode, or a moved
+    mode's place."""
+    if effect.family == "mode_amplitude":  # the model's own amplitude is no reading
+        a, sa = fit.own(effect)["amplitude"], fit.error(f"{effect.key()}.amplitude")
+        return sa is None or abs(a - 1.0) < 2 * sa
     if effect.family == "resonance" and limits:
         a, b = limits.get(f"{effect.key()}.f_hz", (-math.inf, math.inf))
         f = fit.own(effect)["f_hz"]
         return min(f - a, b - f) < model.res
     if effect.family != "mode_frequency":
         return False
-    own = fit.own(effect)
-    if not 1.01 / MOST_AMPLITUDE < own["amplitude"] < MOST_AMPLITUDE / 1.01:
-        return True
+    own, key = fit.own(effect), effect.key()
+    a, sa = own["amplitude"], fit.error(f"{key}.amplitude") or 0.0
+    if not (1.01 / MOST_AMPLITUDE < a - sa and a + sa < MOST_AMPLITUDE / 1.01):
+        return True  # at its bound, or within a sigma of it
+    if model.modal.q[effect.target[0]] * math.exp(own["log_q"]) < 1.05 * MODE_Q[0]:
+        return True  # as broad as a mode may be: a slope of the band, not this mode
     if effect.anchor is None:
         return False
     f = model.modal.modes[effect.target[0]].f_hz * math.exp(own["log_f"])

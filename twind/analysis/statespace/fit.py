@@ -269,6 +269,29 @@ LOWPASS_REACH = 3.0
 low-pass the band can tell from a delay)."""
 
 
+def recalibrated(data: FitData, model: PlantModel, fit: PlantFit, free: Sequence[str],
+                 inside: NDArray[np.bool_], noise: Noise,
+                 limits: Mapping[str, tuple[float, float]]) -> PlantFit:
+    """`fit` with the calibrations it left undetermined or consistent with zero started
+    again from the data's ratios to the model as `fit` changes it, and refitted (kept if
+    the deviance falls). A mode far from where the model has it makes a readback's ratio to
+    the model mostly a ratio of misplaced peaks: a calibration started there may take the
+    wrong sign, which its range then keeps (:func:`nuisance_limits`)."""
+    lost = [n for n in free if n.startswith("g_") and not n.startswith("g_d")
+            and (fit.error(n) is None or abs(fit.nuisance[n]) < 2 * fit.error(n))]
+    if not lost:
+        return fit
+    unit = {k: (1.0 if k.startswith("g_") else v) for k, v in fit.nuisance.items()}
+    gains = {n: g for n, g in start_gains(data, model, unit, inside, fit.effects).items()
+             if n in lost}
+    if not gains:
+        return fit
+    model.bounds.update(nuisance_limits(data, gains))
+    again = fit_plant(data, model, {**fit.nuisance, **gains}, free, fit.effects, noise=noise,
+                      limits=limits)
+    return again if again.deviance < fit.deviance else fit
+
+
 def nuisance_limits(data: FitData, gains: Mapping[str, float]
                     ) -> dict[str, tuple[float, float]]:
     """The physical range of each nuisance parameter: each calibration within
@@ -303,16 +326,18 @@ MIN_RATIO_BINS = 3
 
 
 def start_gains(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
-                inside: NDArray[np.bool_]) -> dict[str, float]:
-    """The calibrations the data's own ratios to the model give: ``g_<r>`` of each readback
-    and ``g_d<j>`` of each drive but the first of its group (only products of a readback's
-    and a drive's calibrations reach the data) that a coherent element the model has joins.
+                inside: NDArray[np.bool_],
+                effects: Sequence[tuple[Effect, Mapping[str, float]]] = ()) -> dict[str, float]:
+    """The calibrations the data's own ratios to the model (changed by `effects`) give:
+    ``g_<r>`` of each readback and ``g_d<j>`` of each drive but the first of its group (only
+    products of a readback's and a drive's calibrations reach the data) that a coherent
+    element the model has joins.
 
     Each such element's own calibration (:func:`_element_gain`) is split into a
     readback's and a drive's part: their log magnitudes by least squares, their signs along
     the elements that join them.
     """
-    M = model(nuisance)
+    M = model(nuisance, effects)
     nr, nd = inside.shape
     elements = {}
     for r in range(nr):

@@ -82,7 +82,9 @@ def candidates(res: Residuals, model: PlantModel, k: int, peaks: Sequence[Peak],
     two widths and two bins) at a Q its width allows (:data:`Q_SPREAD`), with an amplitude
     below :data:`~twind.analysis.statespace.search.MOST_AMPLITUDE` either way (at the bound,
     the data want more of it there than its shape gives: another mode's peak) and a drop
-    of at least `least`."""
+    of at least `least`. A mode broader than a bin is also tried anywhere in that reach,
+    at a Q near its own: a damped mode moved may raise no peak that stands out of any
+    element."""
     data, res_hz = res.data, res.data.resolution_hz
     f0 = model.modal.modes[k].f_hz
     used = data.frequency_hz[data.mask.any(axis=(1, 2))]
@@ -93,6 +95,9 @@ def candidates(res: Residuals, model: PlantModel, k: int, peaks: Sequence[Peak],
     every = grid(lo, hi, FINE_Q, model.res) if lo < hi else np.zeros(0)
     near = {id(p): np.abs(every - p.f_hz) <= 2 * p.width_hz + 2 * res_hz for p in own}
     tried = np.any(list(near.values()), axis=0) if near else np.zeros(every.size, bool)
+    q0 = float(model.modal.q[k])
+    broad = f0 / q0 > res_hz  # its peak may stand out of no element
+    tried |= broad
     if not tried.any():
         return []
     profile = res.profile(k, unit, every[tried])
@@ -105,6 +110,15 @@ def candidates(res: Residuals, model: PlantModel, k: int, peaks: Sequence[Peak],
                 and 1 / MOST_AMPLITUDE <= a < MOST_AMPLITUDE):
             out.append(Candidate(k, float(f), float(profile.q[j]), float(a), float(drop),
                                  tuple(x * scale for x in profile.paths)))
+    if broad:  # anywhere in its reach, about as broad as the model has it
+        ok_q = (profile.q >= q0 / Q_SPREAD) & (profile.q <= q0 * Q_SPREAD)
+        j, i = profile.best(np.ones(profile.f_hz.size, dtype=bool),
+                            ok_q if ok_q.any() else np.ones(profile.q.size, dtype=bool))
+        f, a, drop = profile.f_hz[i], profile.amplitude[j, i], profile.drop[j, i]
+        if (drop >= least and abs(f - f0) > res_hz
+                and 1 / MOST_AMPLITUDE <= a < MOST_AMPLITUDE):
+            out.append(Candidate(k, float(f), float(profile.q[j]), float(a), float(drop),
+                                 tuple(profile.paths)))
     return out
 
 
@@ -130,20 +144,27 @@ HELD_BINS = 1.5
 the model has it: no other mode is moved onto it."""
 
 
-def unheld(res: Residuals, model: PlantModel, modes: Sequence[int], peaks: Sequence[Peak]
-           ) -> list[Peak]:
-    """The `peaks` no mode of `modes` accounts for where the model has it: a mode of
-    `modes` holds every peak within :data:`HELD_BINS` of it, in any element, when one of
-    them is in an element that shows the mode (one resonance seen in several readbacks).
-    A model mode moved onto a peak its neighbour already explains would fit that peak's
-    flank, not its own."""
+def holders(res: Residuals, model: PlantModel, modes: Sequence[int], peaks: Sequence[Peak]
+            ) -> list[tuple[float, int]]:
+    """The modes of `modes` the data show where the model has them, each with its
+    frequency: a peak within :data:`HELD_BINS` of it is in an element that shows it."""
     within = HELD_BINS * res.data.resolution_hz
-    held = []
+    out = []
     for k in modes:
         f, shows = model.modal.modes[k].f_hz, _elements(res, model, k)
         if any(shows[p.element] and abs(p.f_hz - f) <= within for p in peaks):
-            held.append(f)
-    return [p for p in peaks if all(abs(p.f_hz - f) > within for f in held)]
+            out.append((f, k))
+    return out
+
+
+def unheld(peaks: Sequence[Peak], held: Sequence[tuple[float, int]], k: int, res_hz: float
+           ) -> list[Peak]:
+    """The `peaks` mode `k` may be moved onto: all but those within :data:`HELD_BINS` of
+    another mode `held` (:func:`holders`), in any element (one resonance seen in several
+    readbacks). A model mode moved onto a peak its neighbour already explains would fit
+    that peak's flank, not its own."""
+    within = HELD_BINS * res_hz
+    return [p for p in peaks if all(abs(p.f_hz - f) > within or j == k for f, j in held)]
 
 
 def unshown(res: Residuals, model: PlantModel, modes: Sequence[int], peaks: Sequence[Peak],

@@ -81,6 +81,8 @@ class PlantDiagnosis:
     final : PlantFit
     first_step : dict of str to float
         Every member fitted at the first step, and its p-value.
+    stopped : str
+        Why the choice of changes stopped before it was done (``""``: it was done).
     """
 
     optic: StateSpaceOptic
@@ -94,6 +96,7 @@ class PlantDiagnosis:
     final: PlantFit
     unexplained: list[Located]
     first_step: dict[str, float] = field(default_factory=dict)
+    stopped: str = ""
 
     @property
     def modal(self) -> ModalForm:
@@ -250,8 +253,8 @@ class PlantDiagnosis:
         their shape, and a claim in them is read against a scale the data do not fix."""
         out = {}
         for name, value in self.final.nuisance.items():
-            if not name.startswith("g_") or name.startswith("g_d"):
-                continue
+            if not name.startswith("g_") or name.startswith("g_d") or name not in self.final.names:
+                continue  # a readback the model does not reach is not calibrated at all
             sigma = self.final.error(name)
             readback = self.plant.readbacks[int(name[2:])]
             if sigma is None:
@@ -281,6 +284,7 @@ class PlantDiagnosis:
                                 for x in self.unexplained],
                 "p_values": self.first_step,
                 "nuisance": self.nuisance(), "uncalibrated": self.uncalibrated(),
+                "stopped": self.stopped,
                 "modes": self.modes_table(),
                 "summary": self.summary()}
 
@@ -331,6 +335,7 @@ class PlantDiagnosis:
         out.append("  what the measurement adds: " + ", ".join(
             f"{k} {_pm(v['value'], v['sigma'] or math.nan, 3)}" for k, v in nuis.items()))
         out += [f"  cannot be calibrated: {r}: {why}" for r, why in self.uncalibrated().items()]
+        out += [f"  stopped: {self.stopped}"] if self.stopped else []
         for x in self.unexplained[:8]:
             out.append(f"  unexplained: {x.element} {x.band_hz[0]:.3g}-{x.band_hz[1]:.3g} Hz")
         if not self.consistent:
