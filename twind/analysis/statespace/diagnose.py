@@ -409,7 +409,7 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
             claim = _narrower(claim, res, model)
             moved = _as_moved(data, model, optic, plant, free, chosen, claim, current, noise,
                               unit, res)
-            claim, family = (claim, family) if moved is None else (moved, "mode_frequency")
+            claim = claim if moved is None else moved  # paid for as the search found it
         claim.members = len(families[family])
         claim.p_value = min(1.0, claim.p_value * claim.members * len(families))
         claims.append(claim)

@@ -170,15 +170,15 @@ def unheld(peaks: Sequence[Peak], held: Sequence[tuple[float, int]], k: int, res
 def unshown(res: Residuals, model: PlantModel, modes: Sequence[int], peaks: Sequence[Peak],
             f_hz: float) -> list[int]:
     """Of `modes`, those within :data:`~twind.analysis.statespace.search.SHIFT` of `f_hz`
-    that the data no longer show where the model has them (no peak within its
-    :func:`reach` in the elements that show it), nearest `f_hz` first: a mode in no model
-    found there may be one of them moved."""
+    that the data no longer show where the model has them (no peak within a bin of it in
+    the elements that show it), nearest `f_hz` first: a mode in no model found there may be
+    one of them moved."""
     out = []
     for k in modes:
         mode = model.modal.modes[k]
         if not mode.f_hz / SHIFT <= f_hz <= mode.f_hz * SHIFT:
             continue
-        shows, r = _elements(res, model, k), reach(mode.f_hz, mode.q, res.data.resolution_hz)
+        shows, r = _elements(res, model, k), res.data.resolution_hz
         if not any(shows[p.element] and abs(p.f_hz - mode.f_hz) <= r for p in peaks):
             out.append(k)
     return sorted(out, key=lambda k: abs(math.log(f_hz / model.modal.modes[k].f_hz)))
