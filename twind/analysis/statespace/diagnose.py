@@ -144,13 +144,9 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
         return PlantDiagnosis(optic, plant, data, model, nominal, noise, located, [], nominal,
                               located, first, stopped)
     final_model, final = _prune(data, model, optic, plant, free, chosen, noise, unit)
-    while pinned := {c.effect.key() for c in chosen if _pinned(final, c.effect, final_model)}:
-        # refitted with all the others, their places proved other modes'
-        chosen = [c for c in chosen if c.effect.key() not in pinned]
-        rest = [(e, v) for e, v in final.effects if e.key() not in pinned]
-        final_model = _looped(data, final_model, optic, plant, rest)
-        final = fit_plant(data, final_model, final.nuisance, free, rest, noise=noise,
-                          limits=_limits(final_model, data, rest)) if rest else nominal
+    final_model, final, pinned = _unpinned(data, final_model, optic, plant, free, final, noise,
+                                           nominal)
+    chosen = [c for c in chosen if c.effect.key() not in pinned]
     unexplained = _located(data, final_model, final)
     for c in chosen:
         c.fit, c.partial = final, bool(unexplained)
@@ -244,19 +240,15 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
     looped = _looped(data, model, optic, plant, effects)
     fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
                     limits=_limits(looped, data, effects))
-    pinned = [_pinned(fit, e, looped) for e, _ in effects]
-    if any(pinned):  # those places are other modes'
-        chosen = [c for c, p in zip(chosen, pinned, strict=True) if not p]
-        effects = [e for e, p in zip(effects, pinned, strict=True) if not p]
-        if not effects:
-            return model, [], nominal
-        looped = _looped(data, model, optic, plant, effects)
-        fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
-                        limits=_limits(looped, data, effects))
-    fit = recalibrated(data, looped, fit, free, modelled, noise, _limits(looped, data, effects))
+    looped, fit, pinned = _unpinned(data, looped, optic, plant, free, fit, noise, nominal)
+    kept = [(e, c) for (e, _), c in zip(effects, chosen, strict=True) if e.key() not in pinned]
+    if not kept:
+        return model, [], nominal
+    fit = recalibrated(data, looped, fit, free, modelled, noise,
+                       _limits(looped, data, fit.effects))
     model, fit = _relooped(data, looped, optic, plant, free, fit, noise)
     claims = [Claim(e, fit, 0.0, 3, 1.0, 0.0, members=members, paths=c.paths)
-              for (e, _), c in zip(effects, chosen, strict=True)]
+              for e, c in kept]
     model, fit = _prune(data, model, optic, plant, free, claims, noise, unit, nominal, members)
     for c in claims:
         c.fit, c.p_value = fit, c.p_given_others or 0.0
@@ -564,6 +556,23 @@ def _limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, di
                 b = min(b, x)
         out[f"{key}.f_hz"] = (a, b)
     return out
+
+
+def _unpinned(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+              free: list[str], fit: PlantFit, noise: Noise, bare: PlantFit
+              ) -> tuple[PlantModel, PlantFit, set[str]]:
+    """`fit` refitted without the changes it leaves pinned (:func:`_pinned`), until none is
+    (`bare`, the fit without any change, when none is left): the model as they leave it, the
+    fit, and the keys of those dropped. Fitted with all the others, their places proved
+    other modes'."""
+    dropped: set[str] = set()
+    while pinned := {e.key() for e, _ in fit.effects if _pinned(fit, e, model)}:
+        dropped |= pinned
+        rest = [(e, v) for e, v in fit.effects if e.key() not in pinned]
+        model = _looped(data, model, optic, plant, rest)
+        fit = fit_plant(data, model, fit.nuisance, free, rest, noise=noise,
+                        limits=_limits(model, data, rest)) if rest else bare
+    return model, fit, dropped
 
 
 def _pinned(fit: PlantFit, effect: Effect, model: PlantModel,
