@@ -179,16 +179,17 @@ class _Watcher:
                 return
             time.sleep(0.05)
 
-    def arrival_of(self, channel: str, start_gps: float, timeout: float = 5.0) -> float | None:
-        """Monotonic time at which the block holding `start_gps` of `channel` arrived."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+    def arrival_of(self, channel: str, start_gps: float, deadline: float) -> float | None:
+        """Monotonic time at which the block holding `start_gps` of `channel` arrived, or
+        None if it has not by the monotonic time `deadline`."""
+        while True:
             with self._lock:
                 for gps, arrived, _ in self.first_nonzero[channel]:
                     if abs(gps - start_gps) < 1e-6:
                         return arrived
+            if time.monotonic() >= deadline:
+                return None
             time.sleep(0.005)
-        return None
 
     def total(self, what: str) -> int:
         """``blocks``, ``lost`` or ``out_of_order``, over every channel."""
@@ -220,6 +221,7 @@ def _request(obj: dict) -> bytes:
 
 
 _SINE = {"channel": "C1:SUS-ETMX_SUSPOS_EXC", "waveform": "sine", "freq": 1.0, "amp": 0.1}
+ARRIVAL_GRACE_S = 5.0  # after the last injection, for its first sample to reach the watcher
 HOSTILE = [
     b"not json", b"[1, 2, 3]", b"{}",
     _request({**_SINE, "channel": "C1:SUS-ETMZ_SUSPOS_EXC"}),
@@ -472,8 +474,10 @@ def _inject_periodically(client: TwinClient, watcher: _Watcher, targets: list[tu
                          rate_hz: float, until: float, every: float,
                          ) -> dict[str, list[float | None]]:
     """Short sines on `targets` in turn until `until`: each twin's latencies from request to
-    the first non-zero excitation sample at `watcher` (None for one accepted but not seen)."""
-    latencies: dict[str, list[float | None]] = {twin: [] for twin, _ in targets}
+    the first non-zero excitation sample at `watcher` (None for one accepted but not seen
+    within `ARRIVAL_GRACE_S` of the last request). Arrivals are looked up after the last
+    request, so a late block on a busy host neither stalls the requests nor goes uncounted."""
+    requested: list[tuple[str, str, float, float]] = []  # twin, channel, GPS, when asked
     rng = np.random.default_rng(0)
     k = 0
     while time.monotonic() + every < until:
@@ -484,10 +488,14 @@ def _inject_periodically(client: TwinClient, watcher: _Watcher, targets: list[tu
                                         "amp": 0.01, "duration": 0.5})
         if reply.get("accepted"):
             # a sine starts at zero: its first non-zero sample is the one after the start
-            arrived = watcher.arrival_of(channel, reply["start_gps"] + 1 / rate_hz)
-            latencies[twin].append(None if arrived is None else arrived - t_req)
+            requested.append((twin, channel, reply["start_gps"] + 1 / rate_hz, t_req))
         # random intervals, so requests fall at every phase of the block clock
         time.sleep(max(0.0, rng.uniform(0.5, 1.5) * every - (time.monotonic() - t_req)))
+    latencies: dict[str, list[float | None]] = {twin: [] for twin, _ in targets}
+    deadline = time.monotonic() + ARRIVAL_GRACE_S
+    for twin, channel, gps, t_req in requested:
+        arrived = watcher.arrival_of(channel, gps, deadline)
+        latencies[twin].append(None if arrived is None else arrived - t_req)
     return latencies
 
 

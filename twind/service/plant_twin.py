@@ -9,6 +9,8 @@ changed in its configuration.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import zenoh
 
@@ -32,17 +34,18 @@ class PlantTwinService(TwinService):
     twin : TwinConfig
     optics : list of StateSpaceOptic
         One optic.
-    block_s, speed, seed, root
+    block_s, speed, seed, root, recorder_status
         As :class:`~twind.service.twin.TwinService`'s.
     """
 
     def __init__(self, session: zenoh.Session, twin: TwinConfig,
                  optics: list[StateSpaceOptic], block_s: float = 1 / 16, speed: float = 1.0,
-                 seed: int = 0, root: str = ROOT) -> None:
+                 seed: int = 0, root: str = ROOT,
+                 recorder_status: Callable[[], dict] | None = None) -> None:
         if len(optics) != 1:
             msg = "a state-space twin serves one optic; choose it with --optics"
             raise TwindError(msg)
-        super().__init__(session, twin, optics, block_s, speed, seed, root)
+        super().__init__(session, twin, optics, block_s, speed, seed, root, recorder_status)
 
     def _start_engine(self, seed: int) -> None:
         """The optic's engine with its damping loops closed, and its channels: each EXC

@@ -76,9 +76,9 @@ def main(conf: zenoh.Config, twin: TwinConfig, optics: list, *, block_s: float =
             recorder = (Recording(record_dir, endpoints, twin.ifo, record_config)
                         if record_dir else None)
             kind = PlantTwinService if kinds == {"statespace"} else TwinService
-            service = kind(session, twin, optics, block_s=block_s, speed=speed, seed=seed)
+            service = kind(session, twin, optics, block_s=block_s, speed=speed, seed=seed,
+                           recorder_status=recorder.state if recorder else None)
             if recorder is not None:
-                service.recorder_status = recorder.state
                 threading.Thread(target=recorder.watch, args=(stop,), daemon=True).start()
             print(f"twind serve: {', '.join(o.name for o in optics)} at {service.rate:g} Hz in "
                   f"{service.block_s:g} s blocks, {speed:g} x real time, GPS "

@@ -109,11 +109,14 @@ class TwinService:
         Noise seed.
     root : str
         Key root of the data channels.
+    recorder_status : callable, optional
+        The state of ``serve --record``'s recorder, for status; given here so that no status
+        reply goes out before it is known.
     """
 
     def __init__(self, session: zenoh.Session, twin: TwinConfig, optics: list[OpticConfig],
                  block_s: float = 1 / 16, speed: float = 1.0, seed: int = 0,
-                 root: str = ROOT) -> None:
+                 root: str = ROOT, recorder_status: Callable[[], dict] | None = None) -> None:
         if not (speed > 0 and math.isfinite(speed)):
             msg = f"speed must be positive and finite, got {speed}"
             raise TwindError(msg)
@@ -143,7 +146,7 @@ class TwinService:
         self._ended: set[str] = set()
         self._started = self._t0 = time.monotonic()
         self._end: int | None = None  # the sample the service stops at, when it is to stop
-        self.recorder_status: Callable[[], dict] | None = None  # serve --record's recorder
+        self.recorder_status = recorder_status
         self._session = session
         # Zenoh drops samples under congestion by default; a twin whose recordings have gaps is
         # worse than one that waits a moment for a slow subscriber

@@ -237,11 +237,11 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
     if not effects:
         return model, [], nominal
     progress.note(f"{len(effects)} modes moved together")
-    looped = _looped(data, model, optic, plant, effects)
-    fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
-                    limits=_limits(looped, data, effects))
-    looped, fit, pinned = _unpinned(data, looped, optic, plant, free, fit, noise, nominal)
-    kept = [(e, c) for (e, _), c in zip(effects, chosen, strict=True) if e.key() not in pinned]
+    looped, fit = _together(data, model, optic, plant, free, nominal, noise, effects,
+                            _needed(members, 3) * unit)
+    looped, fit, _ = _unpinned(data, looped, optic, plant, free, fit, noise, nominal)
+    fitted = {e.key() for e, _ in fit.effects}
+    kept = [(e, c) for (e, _), c in zip(effects, chosen, strict=True) if e.key() in fitted]
     if not kept:
         return model, [], nominal
     fit = recalibrated(data, looped, fit, free, modelled, noise,
@@ -254,6 +254,44 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
         c.fit, c.p_value = fit, c.p_given_others or 0.0
         c.seen_in = _seen_in(data, nominal, fit)
     return model, claims, fit
+
+
+def _together(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+              free: list[str], nominal: PlantFit, noise: Noise,
+              effects: Sequence[tuple[Effect, dict]], need: float
+              ) -> tuple[PlantModel, PlantFit]:
+    """The moves `effects` (best first) fitted together, with the model they leave.
+
+    Started where each was found, two modes can share one peak, each holding part of it: a
+    false minimum, which shows as a joint fit worse than the first move alone. Then the
+    moves are added one at a time to the first instead, each kept only if it drops the
+    deviance by `need` (a claim's likelihood ratio, in deviance) and is not pinned."""
+    looped = _looped(data, model, optic, plant, effects)
+    fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
+                    limits=_limits(looped, data, effects))
+    if len(effects) == 1:
+        return looped, fit
+    first = list(effects[:1])
+    alone_model = _looped(data, model, optic, plant, first)
+    alone = fit_plant(data, alone_model, nominal.nuisance, free, first, noise=noise,
+                      limits=_limits(alone_model, data, first))
+    if alone.deviance >= fit.deviance:
+        return looped, fit
+    progress.note("fitted together, moves shared a peak: adding them one at a time")
+    looped, fit = alone_model, alone
+    for effect in effects[1:]:
+        progress.tick()
+        trial = [*fit.effects, effect]
+        trial_model = _looped(data, model, optic, plant, trial)
+        try:
+            tried = fit_plant(data, trial_model, fit.nuisance, free, trial, noise=noise,
+                              limits=_limits(trial_model, data, trial))
+        except FitError:
+            continue
+        if fit.deviance - tried.deviance >= need and not _pinned(tried, effect[0],
+                                                                  trial_model):
+            looped, fit = trial_model, tried
+    return looped, fit
 
 
 def _resonance_places(data: FitData, peaks: Sequence[Peak],
