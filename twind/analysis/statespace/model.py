@@ -567,6 +567,16 @@ def closed(p_in: NDArray[np.complex128], k: NDArray[np.complex128]) -> NDArray[n
     return np.linalg.solve(np.eye(n) - k[..., :, None] * p_in, k[..., :, None] * np.eye(n))
 
 
+def closed_first(p_in: NDArray[np.complex128], k: NDArray[np.complex128]
+                 ) -> NDArray[np.complex128]:
+    """The first column of :func:`closed` (each loop's OUT per unit of the first loop's
+    EXC), solved for that column alone: a search solves it at every trial and bin."""
+    n = k.shape[-1]
+    rhs = np.zeros((*k.shape, 1), dtype=complex)
+    rhs[..., 0, 0] = k[..., 0]
+    return np.linalg.solve(np.eye(n) - k[..., :, None] * p_in, rhs)[..., 0]
+
+
 def _closed_columns(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequence[str]
                     ) -> dict[int, tuple[list[str], tuple[str, ...]]]:
     """Each column that is a damping loop with other loops closed: its loops (its own first)
@@ -620,7 +630,7 @@ def other_loops(optic: StateSpaceOptic, drives: Sequence[str], readbacks: Sequen
         others, K = _unchanged(optic, loops, modal, points)
         P = modal.modes_response(points) + others
         inner = [rows.index(f"{m}_IN1") for m in loops]
-        u = closed(P[:, inner], K)[:, :, 0]
+        u = closed_first(P[:, inner], K)
         R = np.einsum("prl,pl->pr", P[:, : len(readbacks)], u)
         out[:, :, j] = _averaged(R, owner, weights, f_hz.size) / \
             _averaged(u[:, :1], owner, weights, f_hz.size) - \

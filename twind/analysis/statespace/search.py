@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from twind.analysis.identification.data import FitData
 from twind.analysis.identification.model import NARROW_REACH_BINS
 from twind.analysis.identification.narrow import SEARCH_Q
-from twind.analysis.statespace.model import PlantModel, closed
+from twind.analysis.statespace.model import PlantModel, closed_first
 
 SHIFT = 2.0
 """A model mode is looked for from its frequency over this factor to its frequency times it
@@ -269,7 +269,7 @@ class _ClosedChange:
 
     def _column(self, fb, P: NDArray, K: NDArray) -> NDArray[np.complex128]:  # noqa: ANN001
         """The closed-loop column of plant `P` (..., bins, rows, loops): ``P_R u / u_d``."""
-        u = closed(P[..., list(fb.inner), :], K)[..., 0]
+        u = closed_first(P[..., list(fb.inner), :], K)
         return np.einsum("...rl,...l->...r", P[..., : self.z.shape[1], :], u) / u[..., :1]
 
     def delta(self, w: NDArray[np.float64], q: float) -> NDArray[np.complex128]:
