@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from twind.analysis.statespace.couplings import screen
 from twind.analysis.statespace.diagnose import _residuals, diagnose_plant
-from twind.analysis.statespace.fit import fit_baseline
+from twind.analysis.statespace.fit import fit_baseline, fit_plant
 from twind.analysis.statespace.measurement import read_plant
+from twind.analysis.statespace.model import Effect
 from twind.analysis.statespace.moves import unshown
 from twind.analysis.statespace.peaks import measured_peaks
 from twind.config import CONFIG_DIR, load_config
@@ -104,3 +106,20 @@ def test_the_reference_is_scored_as_a_bench_case_is() -> None:
                               "f_hz": 3.9, "rival_of": None}], "coherent": band}
     assert score(elsewhere, modes, RESOLUTION_HZ).wrong == 1
     assert math.isinf(modes[0]["true_q"]) and np.isfinite(modes[0]["true_f_hz"])
+
+
+def test_a_mode_in_no_model_is_weighed_by_its_numerators_alone(srm_baseline) -> None:  # noqa: ANN001
+    """A mode in no model fitted at the SRM's 1.35 Hz yaw peak (a coupling the model lacks):
+    its Wald statistic, which decides whether the final fit keeps it without refitting, is
+    that of its numerators against zero; its f and Q, which no null fixes, are left out. (A
+    realistic PRM case stopped the whole diagnosis with a KeyError there.)"""
+    _, base, _ = srm_baseline
+    n = base.data.H.shape[1] * base.data.H.shape[2]
+    effect = Effect("resonance", (0,))
+    start = {"f_hz": 1.35, "q": 300.0, **{f"b{i}": 0.0 for i in range(n)}}
+    fit = fit_plant(base.data, base.model, base.fit.nuisance, base.free, [(effect, start)],
+                    noise=base.noise, new=effect)
+    assert fit.own(effect)["f_hz"] == pytest.approx(1.35, abs=0.01)
+    unit = replace(fit, cov=np.eye(len(fit.names)))  # every parameter determined, sigma 1
+    b = np.array([v for p, v in fit.own(effect).items() if p.startswith("b")])
+    assert unit.wald(effect) == pytest.approx(float(b @ b))

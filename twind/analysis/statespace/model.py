@@ -125,7 +125,7 @@ class Effect:
         if "amplitude" in out and self.family.startswith("mode_"):
             out["amplitude"] = 1.0
         if self.family == "resonance":
-            out.update(f_hz=own["f_hz"], q=own["q"])
+            out.update({p: own[p] for p in ("f_hz", "q") if p in own})
         return out
 
     def start(self, elements: int = 0) -> dict[str, float]:
