@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import control
 import numpy as np
@@ -220,6 +221,12 @@ def test_kagra_srm_the_ip_mode_moved_and_im_v_reads_im_p(srm) -> None:  # noqa: 
     cross = [c for c in d.chosen if c.effect.family == "cross_coupling"]
     assert any(plant.readbacks[c.effect.target[0]] == "IM_DAMP_V_IN1" for c in cross)
     assert d.nominal.chi2_nu / d.final.chi2_nu > 2
+    # the pitch drive's yaw share: a number where the data determine it, none where not
+    share = next(c for c in d.chosen if c.effect.family == "drive_coupling")
+    assert "TM_OPLEV_YAW_DIAG -" in d.describe(share) and "+-" in d.describe(share)
+    blind = replace(d.final, sigma=np.full_like(d.final.sigma, np.nan))
+    words = d.describe(share, blind)
+    assert "TM_OPLEV_YAW_DIAG" in words and "do not determine" in words and "%" not in words
 
 
 # ------------------------------------------------------------------------------ commands

@@ -4,6 +4,7 @@ and the whole diagnosis (:class:`PlantDiagnosis`), in words, as tables and as JS
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -176,13 +177,9 @@ class PlantDiagnosis:
                     f"{r2} reads")
         if e.family == "drive_coupling":
             d, u = self.plant.drives[e.target[0]], self.model.extra.inputs[e.target[1]]
-            reads = ", ".join(f"{self.plant.readbacks[int(p[1:])]} "
-                              f"{_pm(100 * v, 100 * (err(p) or math.nan), 2)} %"
-                              for p, v in own.items())
             named = [n for n in self.optic.drives if self.optic.drives[n] == u]
             what = f"{named[0]} ({u})" if named else u
-            return (f"{d} also drives what {what} drives, seen as that share of its "
-                    f"response in {reads}")
+            return f"{d} also drives what {what} drives, {self._shares(own, err)}"
         if e.family == "drive_crosstalk":
             r, d = self.plant.readbacks[e.target[0]], self.plant.drives[e.target[1]]
             return (f"{r} picks up {d} directly: a flat {_pm(own['c'], err('c') or math.nan, 2)}"
@@ -195,6 +192,22 @@ class PlantDiagnosis:
         lag = 1e3 * (ip - iz) / (2 * math.pi)
         return (f"{r} has a stage of its own: pole {pole}, zero {zero}; "
                 f"{'a delay' if lag >= 0 else 'an advance'} of {abs(lag):.3g} ms below them")
+
+    def _shares(self, own: dict[str, float], err: Callable[[str], float | None]) -> str:
+        """A drive coupling's share per readback, in words: a number only where the data
+        determine it; where they do not (the readback's calibration takes it up, or too
+        few coherent bins), the readback named without one."""
+        known = [(p, v) for p, v in own.items() if err(p) is not None]
+        unknown = [self.plant.readbacks[int(p[1:])] for p in own if err(p) is None]
+        words = []
+        if known:
+            words.append("seen as that share of its response in " + ", ".join(
+                f"{self.plant.readbacks[int(p[1:])]} {_pm(100 * v, 100 * err(p), 2)} %"
+                for p, v in known))
+        if unknown:
+            words.append(f"{'also ' if known else ''}in {', '.join(unknown)}, by a share the "
+                         "data do not determine")
+        return "; ".join(words)
 
     def summary(self) -> str:
         """One line for a person."""
