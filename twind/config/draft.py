@@ -132,12 +132,12 @@ def draft_config(model_file: str | Path, optic: str, output: str | Path, *,
         raise TwindError(msg)
     shapes = {e.point: e for e in rules.entries("shapes", model)}
     loops = _loops(rules, model, drives, readbacks)
+    unmapped = _unmapped(model, drives, readbacks, shapes)
     text = _text(optic, ifo, system, Path(model_file), Path(output), naming, rules,
-                 (drives, readbacks, shapes, loops), model)
+                 (drives, readbacks, shapes, loops), model) + _unmapped_text(*unmapped, rules)
     return Draft(optic, text, drives, readbacks, shapes,
                  {m: drives[d].names["input"] for m, (_, d) in loops.items()},
-                 _checks(rules, model, drives, readbacks), *_unmapped(model, drives, readbacks,
-                                                                      shapes), rules)
+                 _checks(rules, model, drives, readbacks), *unmapped, rules)
 
 
 def write_config(model_file: str | Path, optic: str, output: str | Path, **options: str | None
@@ -239,7 +239,7 @@ def _text(optic: str, ifo: str, system: str, model_file: Path, output: Path,
     full = {n.rsplit("/", 1)[-1]: n for n in (*model.inputs, *model.outputs)}
     parts = [_head(optic, model_file, output, rules),
              f'[optic]\nname = "{optic}"\nmodel = "statespace"\n',
-             _channels(ifo, system, optic, naming, output, rules),
+             _channels(ifo, system, optic, naming, output),
              _statespace(model_file, output, rules),
              _table("statespace.shapes", "a DOF and a collocated model input and output: each "
                     "mode is labelled by the DOF carrying the largest share of its inverse "
@@ -253,7 +253,7 @@ def _text(optic: str, ifo: str, system: str, model_file: Path, output: Path,
                     full)]
     if loops:
         parts.append(_loops_text(loops, drives))
-    return "\n".join(parts) + _unmapped_text(model, drives, readbacks, shapes, rules)
+    return "\n".join(parts)
 
 
 def _head(optic: str, model_file: Path, output: Path, rules: Naming) -> str:
@@ -266,8 +266,8 @@ def _head(optic: str, model_file: Path, output: Path, rules: Naming) -> str:
     return _comment(text) + "\n"
 
 
-def _channels(ifo: str, system: str, optic: str, naming: str | Path | None, output: Path,
-              rules: Naming) -> str:
+def _channels(ifo: str, system: str, optic: str, naming: str | Path | None, output: Path
+              ) -> str:
     lines = [f"[channels]  # {ifo}:{system}-{optic}_<suffix>", f"ifo = {_value(ifo)}",
              f"system = {_value(system)}"]
     shipped = default_naming(ifo)
@@ -309,10 +309,7 @@ def _loops_text(loops: Mapping[str, tuple[Entry, str]], drives: Mapping[str, Ent
     return "\n".join(parts) + "\n"
 
 
-def _unmapped_text(model: StateSpace, drives: Mapping[str, Entry],
-                   readbacks: Mapping[str, Entry], shapes: Mapping[str, Entry],
-                   rules: Naming) -> str:
-    ins, outs = _unmapped(model, drives, readbacks, shapes)
+def _unmapped_text(ins: Sequence[str], outs: Sequence[str], rules: Naming) -> str:
     text = (f"Not mapped by any rule of {rules.site}'s naming: inputs "
             f"{', '.join(ins) or 'none'}; outputs {', '.join(outs) or 'none'}.")
     return "\n" + _comment(text) + "\n"

@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import math
 import statistics
-import tomllib
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from twind.config import CONFIG_DIR
+from twind.config.reader import read_toml
 from twind.lab.kagra_reference import DATA
 from twind.lab.plant_cases import Score, diagnose_files, score
 
@@ -60,7 +60,7 @@ def run(names: Sequence[str], workdir: str | Path, timeout_s: float = 600.0,
     list of str
         The totals: shifts read, read as new, claims, and the seconds.
     """
-    key = tomllib.loads((DATA / "reference.toml").read_text())["files"]
+    key = read_toml(DATA / "reference.toml")["files"]
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     scores: list[Score] = []

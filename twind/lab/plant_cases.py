@@ -134,22 +134,6 @@ class Case:
                 "modes": [m.to_json() for m in self.modes], "chain": self.chain.to_json(),
                 "perturbation": self.perturbation.to_json()}
 
-    def lines(self) -> list[str]:
-        """The truth for a person: the moved modes and the chain."""
-        c = self.chain
-        out = [f"{self.optic} {self.kind} seed {self.seed}: {', '.join(self.drives)}; "
-               f"{self.band_hz[1]:g} Hz, {self.averages} averages; {len(self.moved)} visible "
-               f"modes moved; made in {self.seconds:.1f} s",
-               *(f"  {m.line()}" for m in self.modes if abs(m.shift) >= 0.02),
-               f"  delay {1e3 * c.delay_s:.2f} ms, low-pass {c.lowpass_hz:.3g} Hz; "
-               + "; ".join(f"{x.readback} reads {x.eps:+.3g} x {x.source}"
-                           for x in c.couplings)
-               + "; " + "; ".join(f"{x.drive} -> {x.readback} crosstalk {x.c:+.3g}"
-                                  for x in c.crosstalk)
-               + "; " + "; ".join(f"hole in {h.readback} {h.lo_hz:.3g}-{h.hi_hz:.3g} Hz"
-                                  for h in c.holes)]
-        return out
-
 
 def optic_of(name: str) -> StateSpaceOptic:
     """The shipped KAGRA optic `name` (``twind/configs/kagra/<name>.toml``)."""

@@ -111,20 +111,12 @@ def measure(optic: StateSpaceOptic, drive: str, path: str | Path, *,
     if drive not in optic.loops:
         names = [c for c in names if c in optic.readbacks]
     exc = block.channels[f"{drive}_EXC"][settle:]
-    f, pxx = signal.welch(exc, fs=rate_hz, window="hann", nperseg=nper)
-    tfs, cohs = [], []
-    for name in names:
-        y = block.channels[name][settle:]
-        _, pxy = signal.csd(exc, y, fs=rate_hz, window="hann", nperseg=nper)
-        _, pyy = signal.welch(y, fs=rate_hz, window="hann", nperseg=nper)
-        tfs.append(pxy / pxx)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cohs.append(np.nan_to_num(np.abs(pxy) ** 2 / (pxx * pyy)))
+    f, pxx, tfs, cohs = scipy_transfers(exc, [block.channels[c][settle:] for c in names],
+                                        rate_hz, nper)
     keep = f <= stop_hz
     return write_fft_measurement(path, optic.channel(f"{drive}_EXC"),
                                  [optic.channel(c) for c in names], f[keep], pxx[keep],
-                                 np.array(tfs)[:, keep], np.array(cohs)[:, keep], averages,
-                                 rate_hz)
+                                 tfs[:, keep], cohs[:, keep], averages, rate_hz)
 
 
 def peak(f_hz: NDArray[np.float64], h: NDArray[np.complex128], near_hz: float,
@@ -256,14 +248,6 @@ class Chain:
                 "crosstalk": [vars(c) for c in self.crosstalk],
                 "holes": [vars(h) for h in self.holes]}
 
-    @staticmethod
-    def from_json(obj: Mapping) -> Chain:
-        """The chain :meth:`to_json` wrote."""
-        return Chain(dict(obj["calibration"]), obj["delay_s"], obj["lowpass_hz"],
-                     dict(obj["noise_asd"]), tuple(Coupling(**c) for c in obj["couplings"]),
-                     tuple(Crosstalk(**c) for c in obj["crosstalk"]),
-                     tuple(Hole(**h) for h in obj["holes"]))
-
     def apply(self, drive: str, exc: NDArray[np.float64],
               outputs: Mapping[str, NDArray[np.float64]], rate_hz: float,
               rng: np.random.Generator) -> dict[str, NDArray[np.float64]]:
@@ -339,8 +323,8 @@ def measure_chain(optic: StateSpaceOptic, drive: str, path: str | Path, chain: C
                                  rate_hz=rate_hz, amplitude=amplitude, seed=seed)
     recorded = chain.apply(drive, exc, outputs, rate_hz, np.random.default_rng(seed + 2))
     keep = slice(settle, settle + n)
-    f, pxx, tfs, cohs = welch_tf(exc[keep], [recorded[r][keep] for r in outputs], rate_hz,
-                                 nper)
+    f, pxx, tfs, cohs = scipy_transfers(exc[keep], [recorded[r][keep] for r in outputs],
+                                        rate_hz, nper)
     band = f <= stop_hz
     return write_fft_measurement(path, optic.channel(f"{drive}_EXC"),
                                  [optic.channel(r) for r in outputs], f[band], pxx[band],
@@ -360,10 +344,11 @@ def run_open_loop(optic: StateSpaceOptic, drive: str, n: int, *,
     return x, {r: block.channels[r] for r in optic.readbacks}
 
 
-def welch_tf(exc: NDArray[np.float64], ys: Sequence[NDArray[np.float64]], rate_hz: float,
-             nper: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+def scipy_transfers(exc: NDArray[np.float64], ys: Sequence[NDArray[np.float64]],
+                    rate_hz: float, nper: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Welch's (Hann, half-overlapped segments of `nper`) excitation PSD, and each series'
-    transfer function over it and coherence.
+    transfer function over it and coherence, made with scipy.signal alone: the truth's
+    measurements share no code with twind's estimators.
 
     Returns
     -------

@@ -444,13 +444,6 @@ class ModeTruth:
                 "in_band": self.in_band, "degenerate": self.degenerate,
                 "ambiguous": self.ambiguous, "moved": self.moved}
 
-    def line(self) -> str:
-        """One printed row."""
-        return (f"{self.model_f_hz:8.4f} Hz Q {self.model_q:9.3g} -> {self.true_f_hz:8.4f} Hz "
-                f"Q {self.true_q:9.3g} ({100 * self.shift:+6.2f} %) MAC {self.mac:5.3f}"
-                f"{'' if self.visible else '  (not visible)'}"
-                f"{f'  (degenerate x{self.degenerate})' if self.degenerate > 1 else ''}")
-
 
 def residues(sus: Suspension, p: Perturbation, inputs: Sequence[str],
              outputs: Sequence[str]) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:

@@ -64,6 +64,7 @@ from twind.analysis.statespace.fit import (
 from twind.analysis.statespace.measurement import PlantSet
 from twind.analysis.statespace.model import FAMILIES, Effect, PlantModel, other_loops
 from twind.analysis.statespace.moves import (
+    Candidate,
     assign,
     candidates,
     holders,
@@ -250,9 +251,9 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
     claims = [Claim(e, fit, 0.0, 3, 1.0, 0.0, members=members, paths=c.paths)
               for e, c in kept]
     model, fit = _prune(data, model, optic, plant, free, claims, noise, unit, nominal, members)
+    seen_in = _seen_in(data, nominal, fit)
     for c in claims:
-        c.fit, c.p_value = fit, c.p_given_others or 0.0
-        c.seen_in = _seen_in(data, nominal, fit)
+        c.fit, c.p_value, c.seen_in = fit, c.p_given_others or 0.0, seen_in
     return model, claims, fit
 
 
@@ -413,10 +414,7 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
     """Every family's likeliest members, each fitted with the changes `chosen` (the first
     always, the others while `deadline` has not passed); their p-values paid for the
     members and the families screened."""
-    res = Residuals(data, model, model(current.nuisance, current.effects),
-                    model.gain(current.nuisance, current.effects),
-                    {r: current.nuisance[f"g_{r}"] for r in range(data.H.shape[1])
-                     if f"g_{r}" in free})
+    res = _residuals(data, model, free, current)
     # a screen's drop in chi^2 is, for residuals within the noise, (dof + 1) / dof / scale^2
     # of deviance
     screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
@@ -464,11 +462,9 @@ def _as_moved(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: P
     visible = _visible(res, model, taken, unit)
     f, q = own["f_hz"], max(own["q"], MODE_Q[0])
     for k in unshown(res, model, visible, measured_peaks(data), f)[:MOVE_TRIES]:
-        r = reach(f, q, data.resolution_hz)
-        start = {"log_f": math.log(2 * math.pi * f / model.modal.w[k]),
-                 "log_q": math.log(q / model.modal.q[k]), "amplitude": 1.0}
-        member = _Member(Effect("mode_frequency", (k,), (f - r, f + r)), 0.0, start,
-                         claim.paths)
+        effect, start = Candidate(k, f, q, 1.0, 0.0, claim.paths).effect(
+            model, data.resolution_hz)
+        member = _Member(effect, 0.0, start, claim.paths)
         moved = _try(data, model, optic, plant, free, chosen, member, current, noise, unit)
         if moved is not None and moved.lr >= claim.lr - EQUIVALENT_LR:
             return moved

@@ -146,7 +146,7 @@ class PlantFit:
 
     def wald(self, effect: Effect) -> float | None:
         """Wald's statistic of `effect` against the model without it (its parameters at
-        :meth:`Effect.start`): ``d^T C^-1 d`` over its parameters; None when one has no
+        :meth:`Effect.null`): ``d^T C^-1 d`` over its parameters; None when one has no
         sigma."""
         own = self.own(effect)
         if effect.family == "resonance":  # no mode is its numerators at 0, whatever f and Q
@@ -198,7 +198,8 @@ def fit_data(H: NDArray, sigma: NDArray, mask: NDArray, f: NDArray, readbacks: S
 class Baseline:
     """What a state-space optic's diagnosis and fit start from: the measurement's bins, the
     model at them, the nuisance parameters fitted (the model unchanged), the noise, which
-    elements the model has, and the range each nuisance parameter may take."""
+    elements the model has (the range each nuisance parameter may take is the model's
+    :attr:`~twind.analysis.statespace.model.PlantModel.bounds`)."""
 
     data: FitData
     model: PlantModel
@@ -206,7 +207,6 @@ class Baseline:
     noise: Noise
     fit: PlantFit
     modelled: NDArray[np.bool_]
-    limits: dict[str, tuple[float, float]]
 
 
 def fit_baseline(plant: PlantSet, optic: StateSpaceOptic,
@@ -247,7 +247,7 @@ def fit_baseline(plant: PlantSet, optic: StateSpaceOptic,
     first = fit_plant(data, model, start, free)
     noise = Noise.of(first.residual[modelled_entries(data, inside)], data.averages)
     return Baseline(data, model, free, noise,
-                    fit_plant(data, model, first.nuisance, free, noise=noise), inside, limits)
+                    fit_plant(data, model, first.nuisance, free, noise=noise), inside)
 
 
 def modelled_entries(data: FitData, inside: NDArray[np.bool_]) -> NDArray[np.bool_]:

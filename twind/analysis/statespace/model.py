@@ -109,15 +109,6 @@ class Effect:
             msg = f"no family {self.family!r}; expected one of {', '.join(FAMILIES)}"
             raise ValueError(msg)
 
-    def params(self, elements: int = 0) -> list[str]:
-        """Its parameters' own names (a resonance has one numerator per element; a drive's
-        coupling one factor per readback it reaches, ``e<r>``, given by its start)."""
-        return {"mode_frequency": ["log_f", "log_q", "amplitude"], "mode_amplitude": ["amplitude"],
-                "resonance": ["f_hz", "q", *(f"b{i}" for i in range(elements))],
-                "cross_coupling": ["epsilon"],
-                "channel_response": ["inv_pole_hz", "inv_zero_hz"],
-                "drive_coupling": [], "drive_crosstalk": ["c"]}[self.family]
-
     def null(self, own: Mapping[str, float]) -> dict[str, float]:
         """Its parameters `own` where the model is unchanged (a resonance: its numerators 0,
         its f and Q as they are)."""
@@ -127,15 +118,6 @@ class Effect:
         if self.family == "resonance":
             out.update({p: own[p] for p in ("f_hz", "q") if p in own})
         return out
-
-    def start(self, elements: int = 0) -> dict[str, float]:
-        """Its parameters where the model is unchanged (a resonance's f and q: placeholders)."""
-        zero = dict.fromkeys(self.params(elements), 0.0)
-        if self.family in ("mode_frequency", "mode_amplitude"):
-            zero["amplitude"] = 1.0
-        if self.family == "resonance":
-            zero.update(f_hz=1.0, q=10.0)
-        return zero
 
     def key(self) -> str:
         """A unique name: ``mode_frequency[12]``, ``cross_coupling[3<4]``, ``resonance[0]``."""

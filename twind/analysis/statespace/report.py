@@ -361,6 +361,3 @@ def _pm(x: float, s: float, digits: int) -> str:
     if s is None or not math.isfinite(s):
         return f"{x:.{digits}g}"
     return f"{x:.{digits}g} +- {s:.2g}"
-
-
-# ------------------------------------------------------------------------------ the diagnosis
