@@ -83,6 +83,7 @@ def test_a_twin_host_and_the_router_restarted(tmp_path: Path) -> None:
     fleet answers again without a hand on it."""
     rec = tmp_path / "rec"
     with fleet(rec) as f:
+        time.sleep(2.0)  # the recorder holds blocks of twin1 before it goes: a restart is seen
         f.twins["twin1"].kill()
         f.twins["twin1"].communicate()
         time.sleep(3.0)
