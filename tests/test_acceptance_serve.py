@@ -104,6 +104,7 @@ def test_serve_starts_again_a_recorder_that_ends_and_says_so(tmp_path: Path) -> 
 
 @pytest.mark.slow
 @pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small filesystem needs root")
+@pytest.mark.slow
 def test_a_full_disk_is_said_and_what_was_recorded_reads(tmp_path: Path) -> None:
     """``serve --record`` onto a 4 MB filesystem: the recorder fails when it fills, serve
     says so and starts another, which fails at once and is not started again; status says

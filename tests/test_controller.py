@@ -53,6 +53,7 @@ def test_a_null_controller_is_as_configured(etmx: OpticConfig, seed: int) -> Non
     assert check.config.damping == etmx.damping
 
 
+@pytest.mark.slow
 def test_an_extra_resonant_gain_is_named_and_the_plant_stays_consistent(
         etmx: OpticConfig) -> None:
     real = with_stage(etmx, "YAW", "resgain(5,5,3.5)")

@@ -212,6 +212,7 @@ def demo(etmx, tmp_path_factory: pytest.TempPathFactory) -> tuple:  # noqa: ANN0
     return (out, *run_demo(etmx, out, "actuator_pole", say=lambda _line: None))
 
 
+@pytest.mark.slow
 def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
         demo) -> None:  # noqa: ANN001
     """twind demo: the "real" twin's recording is diagnosed with its hidden driver pole (or
@@ -230,6 +231,7 @@ def test_the_demo_names_the_concealed_effect_and_leaves_the_nominal_twin_alone(
     assert (out / "real" / "augmented.png").exists()
 
 
+@pytest.mark.slow
 def test_the_demo_s_report_reads_in_a_browser(demo, tmp_path: Path) -> None:  # noqa: ANN001
     """The real twin's report as Chromium builds it: the verdict first, then every table,
     the figures it names beside it. ``TWIND_FIGURES=DIR`` keeps the screenshot there as
@@ -273,6 +275,7 @@ def test_the_summary_leaves_out_what_the_corpus_did_not_hold(etmx) -> None:  # n
     assert "chi2/nu: nulls' mean 1.30, max 1.30" in lines
 
 
+@pytest.mark.slow
 def test_the_corpus_hides_what_the_catalogue_cannot_say(etmx, reference: FitData  # noqa: ANN001
                                                          ) -> None:
     """A body on the face, one channel's own stage and a pair, each concealed to the same

@@ -76,6 +76,7 @@ def stepped(etmx, tmp_path_factory) -> Path:  # noqa: ANN001
     return _recorded(etmx, plan, tmp_path_factory.mktemp("sines") / "stepped.h5")
 
 
+@pytest.mark.slow
 def test_stepped_sines_give_the_nominal_loop_at_their_frequencies(stepped, etmx  # noqa: ANN001
                                                                   ) -> None:
     tfs = from_session([stepped])

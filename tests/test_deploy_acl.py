@@ -506,6 +506,7 @@ def test_tls_with_client_certificates_and_acl(tmp_path: Path, maker: str) -> Non
         assert cannot_connect(endpoint, client(other, "operator"))  # another CA
 
 
+@pytest.mark.slow
 def test_the_recorder_logs_in_to_the_acl_router_as_the_recorder(tmp_path: Path) -> None:
     """deploy/twind-recorder.service's command behind the ACL router, with the "recorder"
     user's credentials: the twin's blocks reach the file."""
@@ -544,6 +545,7 @@ def test_serve_record_logs_its_recorder_in_behind_the_acl_router(tmp_path: Path)
     assert CHANNEL in session.channels and len(session[CHANNEL].sequences) > 0
 
 
+@pytest.mark.slow
 def test_serve_record_over_tls_with_the_recorders_certificate(tmp_path: Path) -> None:
     """tls/: ``serve --record`` on a TLS-only twin, its recorder logged in with the
     "recorder" client certificate (--record-zenoh-config): the session reaches the files."""

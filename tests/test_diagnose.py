@@ -58,6 +58,7 @@ def _diagnosed(tfs, cfg, **kwargs):  # noqa: ANN001, ANN003, ANN202
     return d
 
 
+@pytest.mark.slow
 def test_example_null_is_consistent(tmp_path: Path) -> None:
     out = io.StringIO()
     with redirect_stdout(out):
@@ -103,6 +104,7 @@ def test_few_averages_are_warned_of(etmx) -> None:  # noqa: ANN001
         diagnose(tfs, etmx, max_effects=0)
 
 
+@pytest.mark.slow
 def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:  # noqa: ANN001
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     extra = 4 / etmx.sus.sample_rate_hz  # the engine delays by whole samples
@@ -139,6 +141,7 @@ def test_an_extra_delay_is_named_with_what_it_cannot_be_told_from(etmx) -> None:
     assert {(r[0], r[1]) for r in page["separations"][1:]} == set(d.separations)
 
 
+@pytest.mark.slow
 def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa: ANN001
     plant = Plant.from_params(etmx.sus, etmx.mechanics())
     act = plant.actuation.copy()
@@ -156,6 +159,7 @@ def test_a_coil_imbalance_is_named_and_the_fit_collapses(etmx) -> None:  # noqa:
     assert 0 < key_z("coil_imbalance", truth, d.effects[0].result) < 4
 
 
+@pytest.mark.slow
 def test_a_pitched_optic_s_bounce_is_named_from_its_compliance(etmx) -> None:  # noqa: ANN001
     """Face heads tilted 0.15 rad towards VERT against the optic (3-D kinematics, the
     geometric body's VERT and ROLL: corpus.tilted_heads): the BounceRoll notches keep the
@@ -172,6 +176,7 @@ def test_a_pitched_optic_s_bounce_is_named_from_its_compliance(etmx) -> None:  #
     assert 0 < key_z("bounce_roll", truth, best.result) < 3
 
 
+@pytest.mark.slow
 def test_two_effects_at_once_are_both_chosen(etmx) -> None:  # noqa: ANN001
     """A coil imbalance and an extra delay in one optic: forward selection names the
     imbalance, then the delay (or the driver pole it is not told from) given it. Allowed
@@ -198,6 +203,7 @@ def test_two_effects_at_once_are_both_chosen(etmx) -> None:  # noqa: ANN001
     assert one.lines()[0] == one.summary() == one.to_json()["summary"]
 
 
+@pytest.mark.slow
 def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  # noqa: ANN001
     """A body of 60 mg on a spring at 7 Hz, 20 mm above the face's centre
     (corpus.attached_body: 3-D kinematics, a new coordinate of the mechanics), ringing in
@@ -227,6 +233,7 @@ def test_a_mode_in_no_list_is_found_anywhere_and_read_as_a_body(etmx) -> None:  
     assert lo == hi == pytest.approx(truth["f_hz"])
 
 
+@pytest.mark.slow
 def test_one_readback_with_its_own_stage_is_named_with_its_corners(etmx) -> None:  # noqa: ANN001
     """The LL OSEM's readback through a pole at 25 Hz and a zero at 28 Hz that the other
     channels lack (Plant.channel_filters, integrated as states by the engine): the
@@ -241,6 +248,7 @@ def test_one_readback_with_its_own_stage_is_named_with_its_corners(etmx) -> None
     assert d.final.chi2_nu < 1.4 < d.nominal.chi2_nu
 
 
+@pytest.mark.slow
 def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noqa: ANN001
     from servicekit import serving
 
@@ -269,6 +277,7 @@ def test_the_diagnosed_model_is_pushed_into_a_running_twin(etmx) -> None:  # noq
         client.close()
 
 
+@pytest.mark.slow
 def test_xml_route_a_diaggui_set_written_by_the_twin_is_diagnosed(tmp_path: Path,
                                                                     etmx) -> None:  # noqa: ANN001
     """A drifted optic with a concealed coil imbalance, measured on the twin and saved as

@@ -15,6 +15,8 @@ from twind.config import NOMINAL_ETMX, load_optic
 from twind.lab import rates
 from twind.model.effects import CATALOGUE
 
+pytestmark = pytest.mark.slow
+
 PROMISED = 0.01
 """The rate docs/diagnose.md promises (the code's own constants would move with a bug)."""
 N_NULLS = 16

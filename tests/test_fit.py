@@ -60,6 +60,7 @@ def test_example_null_recovers_its_drift_within_3_sigma(null_fit) -> None:  # no
     assert 0.3 < null_fit.bin_correlation[0] < 0.6
 
 
+@pytest.mark.slow
 def test_fit_json_has_the_issue_layout(tmp_path: Path) -> None:
     out = io.StringIO()
     with redirect_stdout(out):
@@ -147,6 +148,7 @@ def test_a_left_out_coil_imbalance_is_fitted_and_worth_its_parameters(etmx) -> N
     assert np.max(np.abs(miss)) < 0.002, (got, gains)
 
 
+@pytest.mark.slow
 def test_pull_test_side_by_side_is_the_same_test() -> None:
     """Realisation i is seed + i whichever process runs it: two workers give the pulls one
     gives, and the report prints the pooled figure."""

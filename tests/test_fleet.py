@@ -26,9 +26,9 @@ from twind.lab.fleet import ACL, DEPLOY, Fleet, lan, twind
 from twind.recording.reader import read_session
 from twind.recording.session import TruncatedRecordingWarning
 
-pytestmark = pytest.mark.skipif(
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(
     not os.environ.get("TWIND_REQUIRE_NETNS") and (os.geteuid() != 0 or not shutil.which("ip")),
-    reason="network namespaces need root and iproute2 (CI requires them)")
+    reason="network namespaces need root and iproute2 (CI requires them)")]
 
 OPTICS = {"twin1": ("ETMX", "ETMY"), "twin2": ("ITMX", "ITMY")}
 

@@ -333,6 +333,7 @@ def _simulate(args: list[str]) -> dict[str, float]:
                                                out.getvalue(), re.M)}
 
 
+@pytest.mark.slow
 def test_twind_runs_ligo_s_foton_when_asked(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(FOTON_VARIABLE, "twind")  # restored after the test
     ours = design_sections(NOMINAL_FM2, RATE)

@@ -70,6 +70,7 @@ def _tf_json(*args: str) -> dict:
 
 
 @pytest.mark.parametrize("kind", ["h5", "gwf"])
+@pytest.mark.slow
 def test_hdf5_and_frames_give_the_tfs_of_the_mcap_route(recorded, kind: str,  # noqa: ANN001
                                                         capsys) -> None:  # noqa: ANN001
     truth = _tf_json(str(recorded["events"]))
@@ -132,6 +133,7 @@ def test_files_with_their_own_channels_are_read_as_what_they_are(recorded, tmp_p
         tf.merged([one, one], ["a.h5", "b.h5"])
 
 
+@pytest.mark.slow
 def test_a_session_without_events_finds_the_segments_the_engine_used(
         recorded, etmx, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
     rate = etmx.sus.sample_rate_hz
@@ -161,6 +163,7 @@ def test_a_session_without_events_finds_the_segments_the_engine_used(
 
 
 @pytest.mark.parametrize("kind", ["h5", "gwf"])
+@pytest.mark.slow
 def test_diagnose_runs_on_the_data_systems_files(recorded, kind: str,  # noqa: ANN001
                                                  capsys) -> None:  # noqa: ANN001
     assert main(["diagnose", str(recorded[kind]), "--map", "C2:=C1:", "--bw", str(BW),

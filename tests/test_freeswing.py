@@ -44,6 +44,7 @@ def test_a_drifted_optic_with_an_osem_imbalance_is_read_from_its_ringdown() -> N
     assert abs(found.input_matrix[0, 0]) < abs(found.input_matrix[0, 1])
 
 
+@pytest.mark.slow
 def test_twind_freeswing_rings_a_served_twin_down_and_puts_its_damping_back(capsys) -> None:  # noqa: ANN001
     """A served ETMX, drifted live (a longer wire, an OSEM imbalance) so that it is not the
     configured one: `twind freeswing --connect` finds the served optic's modes, Qs and
@@ -103,6 +104,7 @@ def test_twind_freeswing_on_a_recorded_ringdown(tmp_path, capsys) -> None:  # no
         analyse(optic, sen[:, : int(20 * rate)], rate)
 
 
+@pytest.mark.slow
 def test_the_standard_errors_hold_the_errors_of_twin_ringdowns() -> None:
     """Over three noise realisations the frequency and Q errors against the plant's own
     eigenvalues are, in standard errors, of RMS about 1: the noise the modes take up after

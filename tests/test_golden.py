@@ -67,6 +67,7 @@ def test_golden_check_can_fail(golden: dict) -> None:
                        complex_array(golden["closed_loop_IN2_per_EXC"]))
 
 
+@pytest.mark.slow
 def test_console_script_png(tmp_path) -> None:  # noqa: ANN001
     out = tmp_path / "etmx.png"
     proc = subprocess.run([sys.executable, "-m", "twind", "model", "response", "-o", str(out),
@@ -95,6 +96,7 @@ REFERENCE_MODES = [(0.689, 4.9), (0.847, 5.4), (1.073, 6.1), (1.075, 6.1)]
 (the seed's model description, alongside golden_tf.json; tests/data/README.md)."""
 
 
+@pytest.mark.slow
 def test_model_response_prints_the_reference_closed_loop_modes(tmp_path, capsys) -> None:  # noqa: ANN001
     assert main(["model", "response", "--config", str(NOMINAL_ETMX), "--n", "20", "-o",
                  str(tmp_path / "r.png")]) == 0

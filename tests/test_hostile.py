@@ -207,6 +207,7 @@ def unhurried() -> Iterator[TwinService]:
 @settings(max_examples=600, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(requests=st.lists(_REQUESTS, min_size=1, max_size=8))
+@pytest.mark.slow
 def test_every_generated_request_is_answered_and_the_loop_goes_on(
         unhurried: TwinService, requests: list) -> None:
     """Thousands of generated requests over the schemas of inject, stop, params and filter,
@@ -332,6 +333,7 @@ print(json.dumps(report), flush=True)
 """
 
 
+@pytest.mark.slow
 def test_a_suspended_subscriber_holds_the_twin_briefly_and_no_one_gets_a_damaged_block() -> None:
     """Two subscribers with Zenoh's defaults; one is descheduled 16 times for 0.1-0.4 s
     (through Zenoh's shared memory, such pauses damage blocks), then suspended for

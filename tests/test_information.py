@@ -106,6 +106,7 @@ def test_campaign_on_a_local_twin_converges_on_the_truth(etmx) -> None:  # noqa:
             assert abs(v - param_value(real.sus, n)) < 4 * s, n
 
 
+@pytest.mark.slow
 def test_campaign_against_a_running_twin_pushes_its_fit(tmp_path: Path) -> None:
     """The bus route: inject streams into a served twin, record, fit, push into a second
     twin (the self-updating one)."""

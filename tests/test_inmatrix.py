@@ -70,6 +70,7 @@ def test_swapped_cables_are_named_in_the_rows_they_change(etmx: OpticConfig,
     assert "YAW's row differs from the configuration at UL, UR" in check.lines()[0]
 
 
+@pytest.mark.slow
 def test_a_wrong_row_is_read_as_physics_unless_it_is_measured_first(
         etmx: OpticConfig, pit_row: tuple[Path, np.ndarray]) -> None:
     path, truth = pit_row
@@ -87,6 +88,7 @@ def test_a_wrong_row_is_read_as_physics_unless_it_is_measured_first(
     assert d.to_json()["input_matrix"]["differs"] == ["PIT"]
 
 
+@pytest.mark.slow
 def test_fit_says_it_on_the_command_line(pit_row: tuple[Path, np.ndarray]) -> None:
     path, _ = pit_row
     out = subprocess.run([sys.executable, "-m", "twind", "fit", str(path), "--bw", "0.1",

@@ -34,6 +34,7 @@ def figures(monkeypatch: pytest.MonkeyPatch) -> list[Figure]:
 
 @pytest.mark.parametrize("command", [["model", "response"], ["tf", *XML], ["fit", *XML]],
                          ids=["model-response", "tf", "fit"])
+@pytest.mark.slow
 def test_bode_figures_are_labelled_and_span_their_data(command, figures, tmp_path: Path,  # noqa: ANN001
                                                        capsys) -> None:  # noqa: ANN001
     assert main([*command, "-o", str(tmp_path / "bode.png")]) == 0
@@ -79,6 +80,7 @@ def test_bode_figures_are_labelled_and_span_their_data(command, figures, tmp_pat
 
 
 
+@pytest.mark.slow
 def test_a_fit_figure_spans_the_bins_fitted_not_the_recording(figures, tmp_path: Path) -> None:
     """A recording's TFs reach Nyquist; past the excitation they are noise over nothing."""
     from dataclasses import replace

@@ -97,6 +97,7 @@ def engine_session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict
     return path, {k: np.concatenate(v) for k, v in expected.items()}
 
 
+@pytest.mark.slow
 def test_session_writer_roundtrip(engine_session: tuple[Path, dict]) -> None:
     path, expected = engine_session
     with warnings.catch_warnings():

@@ -207,6 +207,7 @@ def test_the_client_checks_a_request_before_sending_it() -> None:
             client.set_gain("ETMX", "POS", 1.0)
 
 
+@pytest.mark.slow
 def test_an_excitation_past_the_damping_filters_is_served_as_lsc_exc() -> None:
     """``C1:SUS-ETMX_LSC_EXC`` is a test point of the served twin: a sine injected there is
     published on it, drives the coils past the damping filters (IN1 answers as the loop's

@@ -148,6 +148,7 @@ def files(tmp_path_factory, srm):  # noqa: ANN001, ANN201 - dict of paths
     return out
 
 
+@pytest.mark.slow
 def test_a_closed_loop_file_gives_the_plant_of_the_open_loop_one(files, srm) -> None:  # noqa: ANN001
     a, b = read_plant([files["open"]], srm), read_plant([files["closed"]], srm)
     assert b.drives == ("IM_DAMP_P",) and "IM_DAMP_P" in b.loops
@@ -166,12 +167,14 @@ def test_a_closed_loop_file_gives_the_plant_of_the_open_loop_one(files, srm) -> 
     assert np.median(np.abs(k[sel] / expected[sel] - 1)) < 0.05
 
 
+@pytest.mark.slow
 def test_a_file_of_another_optic_is_refused_by_name(files) -> None:  # noqa: ANN001
     prm = load_config(KAGRA / "PRM.toml").optics["PRM"]
     with pytest.raises(TFError, match="expected one excitation of PRM named like K1:VIS-PRM_"):
         read_plant([files["null"]], prm)
 
 
+@pytest.mark.slow
 def test_a_null_claims_nothing_and_a_moved_mode_is_found(files, srm) -> None:  # noqa: ANN001
     null = diagnose_plant(read_plant([files["null"]], srm), srm)
     assert null.consistent and not null.effects
@@ -191,6 +194,7 @@ def test_a_null_claims_nothing_and_a_moved_mode_is_found(files, srm) -> None:  #
     assert not d.uncalibrated()
 
 
+@pytest.mark.slow
 def test_a_mode_moved_is_found_through_the_closed_loops(files, srm) -> None:  # noqa: ANN001
     plant = read_plant([files["moved_closed"]], srm)
     d = diagnose_plant(plant, srm, max_effects=0)  # the modes moved together, no more
@@ -206,6 +210,7 @@ def test_a_mode_moved_is_found_through_the_closed_loops(files, srm) -> None:  # 
 
 
 # ------------------------------------------------------------------------------ the real SRM
+@pytest.mark.slow
 def test_kagra_srm_the_ip_mode_moved_and_im_v_reads_im_p(srm) -> None:  # noqa: ANN001
     plant = read_plant([SRM_FILE], srm)
     d = diagnose_plant(plant, srm)
@@ -230,6 +235,7 @@ def test_kagra_srm_the_ip_mode_moved_and_im_v_reads_im_p(srm) -> None:  # noqa: 
 
 
 # ------------------------------------------------------------------------------ commands
+@pytest.mark.slow
 def test_twind_tf_and_diagnose_on_a_kagra_file(files, capsys) -> None:  # noqa: ANN001
     config = str(KAGRA / "SRM.toml")
     assert main(["tf", "--config", config, str(files["moved"]), "--json"]) == 0

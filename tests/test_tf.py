@@ -92,6 +92,7 @@ def test_welch_equals_scipy() -> None:
     assert n == 79
 
 
+@pytest.mark.slow
 def test_session_plant_recovered_from_a_twin_recording(tmp_path: Path) -> None:
     """MCAP route: an engine run with one band-limited excitation per DOF, recorded with
     its injection events; the recovered plant equals the model's within the errors."""
@@ -114,6 +115,7 @@ def test_session_plant_recovered_from_a_twin_recording(tmp_path: Path) -> None:
     assert np.array(obj["plant"]["re"]).shape == (len(tfs.frequency_hz), 3, 3)
 
 
+@pytest.mark.slow
 def test_session_lpm_errors_are_the_residuals_of_the_model(tmp_path: Path,
                                                           capsys: pytest.CaptureFixture) -> None:
     """MCAP route, local polynomial method: over each 60 s excitation (windows of 0.25 Hz,
@@ -310,6 +312,7 @@ def test_fast_reader_equals_read_session(tmp_path: Path) -> None:
     assert list(exc.channels) == [n for n in names if n.endswith("_EXC")]
 
 
+@pytest.mark.slow
 def test_tf_benchmark_runs_end_to_end(tmp_path: Path) -> None:
     """``twind bench --suite tf`` machinery on 60 s: a session written, timed in process and
     as the CLI, and removed unless kept."""

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from servicekit import free_port, running
 
 SPEED = 8.0
@@ -20,6 +22,7 @@ def twind(*args: str) -> subprocess.CompletedProcess:
                           text=True, timeout=120)
 
 
+@pytest.mark.slow
 def test_the_tour_as_written(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rec = tmp_path / "rec"
