@@ -23,6 +23,7 @@ from twind.analysis.statespace.peaks import measured_peaks
 from twind.config import CONFIG_DIR, load_config
 from twind.lab.kagra_files import RESOLUTION_HZ, reference_modes
 from twind.lab.plant_cases import score
+from twind.lab.plant_measurement import measure, moved
 
 from conftest import REFERENCE
 
@@ -123,3 +124,29 @@ def test_a_mode_in_no_model_is_weighed_by_its_numerators_alone(srm_baseline) -> 
     unit = replace(fit, cov=np.eye(len(fit.names)))  # every parameter determined, sigma 1
     b = np.array([v for p, v in fit.own(effect).items() if p.startswith("b")])
     assert unit.wald(effect) == pytest.approx(float(b @ b))
+
+
+def test_a_mode_seen_only_through_a_drive_coupling_is_read_as_moved(tmp_path) -> None:  # noqa: ANN001
+    """The SRM's pitch drive also driving its yaw input (5 %, as the real BS's drives drive
+    yaw) and the yaw mode 3 % up: the model's pitch drive reaches no yaw readback, so the
+    mode is seen only through the coupling. The share is chosen with the yaw mode moved
+    where the data have it (not a mode the model lacks beside it), its amplitude with a
+    sigma (its derivative taken through the coupled input), and the fit is at the noise."""
+    srm = load_config(CONFIG_DIR / "kagra" / "SRM.toml").optics["SRM"]
+    truth, f_true = moved(srm.model, 1.3724, 1.03)
+    b = truth.b.copy()
+    b[:, truth.input_index("exc_TMP")] += 0.05 * b[:, truth.input_index("exc_TMY")]
+    path = measure(srm, "TM_TEST_P", tmp_path / "coupled.xml", model=replace(truth, b=b),
+                   seed=3, rate_hz=256.0, noise=1e-3, stop_hz=5.0)
+    d = diagnose_plant(read_plant([path], srm), srm)
+    share = next(c for c in d.chosen if c.effect.family == "drive_coupling")
+    assert all(v == pytest.approx(0.05, rel=0.02) for v in d.final.own(share.effect).values())
+    assert [d.modal.modes[c.effect.target[0]].label for c in share.revealed] == ["TM Y"]
+    move = share.revealed[0]
+    assert move in d.chosen
+    k = move.effect.target[0]
+    found = d.modal.modes[k].f_hz * math.exp(d.final.own(move.effect)["log_f"])
+    assert found == pytest.approx(f_true, rel=1e-3)
+    assert d.final.error(f"{move.effect.key()}.amplitude") is not None
+    assert not [c for c in d.chosen if c.effect.family == "resonance"]
+    assert d.final.chi2_nu < 1.5

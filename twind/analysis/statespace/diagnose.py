@@ -19,7 +19,8 @@ alone:
    :data:`~twind.analysis.statespace.model.FAMILIES`: a mode moved or scaled (0: missing),
    a mode in no model (tried near the data's peaks), a readback that also reads another, a
    drive's flat crosstalk into a readback, a drive that also drives another input of its
-   stage (:mod:`~twind.analysis.statespace.couplings`), a readback's own first-order stage.
+   stage (:mod:`~twind.analysis.statespace.couplings`; with the modes that input reveals
+   moved where the data have them, as in 2), a readback's own first-order stage.
    The members are screened on the residuals (:mod:`~twind.analysis.statespace.search`), the
    nearest a claim fitted in full with the calibrations, the delay and the changes chosen
    before. The evidence is the drop in deviance under the errors' own distribution
@@ -51,6 +52,7 @@ from twind.analysis.identification.fit import bin_correlation
 from twind.analysis.identification.narrow import SEARCH_Q
 from twind.analysis.identification.locate import Located, band_tests, significant
 from twind.analysis.identification.params import FitError
+from twind.analysis.statespace import bounds
 from twind.analysis.statespace.couplings import screen as screen_couplings
 from twind.analysis.statespace.fit import (
     ROBUST_SCALE,
@@ -68,13 +70,12 @@ from twind.analysis.statespace.moves import (
     assign,
     candidates,
     holders,
-    reach,
     unheld,
     unshown,
 )
 from twind.analysis.statespace.peaks import Peak, measured_peaks
 from twind.analysis.statespace.report import Claim, PlantDiagnosis
-from twind.analysis.statespace.search import MOST_AMPLITUDE, SHIFT, Residuals, grid
+from twind.analysis.statespace.search import SHIFT, Residuals, grid
 from twind.config.statespace import StateSpaceOptic
 
 ALPHA = 0.01
@@ -135,7 +136,7 @@ def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = M
         noise = Noise.of(current.residual[modelled_entries(data, base.modelled)],
                          data.averages)
         current = fit_plant(data, model, current.nuisance, free, current.effects, noise=noise,
-                            limits=_limits(model, data, current.effects))
+                            limits=bounds.limits(model, data, current.effects))
         unit = _unit(current, data, noise)
         for c in moves:
             c.fit = current
@@ -225,15 +226,7 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
     screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
     visible = _visible(res, model, [], unit)
     members = len(visible) * len(FAMILIES)
-    least = HOPELESS * _needed(members, 3)
-    peaks = measured_peaks(data)
-    held = holders(res, model, visible, peaks)
-    found = []
-    for k in visible:
-        progress.tick()
-        found += candidates(res, model, k, unheld(peaks, held, k, data.resolution_hz),
-                            screen_unit, least)
-    chosen = assign(found, data.resolution_hz)
+    chosen = _places(res, visible, screen_unit, HOPELESS * _needed(members, 3))
     effects = [c.effect(model, data.resolution_hz) for c in chosen]
     if not effects:
         return model, [], nominal
@@ -246,7 +239,7 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
     if not kept:
         return model, [], nominal
     fit = recalibrated(data, looped, fit, free, modelled, noise,
-                       _limits(looped, data, fit.effects))
+                       bounds.limits(looped, data, fit.effects))
     model, fit = _relooped(data, looped, optic, plant, free, fit, noise)
     claims = [Claim(e, fit, 0.0, 3, 1.0, 0.0, members=members, paths=c.paths)
               for e, c in kept]
@@ -269,30 +262,42 @@ def _together(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: P
     deviance by `need` (a claim's likelihood ratio, in deviance) and is not pinned."""
     looped = _looped(data, model, optic, plant, effects)
     fit = fit_plant(data, looped, nominal.nuisance, free, effects, noise=noise,
-                    limits=_limits(looped, data, effects))
+                    limits=bounds.limits(looped, data, effects))
     if len(effects) == 1:
         return looped, fit
     first = list(effects[:1])
     alone_model = _looped(data, model, optic, plant, first)
     alone = fit_plant(data, alone_model, nominal.nuisance, free, first, noise=noise,
-                      limits=_limits(alone_model, data, first))
+                      limits=bounds.limits(alone_model, data, first))
     if alone.deviance >= fit.deviance:
         return looped, fit
     progress.note("fitted together, moves shared a peak: adding them one at a time")
-    looped, fit = alone_model, alone
-    for effect in effects[1:]:
+    looped, fit, _ = _added(data, model, optic, plant, free, alone, effects[1:], noise, need)
+    return (alone_model if looped is None else looped), fit
+
+
+def _added(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+           free: list[str], fit: PlantFit, effects: Sequence[tuple[Effect, dict]],
+           noise: Noise, need: float
+           ) -> tuple[PlantModel | None, PlantFit, list[tuple[Effect, float, str]]]:
+    """`fit` with each of the moves `effects` (best first) added in turn, each kept only if
+    it drops the deviance by `need` and is not pinned: the model they leave (None when none
+    is kept), the fit, and each kept with its drop in deviance and where it is seen."""
+    looped, kept = None, []
+    for effect in effects:
         progress.tick()
         trial = [*fit.effects, effect]
         trial_model = _looped(data, model, optic, plant, trial)
         try:
             tried = fit_plant(data, trial_model, fit.nuisance, free, trial, noise=noise,
-                              limits=_limits(trial_model, data, trial))
+                              new=effect[0], limits=bounds.limits(trial_model, data, trial))
         except FitError:
             continue
-        if fit.deviance - tried.deviance >= need and not _pinned(tried, effect[0],
-                                                                  trial_model):
+        drop = fit.deviance - tried.deviance
+        if drop >= need and not bounds.pinned(tried, effect[0], trial_model):
+            kept.append((effect[0], drop, _seen_in(data, fit, tried)))
             looped, fit = trial_model, tried
-    return looped, fit
+    return looped, fit, kept
 
 
 def _resonance_places(data: FitData, peaks: Sequence[Peak],
@@ -300,7 +305,7 @@ def _resonance_places(data: FitData, peaks: Sequence[Peak],
     """Where a mode in no model is tried: trial frequencies within two widths (and two bins)
     of each peak the data show, but where a moved mode lies (`avoid`, Hz); and how many
     times more trials a sweep of the whole band would take."""
-    lo, hi = _band(data)
+    lo, hi = bounds.band(data)
     every = grid(lo, hi, SEARCH_Q[-1], data.resolution_hz)
     near = np.zeros(every.size, dtype=bool)
     for p in peaks:
@@ -322,16 +327,11 @@ def _visible(res: Residuals, model: PlantModel, taken: Sequence[int], unit: floa
     """The model's modes, but `taken`, within :data:`SHIFT` of the coherent band whose
     response there adds at least :data:`VISIBLE` to the chi^2: one the data cannot see can be
     neither moved nor missing."""
-    lo, hi = _band(res.data)
+    lo, hi = bounds.band(res.data)
     return [k for k, m in enumerate(model.modal.modes)
             if k not in taken and lo / SHIFT <= m.f_hz <= SHIFT * hi
             and res.power(model.closed_term(k)) >= VISIBLE * unit]
 
-
-def _band(data: FitData) -> tuple[float, float]:
-    """The coherent band: the lowest and highest frequency of a bin used."""
-    f = data.frequency_hz[data.mask.any(axis=(1, 2))]
-    return max(float(f[0]), 1e-3), float(f[-1])
 
 
 # ------------------------------------------------------------------------------ selection
@@ -360,7 +360,7 @@ def _select(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Pla
             break
         best = claimed[0]
         best.equivalent = [c.effect.key() for c in claimed[1:] if best.lr - c.lr < EQUIVALENT_LR]
-        chosen.append(best)
+        chosen += [best, *best.revealed]
         rivals += [replace(c, rival_of=best.effect.key()) for c in claimed[1:]
                    if c.effect.key() in best.equivalent]
         model, current = _relooped(data, model, optic, plant, free, best.fit, noise)
@@ -377,7 +377,7 @@ def _relooped(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: P
     if looped is model:
         return model, fit
     return looped, fit_plant(data, looped, fit.nuisance, free, fit.effects, noise=noise,
-                             new=new, limits=_limits(looped, data, fit.effects))
+                             new=new, limits=bounds.limits(looped, data, fit.effects))
 
 
 def _looped(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
@@ -433,6 +433,9 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
         claim = _try(data, model, optic, plant, free, chosen, m, current, noise, unit)
         if claim is None:
             continue
+        if family == "drive_coupling":
+            claim = _revealing(data, model, optic, plant, free, chosen, claim, current, noise,
+                               unit)
         if family == "resonance":
             claim = _narrower(claim, res, model)
             moved = _as_moved(data, model, optic, plant, free, chosen, claim, current, noise,
@@ -442,6 +445,72 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
         claim.p_value = min(1.0, claim.p_value * claim.members * len(families))
         claims.append(claim)
     return claims
+
+
+def _revealing(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
+               free: list[str], chosen: list[Claim], claim: Claim, current: PlantFit,
+               noise: Noise, unit: float) -> Claim:
+    """`claim` (a drive that also drives another input) with the modes that input shows
+    moved where the data have them, as the modes of a drive are moved
+    (:func:`_moves`): the share is screened with the model's modes in place, so where the
+    other input's modes moved, its screen and its fit see little of it until they move
+    too. Each move is kept only if it pays a claim's likelihood ratio and is not pinned;
+    the claim then holds them all, its p-value paying for their searches. `claim` itself
+    in a closed loop, or when none is kept."""
+    if model.loops is not None:
+        return claim
+    found, tried = _revealed(data, model, free, chosen, claim, noise, unit)
+    moves = [c.effect(model, data.resolution_hz) for c in found]
+    _, fit, kept = _added(data, model, optic, plant, free, claim.fit, moves, noise,
+                          _needed(tried, 3) * unit)
+    if not kept:
+        return claim
+    k = fit.rank - current.rank
+    lr = max(current.deviance - fit.deviance, 0.0) / unit
+    paths = {e.key(): c.paths for (e, _), c in zip(moves, found, strict=True)}
+    every = (*claim.paths, *(p for e, _, _ in kept for p in paths[e.key()]))
+    p, per_bin = min(1.0, _p_value(lr, k, every)), math.log(max(2 * data.bins, 1))
+    return replace(claim, fit=fit, lr=lr, k=k, p_value=p, delta_bic=lr - k * per_bin,
+                   paths=every, revealed=[
+                       Claim(e, fit, drop / unit, 3, p, drop / unit - 3 * per_bin,
+                             seen_in=seen, paths=paths[e.key()]) for e, drop, seen in kept])
+
+
+def _revealed(data: FitData, model: PlantModel, free: list[str], chosen: list[Claim],
+              claim: Claim, noise: Noise, unit: float) -> tuple[list[Candidate], int]:
+    """Where the data show the modes a drive coupling `claim` reveals: those it shows more
+    than the drive itself does (the others were tried as the drive's), each at the peaks
+    of the elements it shows in through the coupling, the places given out
+    (:func:`~twind.analysis.statespace.moves.assign`), each started at its peak; and how
+    many modes were looked for."""
+    view = model.seen_through(*claim.effect.target, claim.fit.own(claim.effect))
+    res = _residuals(data, model, free, claim.fit)
+    res.model = view  # the fit's residuals, screened with the modes as the coupling shows them
+    taken = [c.effect.target[0] for c in chosen
+             if c.effect.family in ("mode_frequency", "mode_amplitude")]
+    shown = [k for k in _visible(res, view, taken, unit)
+             if res.power(view.closed_term(k) - model.closed_term(k))
+             >= res.power(model.closed_term(k))]
+    screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
+    places = _places(res, shown, screen_unit, HOPELESS * _needed(max(len(shown), 1), 3))
+    return ([c if c.peak_hz is None else replace(c, f_hz=c.peak_hz) for c in places],
+            max(len(shown), 1))
+
+
+def _places(res: Residuals, modes: Sequence[int], unit: float, least: float
+            ) -> list[Candidate]:
+    """Where the data show each of `modes` of ``res.model``: each tried at the peaks no other
+    mode holds where the model has it, its drop at least `least` (in `unit`), the places
+    given out (:func:`~twind.analysis.statespace.moves.assign`)."""
+    data = res.data
+    peaks = measured_peaks(data)
+    held = holders(res, res.model, modes, peaks)
+    found = []
+    for k in modes:
+        progress.tick()
+        found += candidates(res, res.model, k, unheld(peaks, held, k, data.resolution_hz),
+                            unit, least)
+    return assign(found, data.resolution_hz)
 
 
 MOVE_TRIES = 2
@@ -460,7 +529,7 @@ def _as_moved(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: P
     taken = [c.effect.target[0] for c in chosen
              if c.effect.family in ("mode_frequency", "mode_amplitude")]
     visible = _visible(res, model, taken, unit)
-    f, q = own["f_hz"], max(own["q"], MODE_Q[0])
+    f, q = own["f_hz"], max(own["q"], bounds.MODE_Q[0])
     for k in unshown(res, model, visible, measured_peaks(data), f)[:MOVE_TRIES]:
         effect, start = Candidate(k, f, q, 1.0, 0.0, claim.paths).effect(
             model, data.resolution_hz)
@@ -514,7 +583,7 @@ def _screen(res: Residuals, model: PlantModel, chosen: list[Claim],
         out["mode_amplitude"].append(_Member(Effect("mode_amplitude", (k,)), drop / unit,
                                              {"amplitude": 1.0 + coef}))
     repeat = sum(c.effect.family == "resonance" for c in chosen)
-    trials, scale = _resonance_places(data, peaks, _moved_to(model, base.effects))
+    trials, scale = _resonance_places(data, peaks, bounds.moved_to(model, base.effects))
     nr, nd = res.z.shape[1:]
     out["resonance"] = []
     if trials.size:
@@ -536,113 +605,22 @@ def _screen(res: Residuals, model: PlantModel, chosen: list[Claim],
     return out
 
 
-def _moved_to(model: PlantModel, effects: Sequence[tuple[Effect, dict]]
-              ) -> list[tuple[float, float]]:
-    """Where the modes that `effects` move now lie, each widened to three widths or
-    :data:`~twind.analysis.identification.model.NARROW_REACH_BINS` bins, whichever is more:
-    a mode in no model found there would be the moved one again. Likewise each mode in no
-    model already found, widened to one width: a second there would split the first."""
-    out = []
-    for effect, own in effects:
-        if effect.family == "resonance":
-            r = max(own["f_hz"] / own["q"], model.res)
-            out.append((own["f_hz"] - r, own["f_hz"] + r))
-        if effect.family == "mode_frequency":
-            k = effect.target[0]
-            f = model.modal.modes[k].f_hz * math.exp(own["log_f"])
-            q = model.modal.q[k] * math.exp(own["log_q"])
-            r = reach(f, q, model.res)
-            out.append((f - r, f + r))
-    return out
-
-
-def _limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, dict]]
-            ) -> dict[str, tuple[float, float]]:
-    """Where each change may go in a fit. A resonance's frequency: inside the coherent band,
-    less where a moved mode lies (:func:`_moved_to`), the stretch that holds it. A moved
-    mode: within its anchor (the stretch of the peak it was found at: a fit refines a place,
-    it does not wander to another mode's), :data:`~twind.analysis.statespace.search.SHIFT`
-    and the band; its Q within :data:`MODE_Q`; its amplitude within
-    :data:`~twind.analysis.statespace.search.MOST_AMPLITUDE` of the model's either way (a
-    mode that needs more is not that mode, or trades against a calibration)."""
-    lo, hi = _band(data)
-    avoid = _moved_to(model, effects)
-    out = {}
-    for effect, own in effects:
-        key = effect.key()
-        if effect.family == "mode_frequency":
-            k = effect.target[0]
-            f0 = model.modal.modes[k].f_hz
-            a, b = effect.anchor or (f0 / SHIFT, f0 * SHIFT)
-            a, b = max(a, lo, f0 / SHIFT), min(b, hi, f0 * SHIFT)
-            if a < b:
-                out[f"{key}.log_f"] = (math.log(a / f0), math.log(b / f0))
-            out[f"{key}.log_q"] = (math.log(MODE_Q[0] / model.modal.q[k]),
-                                   math.log(MODE_Q[1] / model.modal.q[k]))
-            out[f"{key}.amplitude"] = (1 / MOST_AMPLITUDE, MOST_AMPLITUDE)
-        if effect.family != "resonance":
-            continue
-        at, a, b = own["f_hz"], lo, hi
-        for x, y in avoid:
-            if y <= at:
-                a = max(a, y)
-            elif x >= at:
-                b = min(b, x)
-        out[f"{key}.f_hz"] = (a, b)
-    return out
-
-
 def _unpinned(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
               free: list[str], fit: PlantFit, noise: Noise, bare: PlantFit
               ) -> tuple[PlantModel, PlantFit, set[str]]:
-    """`fit` refitted without the changes it leaves pinned (:func:`_pinned`), until none is
+    """`fit` refitted without the changes it leaves pinned
+    (:func:`~twind.analysis.statespace.bounds.pinned`), until none is
     (`bare`, the fit without any change, when none is left): the model as they leave it, the
     fit, and the keys of those dropped. Fitted with all the others, their places proved
     other modes'."""
     dropped: set[str] = set()
-    while pinned := {e.key() for e, _ in fit.effects if _pinned(fit, e, model)}:
+    while pinned := {e.key() for e, _ in fit.effects if bounds.pinned(fit, e, model)}:
         dropped |= pinned
         rest = [(e, v) for e, v in fit.effects if e.key() not in pinned]
         model = _looped(data, model, optic, plant, rest)
         fit = fit_plant(data, model, fit.nuisance, free, rest, noise=noise,
-                        limits=_limits(model, data, rest)) if rest else bare
+                        limits=bounds.limits(model, data, rest)) if rest else bare
     return model, fit, dropped
-
-
-def _pinned(fit: PlantFit, effect: Effect, model: PlantModel,
-            limits: dict[str, tuple[float, float]] | None = None) -> bool:
-    """Whether a moved mode ends at a bound of :func:`_limits`: its amplitude at one or
-    within a sigma of it (the data want more, or less, of it there than the model's shape
-    of that mode gives), its Q at the lowest, or its frequency within half a bin of its
-    anchor's edge (it left the peak it was found at for a flank). Either way the place is
-    another mode's. A mode's amplitude within two sigmas of the model's is no change.
-    Likewise a mode in no model within a bin of the edge of its stretch
-    (`limits`): the coherent band's edge, where a slope of the band is no mode, or a moved
-    mode's place."""
-    if effect.family == "mode_amplitude":  # the model's own amplitude is no reading
-        a, sa = fit.own(effect)["amplitude"], fit.error(f"{effect.key()}.amplitude")
-        return sa is None or abs(a - 1.0) < 2 * sa
-    if effect.family == "resonance" and limits:
-        a, b = limits.get(f"{effect.key()}.f_hz", (-math.inf, math.inf))
-        f = fit.own(effect)["f_hz"]
-        return min(f - a, b - f) < model.res
-    if effect.family != "mode_frequency":
-        return False
-    own, key = fit.own(effect), effect.key()
-    a, sa = own["amplitude"], fit.error(f"{key}.amplitude") or 0.0
-    if not (1.01 / MOST_AMPLITUDE < a - sa and a + sa < MOST_AMPLITUDE / 1.01):
-        return True  # at its bound, or within a sigma of it
-    if model.modal.q[effect.target[0]] * math.exp(own["log_q"]) < 1.05 * MODE_Q[0]:
-        return True  # as broad as a mode may be: a slope of the band, not this mode
-    if effect.anchor is None:
-        return False
-    f = model.modal.modes[effect.target[0]].f_hz * math.exp(own["log_f"])
-    return min(abs(f - x) for x in effect.anchor) < 0.5 * model.res
-
-
-MODE_Q = (3.0, 1e7)
-"""A moved mode's Q: below 3 a peak is wider than a third of its frequency, a slope of the
-band no data resolve as that mode."""
 
 
 def _stage_start(data: FitData, model: PlantModel, base: PlantFit, effect: Effect
@@ -671,14 +649,14 @@ def _try(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantS
     try:
         looped = _looped(data, model, optic, plant, effects) \
             if member.effect.family.startswith("mode_") else model
-        limits = _limits(model, data, effects)
+        within = bounds.limits(model, data, effects)
         fit = fit_plant(data, looped, current.nuisance, free, effects, noise=noise,
-                        new=member.effect, limits=limits)
+                        new=member.effect, limits=within)
         if looped is not model:
             _, fit = _relooped(data, model, optic, plant, free, fit, noise, member.effect)
     except FitError:
         return None
-    if _pinned(fit, member.effect, model, limits):
+    if bounds.pinned(fit, member.effect, model, within):
         return None
     k = fit.rank - current.rank
     if k <= 0:
@@ -731,7 +709,7 @@ def _prune(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
             try:
                 fit = floor if floor is not None and not rest else fit_plant(
                     data, looped, final.nuisance, free, rest, noise=noise,
-                    limits=_limits(looped, data, rest))
+                    limits=bounds.limits(looped, data, rest))
             except FitError:
                 c.p_given_others = None
                 continue

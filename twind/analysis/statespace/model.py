@@ -19,6 +19,7 @@ narrower than two bins by the Hann kernel itself within a few bins of it
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -371,6 +372,22 @@ class PlantModel:
             self._extras[changes] = make()
         return self._extras[changes]
 
+    def seen_through(self, drive: int, extra_input: int, shares: Mapping[str, float]
+                     ) -> PlantModel:
+        """This model with its modes reaching column `drive` also through `extra_input`, by
+        each readback's share (``e<r>``, a ``drive_coupling``'s parameters): how the modes
+        that input moves show in the measurement once the coupling is fitted, for the
+        screens (its sections and its fits are this model's)."""
+        num_s, num_1 = self.modal.num_s.copy(), self.modal.num_1.copy()
+        for name, eps in shares.items():
+            r = int(name[1:])
+            num_s[:, r, drive] += eps * self.extra.num_s[:, r, extra_input]
+            num_1[:, r, drive] += eps * self.extra.num_1[:, r, extra_input]
+        view = copy.copy(self)
+        view.modal = replace(self.modal, num_s=num_s, num_1=num_1)
+        view._cache, view._extras = {}, {}
+        return view
+
     def _moved(self, k: int, v: Mapping[str, float]) -> NDArray[np.complex128]:
         """Mode `k`'s section at its moved frequency and Q (remembered)."""
         w, q = self.modal.w[k] * math.exp(v["log_f"]), self.modal.q[k] * math.exp(v["log_q"])
@@ -393,7 +410,8 @@ class PlantModel:
     def derivative(self, parts: Parts, name: str, effects: Sequence[tuple[Effect, Mapping]]
                    ) -> NDArray[np.complex128] | None:
         """The model's derivative by a parameter: analytic for all but a moved mode's or a
-        resonance's frequency and Q (None: take differences).
+        resonance's frequency and Q, and a mode's amplitude where a drive also drives
+        another input (None: take differences).
 
         Parameters
         ----------
@@ -436,6 +454,9 @@ class PlantModel:
                 if rr == r and inside[param]:
                     d[:, r] -= eps * parts.calibrated[:, r2] * factor[:, None]
             return d
+        if effect.family.startswith("mode_") and any(e.family == "drive_coupling"
+                                                      for e, _ in effects):
+            return None  # the mode reaches the drives also through a coupled input
         if effect.family == "mode_amplitude":
             return parts.propagate(self.terms[effect.target[0]] * parts.gains[None]
                                    * parts.lag[:, None, None])

@@ -49,6 +49,10 @@ class Candidate:
     paths : tuple of float
         Its sweeps' look-elsewhere paths (rad), for the whole reach the mode was looked for
         in.
+    peak_hz : float, optional
+        Where the peak it was found at stands: the screen's best trial may lie on the
+        peak's flank, where a mode whose shape or amplitude the model has wrong fills the
+        residuals best.
     """
 
     mode: int
@@ -57,6 +61,7 @@ class Candidate:
     amplitude: float
     drop: float
     paths: tuple[float, ...]
+    peak_hz: float | None = None
 
     def effect(self, model: PlantModel, res_hz: float) -> tuple[Effect, dict[str, float]]:
         """The move: the effect, anchored within its reach (:func:`reach`) of the place, and
@@ -109,7 +114,7 @@ def candidates(res: Residuals, model: PlantModel, k: int, peaks: Sequence[Peak],
         if (drop >= least and abs(f - f0) > res_hz
                 and 1 / MOST_AMPLITUDE <= a < MOST_AMPLITUDE):
             out.append(Candidate(k, float(f), float(profile.q[j]), float(a), float(drop),
-                                 tuple(x * scale for x in profile.paths)))
+                                 tuple(x * scale for x in profile.paths), p.f_hz))
     if broad:  # anywhere in its reach, about as broad as the model has it
         ok_q = (profile.q >= q0 / Q_SPREAD) & (profile.q <= q0 * Q_SPREAD)
         j, i = profile.best(np.ones(profile.f_hz.size, dtype=bool),

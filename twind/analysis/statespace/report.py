@@ -39,6 +39,9 @@ class Claim:
         Of its family at its step.
     seen_in : str
         The element whose chi^2 it lowers most.
+    revealed : list of Claim
+        For a drive that also drives another input, the modes that input shows moved where
+        the data have them, chosen with it (their likelihood ratio is in this claim's).
     """
 
     effect: Effect
@@ -54,6 +57,7 @@ class Claim:
     partial: bool = False
     p_given_others: float | None = None
     paths: tuple[float, ...] = field(default=(), repr=False)
+    revealed: list[Claim] = field(default_factory=list, repr=False)
     local: tuple[float, float, int] | None = None
     """chi2/nu of the model and of the final fit over the bins this change moves by more than
     their error, and how many: where it acts (the whole band's chi2/nu dilutes a change
