@@ -33,9 +33,14 @@ RESOLUTION_HZ = 2.0**-7
 def reference_modes(entry: dict) -> list[dict]:
     """The reference's modes of one file as :func:`~twind.lab.plant_cases.score` takes a
     case's truth: each with a numeric model counterpart, moved when not ambiguous and
-    shifted by :data:`SHIFT_PCT` or more; every Q unresolved (a bin or narrower)."""
+    shifted by :data:`SHIFT_PCT` or more; every Q unresolved (a bin or narrower). A mode
+    the model's drive does not reach, which the reference reads as the model's mode of its
+    own DOF (``own_dof_model_f``), is a right reading but no shift counted."""
     out = []
     for m in entry.get("modes", []):
+        if isinstance(m.get("own_dof_model_f"), float | int):  # no drive of the model
+            out.append({"model_f_hz": float(m["own_dof_model_f"]), "true_f_hz": float(m["f"]),
+                        "true_q": math.inf, "shift_percent": 0.0, "moved": False})
         if not isinstance(m.get("model_f"), float | int):
             continue
         shift = 100.0 * (m["f"] / m["model_f"] - 1.0)
