@@ -89,6 +89,11 @@ several modes."""
 STEP_FITS = 3
 """Members fitted in full at a step: those whose screens come nearest a claim, whatever their
 family (the others ranked out on the residuals)."""
+COUPLING_FITS = 2
+"""Drives that also drive another input fitted at a step besides the :data:`STEP_FITS`
+nearest, those whose screens come nearest a claim: a share screened with the other input's
+modes where the model has them sees little of them where they moved, which only its fit
+with the moves it reveals shows (:func:`_revealing`)."""
 VISIBLE = 1.0
 """A model mode is tried only where its response adds at least this to the data's chi^2 in
 the noise's units: one the data cannot see can be neither moved nor missing."""
@@ -411,9 +416,9 @@ class _Member:
 def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: PlantSet,
           free: list[str], chosen: list[Claim], current: PlantFit, noise: Noise, unit: float,
           deadline: float = math.inf) -> list[Claim]:
-    """Every family's likeliest members, each fitted with the changes `chosen` (the first
-    always, the others while `deadline` has not passed); their p-values paid for the
-    members and the families screened."""
+    """Every family's likeliest members (:data:`STEP_FITS`, :data:`COUPLING_FITS`), each
+    fitted with the changes `chosen` (the first always, the others while `deadline` has not
+    passed); their p-values paid for the members and the families screened."""
     res = _residuals(data, model, free, current)
     # a screen's drop in chi^2 is, for residuals within the noise, (dof + 1) / dof / scale^2
     # of deviance
@@ -424,9 +429,11 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
                      for f, members in families.items() for m in members),
                     key=lambda x: -x[1])
     claims: list[Claim] = []
-    for n, (m, margin, family) in enumerate(ranked[:STEP_FITS]):
+    fitted = ranked[:STEP_FITS] + [x for x in ranked[STEP_FITS:] if x[2] == "drive_coupling"
+                                   and x[1] >= HOPELESS][:COUPLING_FITS]
+    for n, (m, margin, family) in enumerate(fitted):
         if margin < HOPELESS or (n and time.monotonic() > deadline):
-            break
+            continue
         progress.note(f"step {len(chosen) + 1}: {m.effect.key()}")
         if family == "channel_response":
             m = replace(m, start=_stage_start(data, model, current, m.effect))
