@@ -450,6 +450,8 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
             claim = claim if moved is None else moved  # paid for as the search found it
         claim.members = len(families[family])
         claim.p_value = min(1.0, claim.p_value * claim.members * len(families))
+        for move in claim.revealed:  # chosen with it: its p-value is theirs
+            move.p_value = claim.p_value
         claims.append(claim)
     return claims
 
@@ -478,7 +480,7 @@ def _revealing(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: 
     every = (*claim.paths, *(p for e, _, _ in kept for p in paths[e.key()]))
     p, per_bin = min(1.0, _p_value(lr, k, every)), math.log(max(2 * data.bins, 1))
     return replace(claim, fit=fit, lr=lr, k=k, p_value=p, delta_bic=lr - k * per_bin,
-                   paths=every, revealed=[
+                   revealed=[
                        Claim(e, fit, drop / unit, 3, p, drop / unit - 3 * per_bin,
                              seen_in=seen, paths=paths[e.key()]) for e, drop, seen in kept])
 
@@ -495,23 +497,25 @@ def _revealed(data: FitData, model: PlantModel, free: list[str], chosen: list[Cl
     res.model = view  # the fit's residuals, screened with the modes as the coupling shows them
     taken = [c.effect.target[0] for c in chosen
              if c.effect.family in ("mode_frequency", "mode_amplitude")]
-    shown = [k for k in _visible(res, view, taken, unit)
-             if res.power(view.closed_term(k) - model.closed_term(k))
+    visible = _visible(res, view, taken, unit)
+    shown = [k for k in visible if res.power(view.closed_term(k) - model.closed_term(k))
              >= res.power(model.closed_term(k))]
     screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
-    places = _places(res, shown, screen_unit, HOPELESS * _needed(max(len(shown), 1), 3))
+    places = _places(res, shown, screen_unit, HOPELESS * _needed(max(len(shown), 1), 3),
+                     visible)
     return ([c if c.peak_hz is None else replace(c, f_hz=c.peak_hz) for c in places],
             max(len(shown), 1))
 
 
-def _places(res: Residuals, modes: Sequence[int], unit: float, least: float
-            ) -> list[Candidate]:
+def _places(res: Residuals, modes: Sequence[int], unit: float, least: float,
+            holding: Sequence[int] | None = None) -> list[Candidate]:
     """Where the data show each of `modes` of ``res.model``: each tried at the peaks no other
-    mode holds where the model has it, its drop at least `least` (in `unit`), the places
-    given out (:func:`~twind.analysis.statespace.moves.assign`)."""
+    mode of `holding` (`modes` when None) holds where the model has it, its drop at least
+    `least` (in `unit`), the places given out
+    (:func:`~twind.analysis.statespace.moves.assign`)."""
     data = res.data
     peaks = measured_peaks(data)
-    held = holders(res, res.model, modes, peaks)
+    held = holders(res, res.model, modes if holding is None else holding, peaks)
     found = []
     for k in modes:
         progress.tick()
