@@ -228,7 +228,7 @@ def _moves(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
         The fit holding them (`nominal` when none).
     """
     res = _residuals(data, model, free, nominal)
-    screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
+    screen_unit = _screen_unit(noise, unit)
     visible = _visible(res, model, [], unit)
     members = len(visible) * len(FAMILIES)
     chosen = _places(res, visible, screen_unit, HOPELESS * _needed(members, 3))
@@ -328,6 +328,18 @@ def _residuals(data: FitData, model: PlantModel, free: list[str], fit: PlantFit)
                       if f"g_{r}" in free})
 
 
+def _screen_unit(noise: Noise, unit: float) -> float:
+    """A screen's drop in chi^2 that one fitted parameter makes in pure noise: for residuals
+    within the noise, a drop in chi^2 is (dof + 1) / dof / scale^2 of deviance."""
+    return noise.scale**2 * noise.dof / (noise.dof + 1) * unit
+
+
+def _taken(chosen: Sequence[Claim]) -> list[int]:
+    """The model's modes the changes `chosen` move or scale."""
+    return [c.effect.target[0] for c in chosen
+            if c.effect.family in ("mode_frequency", "mode_amplitude")]
+
+
 def _visible(res: Residuals, model: PlantModel, taken: Sequence[int], unit: float) -> list[int]:
     """The model's modes, but `taken`, within :data:`SHIFT` of the coherent band whose
     response there adds at least :data:`VISIBLE` to the chi^2: one the data cannot see can be
@@ -336,7 +348,6 @@ def _visible(res: Residuals, model: PlantModel, taken: Sequence[int], unit: floa
     return [k for k, m in enumerate(model.modal.modes)
             if k not in taken and lo / SHIFT <= m.f_hz <= SHIFT * hi
             and res.power(model.closed_term(k)) >= VISIBLE * unit]
-
 
 
 # ------------------------------------------------------------------------------ selection
@@ -420,9 +431,7 @@ def _step(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plant
     fitted with the changes `chosen` (the first always, the others while `deadline` has not
     passed); their p-values paid for the members and the families screened."""
     res = _residuals(data, model, free, current)
-    # a screen's drop in chi^2 is, for residuals within the noise, (dof + 1) / dof / scale^2
-    # of deviance
-    screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
+    screen_unit = _screen_unit(noise, unit)
     families = {name: members for name, members in _screen(res, model, chosen, current,
                                                             screen_unit).items() if members}
     ranked = sorted(((m, m.drop / _needed(len(members) * len(families), len(m.start)), f)
@@ -495,12 +504,11 @@ def _revealed(data: FitData, model: PlantModel, free: list[str], chosen: list[Cl
     view = model.seen_through(*claim.effect.target, claim.fit.own(claim.effect))
     res = _residuals(data, model, free, claim.fit)
     res.model = view  # the fit's residuals, screened with the modes as the coupling shows them
-    taken = [c.effect.target[0] for c in chosen
-             if c.effect.family in ("mode_frequency", "mode_amplitude")]
+    taken = _taken(chosen)
     visible = _visible(res, view, taken, unit)
     shown = [k for k in visible if res.power(view.closed_term(k) - model.closed_term(k))
              >= res.power(model.closed_term(k))]
-    screen_unit = noise.scale**2 * noise.dof / (noise.dof + 1) * unit
+    screen_unit = _screen_unit(noise, unit)
     places = _places(res, shown, screen_unit, HOPELESS * _needed(max(len(shown), 1), 3),
                      visible)
     return ([c if c.peak_hz is None else replace(c, f_hz=c.peak_hz) for c in places],
@@ -537,8 +545,7 @@ def _as_moved(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: P
     :data:`EQUIVALENT_LR` of it: the model's own shape is the likelier reading, and fewer
     parameters. None when none does."""
     own = claim.fit.own(claim.effect)
-    taken = [c.effect.target[0] for c in chosen
-             if c.effect.family in ("mode_frequency", "mode_amplitude")]
+    taken = _taken(chosen)
     visible = _visible(res, model, taken, unit)
     f, q = own["f_hz"], max(own["q"], bounds.MODE_Q[0])
     for k in unshown(res, model, visible, measured_peaks(data), f)[:MOVE_TRIES]:
@@ -576,8 +583,7 @@ def _screen(res: Residuals, model: PlantModel, chosen: list[Claim],
             base: PlantFit, unit: float) -> dict[str, list[_Member]]:
     """Each family's members, screened on the residuals of `base`."""
     data = res.data
-    taken = {c.effect.target[0] for c in chosen
-             if c.effect.family in ("mode_frequency", "mode_amplitude")}
+    taken = _taken(chosen)
     peaks = measured_peaks(data)
     visible = _visible(res, model, taken, unit)
     held = holders(res, model, visible, peaks)
