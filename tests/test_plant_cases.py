@@ -223,3 +223,17 @@ def test_a_claim_too_far_reads_nothing_and_a_rival_counts_for_nothing() -> None:
         claim("resonance", 2.6)]}                     # 8 % and 26 bins off
     s = score(diagnosis, TRUTH, resolution_hz=1 / 128)
     assert (s.read, s.read_as_new, s.wrong, s.beyond) == (0, 0, 2, 0)
+
+
+def test_a_readback_calibrated_off_or_of_the_wrong_sign_is_counted() -> None:
+    """Every fitted calibration carries the first drive's true strength (here -2): a
+    readback is off when its sign or its size (beyond 2x) disagrees with the others'."""
+    truth = {"A": 1.0, "B": -0.5, "C": 3.0, "D": 0.01, "E": 7.0}
+    fitted = {"A": -2.0, "B": 1.1, "C": 6.0 * 2.5, "D": 0.02, "E": -14.0 / 1e4}
+    diagnosis = {"coherent": {}, "effects": [],
+                 "nuisance": {f"calibration {k}": {"value": v, "sigma": None}
+                              for k, v in [*fitted.items(), ("F", 1.0)]}}
+    s = score(diagnosis, TRUTH, 1 / 128, {**truth, "G": 1.0})
+    assert (s.calibrated, s.miscalibrated) == (5, 3)
+    assert [n for n in s.notes if n.startswith("calibration")] == [
+        "calibration off: C", "calibration off: D", "calibration off: E"]

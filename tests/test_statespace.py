@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import replace
+from types import SimpleNamespace
 
 import control
 import numpy as np
@@ -17,6 +18,7 @@ from scipy import signal
 
 from twind.analysis.estimation.tfset import TFError
 from twind.analysis.statespace.diagnose import diagnose_plant
+from twind.analysis.statespace.fit import start_gains
 from twind.analysis.statespace.measurement import read_plant
 from twind.channels import Convention
 from twind.cli import main
@@ -259,3 +261,26 @@ def test_model_response_of_a_state_space_optic(capsys) -> None:  # noqa: ANN001
     out = json.loads(capsys.readouterr().out)
     assert out["drives"] == [f"IM_DAMP_{d}" for d in "LTVRPY"]
     assert any(m["label"] == "TM V" for m in out["modes"])
+
+
+def test_a_drive_takes_its_sign_from_the_elements_that_tell_it_surely() -> None:
+    """Two readbacks, two drives, every calibration positive; the model reaches readback 1
+    from drive 1 only faintly and with the wrong phase. Walked from whichever element came
+    first, that one element would give drive 1 (and its range would keep) the wrong sign;
+    the three clean elements outvote it."""
+    rng = np.random.default_rng(3)
+    f = np.linspace(0.1, 10.0, 200)
+    shape = 1.0 / (1.0 - (f / 2.0) ** 2 + 0.1j * f / 2.0)
+    model = np.stack([np.stack([shape, shape], -1), np.stack([shape, -0.02 * shape], -1)], 1)
+    readbacks, drives = np.array([2.0, 3.0]), np.array([1.0, 0.5])
+    sigma = np.full(model.shape, 0.05)
+    noise = rng.normal(size=model.shape) + 1j * rng.normal(size=model.shape)
+    truth = model * readbacks[None, :, None] * drives[None, None, :]
+    truth[:, 1, 1] *= -1  # the faint element's phase the model has wrong
+    data = SimpleNamespace(H=truth + sigma * noise, sigma=sigma,
+                           mask=np.ones(model.shape, dtype=bool))
+    gains = start_gains(data, lambda nuisance, effects: model, {},
+                        np.ones((2, 2), dtype=bool))
+    assert gains["g_d1"] == pytest.approx(0.5, rel=0.1)
+    assert gains["g_0"] == pytest.approx(2.0, rel=0.1)
+    assert gains["g_1"] == pytest.approx(3.0, rel=0.1)

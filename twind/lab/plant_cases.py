@@ -306,6 +306,11 @@ class Score:
         ``resonance`` claims near no moved mode, and claims beyond the coherent band.
     beyond : int
         Chosen claims beyond every element's coherent runs (widened by 2 bins).
+    calibrated : int
+        Readbacks whose calibration the diagnosis fitted and the truth has.
+    miscalibrated : int
+        Of those, of the wrong sign or more than :data:`CALIBRATED_WITHIN` from the truth
+        (:func:`miscalibrated`).
     seconds : float
         The diagnosis's.
     error : str
@@ -318,14 +323,17 @@ class Score:
     claims: int = 0
     wrong: int = 0
     beyond: int = 0
+    calibrated: int = 0
+    miscalibrated: int = 0
     seconds: float = math.nan
     error: str = ""
     notes: list[str] = field(default_factory=list)
 
 
-def score(diagnosis: Mapping, modes: Sequence[Mapping], resolution_hz: float) -> Score:
+def score(diagnosis: Mapping, modes: Sequence[Mapping], resolution_hz: float,
+          calibration: Mapping[str, float] | None = None) -> Score:
     """Score `diagnosis` (``twind diagnose --json``'s object) against a case's truth (the
-    ``modes`` of its ``case.json``).
+    ``modes`` of its ``case.json``, and its readbacks' ``calibration``).
 
     Parameters
     ----------
@@ -336,6 +344,9 @@ def score(diagnosis: Mapping, modes: Sequence[Mapping], resolution_hz: float) ->
     modes : sequence of mapping
         :meth:`~twind.lab.plant_truth.ModeTruth.to_json` of each model mode.
     resolution_hz : float
+    calibration : mapping of str to float, optional
+        Each readback's true calibration (the chain's); its ``nuisance`` is scored
+        against it (:func:`miscalibrated`).
 
     Returns
     -------
@@ -346,6 +357,13 @@ def score(diagnosis: Mapping, modes: Sequence[Mapping], resolution_hz: float) ->
             for element in diagnosis.get("coherent", {}).values() for lo, hi in element]
     moved = [m for m in modes if m["moved"]]
     out = Score(moved=len(moved), claims=len(chosen))
+    if calibration:
+        fitted = {k.removeprefix("calibration "): v["value"]
+                  for k, v in diagnosis.get("nuisance", {}).items()
+                  if k.startswith("calibration ") and k[12:] in calibration}
+        off = miscalibrated(fitted, calibration)
+        out.calibrated, out.miscalibrated = len(fitted), len(off)
+        out.notes += [f"calibration off: {name}" for name in off]
     read = set()
     for c in chosen:
         f = _claimed_hz(c)
@@ -368,6 +386,26 @@ def score(diagnosis: Mapping, modes: Sequence[Mapping], resolution_hz: float) ->
                   f"({m['shift_percent']:+.1f} %)" for i, m in enumerate(moved)
                   if i not in read | new]
     return out
+
+
+CALIBRATED_WITHIN = 2.0
+"""A readback's fitted calibration is right within this factor of the truth's (after the
+one scale they all share)."""
+
+
+def miscalibrated(fitted: Mapping[str, float], truth: Mapping[str, float]) -> list[str]:
+    """The readbacks of `fitted` whose calibration is of the wrong sign or more than
+    :data:`CALIBRATED_WITHIN` from `truth`'s, after the one scale and sign they all share
+    (the fit holds its first drive's calibration at 1, so every readback's carries that
+    drive's true strength): the median ratio's."""
+    ratios = {name: g / truth[name] for name, g in fitted.items()}
+    if not ratios:
+        return []
+    values = np.array(list(ratios.values()))
+    scale = float(np.median(np.abs(values)))
+    sign = float(np.sign(np.median(np.sign(values)))) or 1.0
+    return [name for name, r in ratios.items()
+            if r * sign <= 0 or abs(math.log(abs(r) / scale)) > math.log(CALIBRATED_WITHIN)]
 
 
 def _claimed_hz(claim: Mapping) -> float | None:
@@ -433,7 +471,7 @@ class Result:
             return f"{head}: moved {s.moved} (not diagnosed)"
         return (f"{head}, diagnosed {s.seconds:6.1f} s: moved {s.moved}: read {s.read}, "
                 f"as new {s.read_as_new}; claims {s.claims}: wrong {s.wrong} (beyond the "
-                f"coherent band {s.beyond})")
+                f"coherent band {s.beyond}); calibrations off {s.miscalibrated}/{s.calibrated}")
 
 
 def diagnose_case(case: Mapping, timeout_s: float) -> tuple[dict | None, float, str]:
@@ -504,7 +542,7 @@ def bench_case(optic: str, kind: str, seed: int, workdir: Path, timeout_s: float
         return Result(optic, kind, seed, directory,
                       Score(moved=moved, seconds=seconds, error=error), made)
     try:
-        s = score(result, case["modes"], case["resolution_hz"])
+        s = score(result, case["modes"], case["resolution_hz"], case["chain"]["calibration"])
     except (KeyError, TypeError, ValueError) as err:
         s = Score(moved=moved, error=f"its JSON could not be scored ({type(err).__name__}: "
                                      f"{err})")
@@ -552,6 +590,9 @@ def totals(done: Sequence[Result]) -> list[str]:
             f"{sum(s.read_as_new for s in ok)}",
             f"claims: {sum(s.claims for s in ok)}, wrong {sum(s.wrong for s in ok)}, beyond "
             f"the coherent band {sum(s.beyond for s in ok)}",
+            f"readback calibrations of the wrong sign or off by more than "
+            f"{CALIBRATED_WITHIN:g}x: {sum(s.miscalibrated for s in ok)}/"
+            f"{sum(s.calibrated for s in ok)}",
             "diagnosis time: " + (f"median {np.median(seconds):.1f} s, largest "
                                   f"{max(seconds):.1f} s" if seconds else "none"),
             "making a case: " + (f"median {np.median(made):.1f} s, largest {max(made):.1f} s"

@@ -731,9 +731,9 @@ def _prune(data: FitData, model: PlantModel, optic: StateSpaceOptic, plant: Plan
                 c.p_given_others = None
                 continue
             without[c.effect.key()] = looped, fit
-            k = c.k = final.rank - fit.rank
+            k = c.k = max(final.rank - fit.rank, 1)  # a drop in deviance takes a direction
             c.lr = max(fit.deviance - final.deviance, 0.0) / unit
-            c.p_given_others = min(1.0, tried * _p_value(c.lr, k, c.paths)) if k > 0 else 1.0
+            c.p_given_others = min(1.0, tried * _p_value(c.lr, k, c.paths))
         worst = max(chosen, key=lambda c: c.p_given_others or 0.0)
         if (worst.p_given_others or 0.0) < ALPHA or worst.effect.key() not in without:
             break

@@ -334,8 +334,8 @@ def start_gains(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
     element the model has joins.
 
     Each such element's own calibration (:func:`_element_gain`) is split into a
-    readback's and a drive's part: their log magnitudes by least squares, their signs along
-    the elements that join them.
+    readback's and a drive's part: their log magnitudes by least squares, their signs as the
+    elements that tell theirs most surely agree (:func:`_signs`).
     """
     M = model(nuisance, effects)
     nr, nd = inside.shape
@@ -345,18 +345,20 @@ def start_gains(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
             used = np.flatnonzero(data.mask[:, r, d]) if inside[r, d] else np.zeros(0, int)
             g = _element_gain(data.H[used, r, d], M[used, r, d], data.sigma[used, r, d])
             if g is not None:
-                elements[r, d] = (math.log(abs(g[0])), math.copysign(1.0, g[0]), g[1])
-    return _split(elements, nr, nd)
+                elements[r, d] = (math.log(abs(g[0])), math.copysign(1.0, g[0]), g[1], g[2])
+    return _split(elements)
 
 
 def _element_gain(h: NDArray[np.complex128], m: NDArray[np.complex128],
-                  sigma: NDArray[np.float64]) -> tuple[float, int] | None:
-    """One element's calibration (sign included) and its bins: the median of the ratio's
-    magnitude (its sign the median cosine of its phase over the lower half of the band,
-    where a delay turns it least) or the least-squares ratio, whichever fits with the
-    smaller Cauchy loss. The median holds where a few bins are grossly wrong (a mode off its
-    frequency); the least squares where the model's shape differs from the data's over most
-    bins and its few large ones decide (a coupling the model has only weakly)."""
+                  sigma: NDArray[np.float64]) -> tuple[float, int, float] | None:
+    """One element's calibration (sign included), its bins and how surely they tell its
+    sign (how much the Cauchy loss rises with the sign turned; none where it falls): the
+    median of the ratio's magnitude (its sign the median cosine of its phase over the lower
+    half of the band, where a delay turns it least) or the least-squares ratio, whichever
+    fits with the smaller Cauchy loss. The median holds where a few bins are grossly
+    wrong (a mode off its frequency); the least squares where the model's shape differs
+    from the data's over most bins and its few large ones decide (a coupling the model has
+    only weakly)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = h / m
     ok = np.isfinite(ratio) & (ratio != 0) & (sigma > 0)
@@ -375,37 +377,22 @@ def _element_gain(h: NDArray[np.complex128], m: NDArray[np.complex128],
 
     best = min((g for g in (median, lsq) if g != 0 and math.isfinite(g)), key=cost,
                default=None)
-    return None if best is None else (best, int(ok.sum()))
+    if best is None:
+        return None
+    return best, int(ok.sum()), max(cost(-best) - cost(best), 0.0)
 
 
-def _split(elements: Mapping[tuple[int, int], tuple[float, float, int]], nr: int, nd: int
+def _split(elements: Mapping[tuple[int, int], tuple[float, float, int, float]]
            ) -> dict[str, float]:
-    """Readbacks' and drives' calibrations from each element's log ratio and sign
-    (:func:`start_gains`): the first drive of each group of elements joined by shared
-    readbacks and drives is held at 1."""
+    """Readbacks' and drives' calibrations from each element's log ratio, sign, bins and
+    sign's sureness (:func:`start_gains`): the first drive of each group of elements joined
+    by shared readbacks and drives is held at 1."""
     rows, cols = sorted({r for r, _ in elements}), sorted({d for _, d in elements})
-    sign: dict[tuple[str, int], float] = {}
-    refs, queue, seen = [], [], set()
-    for d0 in cols:  # each group's first drive: calibration 1
-        if ("d", d0) in seen:
-            continue
-        refs.append(d0)
-        sign[("d", d0)] = 1.0
-        queue, seen = [("d", d0)], seen | {("d", d0)}
-        while queue:
-            node = queue.pop()
-            for (r, d), (_, s, _) in elements.items():
-                ends = (("r", r), ("d", d))
-                if node in ends:
-                    other = ends[1 - ends.index(node)]
-                    if other not in seen:  # s = sign(readback) sign(drive)
-                        sign[other] = s * sign[node]
-                        seen.add(other)
-                        queue.append(other)
+    sign, refs = _signs(elements, cols)
     names = [("r", r) for r in rows] + [("d", d) for d in cols if d not in refs]
     index = {n: k for k, n in enumerate(names)}
     A, y, w = np.zeros((len(elements), len(names))), np.zeros(len(elements)), np.zeros(len(elements))
-    for k, ((r, d), (log, _, n)) in enumerate(elements.items()):
+    for k, ((r, d), (log, _, n, _)) in enumerate(elements.items()):
         A[k, index[("r", r)]] = 1.0
         if ("d", d) in index:
             A[k, index[("d", d)]] = 1.0
@@ -415,6 +402,59 @@ def _split(elements: Mapping[tuple[int, int], tuple[float, float, int]], nr: int
     for (kind, i), log in zip(names, logs, strict=True):
         out[f"g_{i}" if kind == "r" else f"g_d{i}"] = sign[(kind, i)] * math.exp(log)
     return out
+
+
+def _signs(elements: Mapping[tuple[int, int], tuple[float, float, int, float]],
+           cols: Sequence[int]) -> tuple[dict[tuple[str, int], float], list[int]]:
+    """Each readback's and drive's sign, the first drive of each group of joined elements
+    positive: taken along the elements that tell theirs most surely (a spanning tree of the
+    surest), then each flipped while that agrees with more of the elements, weighed by
+    their sureness. Taken along whichever element came first, one weak element (a coupling
+    the model has only faintly, in the wrong phase) would set a drive's sign against its
+    own collocated readback's, and the calibration's range would keep it there."""
+    parent: dict[tuple[str, int], tuple[str, int]] = {}
+
+    def root(node: tuple[str, int]) -> tuple[str, int]:
+        while parent.setdefault(node, node) != node:
+            node = parent[node]
+        return node
+
+    tree: dict[tuple[str, int], list[tuple[tuple[str, int], float]]] = {}
+    for (r, d), (_, s, _, _) in sorted(elements.items(), key=lambda e: -e[1][3]):
+        a, b = root(("r", r)), root(("d", d))
+        if a != b:
+            parent[a] = b
+            tree.setdefault(("r", r), []).append((("d", d), s))
+            tree.setdefault(("d", d), []).append((("r", r), s))
+    sign: dict[tuple[str, int], float] = {}
+    refs = []
+    for d0 in cols:  # each group's first drive: calibration 1
+        if ("d", d0) in sign:
+            continue
+        refs.append(d0)
+        sign[("d", d0)] = 1.0
+        queue = [("d", d0)]
+        while queue:
+            node = queue.pop()
+            for other, s in tree.get(node, []):
+                if other not in sign:  # s = sign(readback) sign(drive)
+                    sign[other] = s * sign[node]
+                    queue.append(other)
+    for _ in range(len(sign)):
+        flips = [n for n in sign if (n[0] == "r" or n[1] not in refs)
+                 and _agreement(elements, sign, n) < 0]
+        if not flips:
+            break
+        sign[flips[0]] *= -1.0
+    return sign, refs
+
+
+def _agreement(elements: Mapping[tuple[int, int], tuple[float, float, int, float]],
+               sign: Mapping[tuple[str, int], float], node: tuple[str, int]) -> float:
+    """How much the elements through `node` agree with the signs (their sureness summed,
+    negative where they disagree)."""
+    return sum(sure * s * sign[("r", r)] * sign[("d", d)]
+               for (r, d), (_, s, _, sure) in elements.items() if node in (("r", r), ("d", d)))
 
 
 def fit_plant(data: FitData, model: PlantModel, nuisance: Mapping[str, float],
