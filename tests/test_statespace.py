@@ -228,6 +228,11 @@ def test_kagra_srm_the_ip_mode_moved_and_im_v_reads_im_p(srm) -> None:  # noqa: 
     cross = [c for c in d.chosen if c.effect.family == "cross_coupling"]
     assert any(plant.readbacks[c.effect.target[0]] == "IM_DAMP_V_IN1" for c in cross)
     assert d.nominal.chi2_nu / d.final.chi2_nu > 2
+    # IM P's own stage (a likelihood ratio of hundreds, traded against the common low-pass)
+    # stays through the pruning, and with it the fit reaches the noise
+    stages = [c for c in d.chosen if c.effect.family == "channel_response"]
+    assert [plant.readbacks[c.effect.target[0]] for c in stages] == ["IM_DAMP_P_IN1"]
+    assert d.final.chi2_nu < 2
     # the pitch drive's yaw share: a number where the data determine it, none where not
     share = next(c for c in d.chosen if c.effect.family == "drive_coupling")
     assert "TM_OPLEV_YAW_DIAG -" in d.describe(share) and "+-" in d.describe(share)
