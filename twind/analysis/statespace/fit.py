@@ -412,20 +412,7 @@ def _signs(elements: Mapping[tuple[int, int], tuple[float, float, int, float]],
     their sureness. Taken along whichever element came first, one weak element (a coupling
     the model has only faintly, in the wrong phase) would set a drive's sign against its
     own collocated readback's, and the calibration's range would keep it there."""
-    parent: dict[tuple[str, int], tuple[str, int]] = {}
-
-    def root(node: tuple[str, int]) -> tuple[str, int]:
-        while parent.setdefault(node, node) != node:
-            node = parent[node]
-        return node
-
-    tree: dict[tuple[str, int], list[tuple[tuple[str, int], float]]] = {}
-    for (r, d), (_, s, _, _) in sorted(elements.items(), key=lambda e: -e[1][3]):
-        a, b = root(("r", r)), root(("d", d))
-        if a != b:
-            parent[a] = b
-            tree.setdefault(("r", r), []).append((("d", d), s))
-            tree.setdefault(("d", d), []).append((("r", r), s))
+    tree = _surest_tree(elements)
     sign: dict[tuple[str, int], float] = {}
     refs = []
     for d0 in cols:  # each group's first drive: calibration 1
@@ -447,6 +434,27 @@ def _signs(elements: Mapping[tuple[int, int], tuple[float, float, int, float]],
             break
         sign[flips[0]] *= -1.0
     return sign, refs
+
+
+def _surest_tree(elements: Mapping[tuple[int, int], tuple[float, float, int, float]]
+                 ) -> dict[tuple[str, int], list[tuple[tuple[str, int], float]]]:
+    """A spanning forest of the elements (readbacks and drives its nodes), the surest of their
+    signs first (Kruskal's): each node's neighbours with the element's sign."""
+    parent: dict[tuple[str, int], tuple[str, int]] = {}
+
+    def root(node: tuple[str, int]) -> tuple[str, int]:
+        while parent.setdefault(node, node) != node:
+            node = parent[node]
+        return node
+
+    tree: dict[tuple[str, int], list[tuple[tuple[str, int], float]]] = {}
+    for (r, d), (_, s, _, _) in sorted(elements.items(), key=lambda e: -e[1][3]):
+        a, b = root(("r", r)), root(("d", d))
+        if a != b:
+            parent[a] = b
+            tree.setdefault(("r", r), []).append((("d", d), s))
+            tree.setdefault(("d", d), []).append((("r", r), s))
+    return tree
 
 
 def _agreement(elements: Mapping[tuple[int, int], tuple[float, float, int, float]],
