@@ -237,3 +237,12 @@ def test_a_readback_calibrated_off_or_of_the_wrong_sign_is_counted() -> None:
     assert (s.calibrated, s.miscalibrated) == (5, 3)
     assert [n for n in s.notes if n.startswith("calibration")] == [
         "calibration off: C", "calibration off: D", "calibration off: E"]
+
+
+def test_a_moved_mode_whose_shape_changed_is_counted_apart() -> None:
+    truth = [{**m, "mac": mac} for m, mac in zip(TRUTH, (0.2, 0.9, 0.3, 1.0), strict=True)]
+    diagnosis = {"coherent": {"A/B": [[0.1, 3.5]]}, "effects": [
+        claim("mode_frequency", 0.455, 0.5002), claim("mode_frequency", 1.150, 1.0)]}
+    s = score(diagnosis, truth, resolution_hz=1 / 128)
+    assert (s.reshaped, s.reshaped_read) == (2, 1)
+    assert s.notes == ["missed: 2 Hz moved to 2.4 Hz (+20.0 %, MAC 0.30)"]

@@ -306,6 +306,9 @@ class Score:
         ``resonance`` claims near no moved mode, and claims beyond the coherent band.
     beyond : int
         Chosen claims beyond every element's coherent runs (widened by 2 bins).
+    reshaped, reshaped_read : int
+        Moved modes whose shape changed too (:data:`RESHAPED_MAC`), and of those the read
+        or read as new.
     calibrated : int
         Readbacks whose calibration the diagnosis fitted and the truth has.
     miscalibrated : int
@@ -323,6 +326,8 @@ class Score:
     claims: int = 0
     wrong: int = 0
     beyond: int = 0
+    reshaped: int = 0
+    reshaped_read: int = 0
     calibrated: int = 0
     miscalibrated: int = 0
     seconds: float = math.nan
@@ -358,9 +363,8 @@ def score(diagnosis: Mapping, modes: Sequence[Mapping], resolution_hz: float,
     moved = [m for m in modes if m["moved"]]
     out = Score(moved=len(moved), claims=len(chosen))
     if calibration:
-        fitted = {k.removeprefix("calibration "): v["value"]
-                  for k, v in diagnosis.get("nuisance", {}).items()
-                  if k.startswith("calibration ") and k[12:] in calibration}
+        fitted = {name: v["value"] for k, v in diagnosis.get("nuisance", {}).items()
+                  if (name := k.removeprefix("calibration ")) in calibration}
         off = miscalibrated(fitted, calibration)
         out.calibrated, out.miscalibrated = len(fitted), len(off)
         out.notes += [f"calibration off: {name}" for name in off]
@@ -382,12 +386,18 @@ def score(diagnosis: Mapping, modes: Sequence[Mapping], resolution_hz: float,
     new = {i for i, m in enumerate(moved) if i not in read for c in chosen
            if c["family"] == "resonance" and _near(_claimed_hz(c), m, resolution_hz)}
     out.read_as_new = len(new)
+    reshaped = {i for i, m in enumerate(moved) if m.get("mac", 1.0) < RESHAPED_MAC}
+    out.reshaped, out.reshaped_read = len(reshaped), len(reshaped & (read | new))
     out.notes += [f"missed: {m['model_f_hz']:.4g} Hz moved to {m['true_f_hz']:.4g} Hz "
-                  f"({m['shift_percent']:+.1f} %)" for i, m in enumerate(moved)
-                  if i not in read | new]
+                  f"({m['shift_percent']:+.1f} %"
+                  + (f", MAC {m['mac']:.2f}" if i in reshaped else "") + ")"
+                  for i, m in enumerate(moved) if i not in read | new]
     return out
 
 
+RESHAPED_MAC = 0.5
+"""A moved mode whose true shape has a MAC below this against its model mode's changed
+shape too (a near-degenerate pair mixed): a move in the model's shape cannot take it."""
 CALIBRATED_WITHIN = 2.0
 """A readback's fitted calibration is right within this factor of the truth's (after the
 one scale they all share)."""
@@ -590,6 +600,9 @@ def totals(done: Sequence[Result]) -> list[str]:
             f"{sum(s.read_as_new for s in ok)}",
             f"claims: {sum(s.claims for s in ok)}, wrong {sum(s.wrong for s in ok)}, beyond "
             f"the coherent band {sum(s.beyond for s in ok)}",
+            f"moved modes whose shape changed too (MAC below {RESHAPED_MAC:g}): "
+            f"{sum(s.reshaped for s in ok)}, read or read as new "
+            f"{sum(s.reshaped_read for s in ok)}",
             f"readback calibrations of the wrong sign or off by more than "
             f"{CALIBRATED_WITHIN:g}x: {sum(s.miscalibrated for s in ok)}/"
             f"{sum(s.calibrated for s in ok)}",
