@@ -13,6 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from twind.analysis.statespace.bounds import MOST_SHARE
 from twind.analysis.statespace.couplings import screen
 from twind.analysis.statespace.diagnose import _residuals, diagnose_plant
 from twind.analysis.statespace.fit import fit_baseline, fit_plant
@@ -50,6 +51,22 @@ def test_a_drive_coupling_is_tried_only_where_the_model_has_its_input_reach(srm_
     reached = {plant.readbacks[int(p[1:])] for p in start}
     assert {"IM_DAMP_Y_IN1", "TM_OPLEV_YAW_DIAG"} <= reached
     assert not reached & {"IM_DAMP_P_IN1", "TM_OPLEV_PIT_DIAG"}
+
+
+def test_a_drive_coupling_cannot_trade_its_share_against_a_calibration() -> None:
+    """On the BS's TM_LOCK_P b file a drive coupling's shares once ran to 1e8 against a
+    readback calibration of 1e-8: the final fit, wrecked, left every moved mode at a bound,
+    and all were dropped. Each share stays within MOST_SHARE, and the IM pitch mode is read
+    where the independent reference has it (2.7457 Hz)."""
+    optic = load_config(CONFIG_DIR / "kagra" / "BS.toml").optics["BS"]
+    d = diagnose_plant(read_plant([KAGRA / "BS_TMP_exc_20200730b.xml"], optic), optic)
+    shares = [abs(v) for c in d.chosen if c.effect.family == "drive_coupling"
+              for v in d.final.own(c.effect).values()]
+    assert all(s < MOST_SHARE for s in shares)
+    read = [(d.modal.modes[c.effect.target[0]].label,
+             d.modal.modes[c.effect.target[0]].f_hz * math.exp(d.final.own(c.effect)["log_f"]))
+            for c in d.chosen if c.effect.family == "mode_frequency"]
+    assert ("IM P", pytest.approx(2.7457, rel=0.005)) in read
 
 
 def test_a_model_mode_the_data_still_show_is_not_offered_as_moved(srm_baseline) -> None:  # noqa: ANN001

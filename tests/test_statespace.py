@@ -15,10 +15,12 @@ import numpy as np
 import pytest
 import scipy.io
 from scipy import signal
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from twind.analysis.estimation.tfset import TFError
 from twind.analysis.statespace.diagnose import diagnose_plant
-from twind.analysis.statespace.fit import start_gains
+from twind.analysis.statespace import fit as fit_module
+from twind.analysis.statespace.fit import fit_baseline, start_gains
 from twind.analysis.statespace.measurement import read_plant
 from twind.channels import Convention
 from twind.cli import main
@@ -266,6 +268,31 @@ def test_model_response_of_a_state_space_optic(capsys) -> None:  # noqa: ANN001
     out = json.loads(capsys.readouterr().out)
     assert out["drives"] == [f"IM_DAMP_{d}" for d in "LTVRPY"]
     assert any(m["label"] == "TM V" for m in out["modes"])
+
+
+class _Seen(Exception):
+    """Raised where a test has seen what it looks for."""
+
+
+def test_a_diagnosis_runs_on_one_blas_thread(monkeypatch, srm) -> None:  # noqa: ANN001
+    """OpenBLAS's threaded sums differ in their last bits from run to run, and a diagnosis's
+    path of local fits can turn on such a difference (one six-drive file gave chi2/nu 1.2e3
+    in one run and 2.2e3 in the next): the state-space fits run on one BLAS thread, so a
+    file gives the same diagnosis every time."""
+    seen = []
+
+    def fit_data(*args, **kwargs) -> None:  # noqa: ANN002, ANN003 - the first step of a fit
+        seen.append({p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"})
+        raise _Seen
+
+    monkeypatch.setattr(fit_module, "fit_data", fit_data)
+    plant = SimpleNamespace(H=None, sigma=None, coherent=lambda c: None, frequency_hz=None,
+                            readbacks=[], drives=[], averages=5, resolution_hz=0.0)
+    with threadpool_limits(limits=2, user_api="blas"):
+        for entry in (diagnose_plant, fit_baseline):
+            with pytest.raises(_Seen):
+                entry(plant, srm)
+    assert seen == [{1}, {1}]
 
 
 def test_a_drive_takes_its_sign_from_the_elements_that_tell_it_surely() -> None:

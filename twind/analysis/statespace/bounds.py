@@ -19,6 +19,12 @@ from twind.analysis.statespace.moves import reach
 from twind.analysis.statespace.search import MOST_AMPLITUDE, SHIFT
 
 
+MOST_SHARE = 1.0
+"""A drive's share of another input of its stage, in any readback (a ``drive_coupling``'s
+parameter): a drive that drives another input more than its own is not that drive, and a
+share past it is a free calibration's trade (the BS's TM_LOCK_P b file: shares of 1e8
+against a calibration of 1e-8, which wrecked the final fit). The real files' shares are
+0.003-2.5 %."""
 MODE_Q = (3.0, 1e7)
 """A moved mode's Q: below 3 a peak is wider than a third of its frequency, a slope of the
 band no data resolve as that mode."""
@@ -58,7 +64,8 @@ def limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, dic
     it does not wander to another mode's), :data:`~twind.analysis.statespace.search.SHIFT`
     and the band; its Q within :data:`MODE_Q`; its amplitude within
     :data:`~twind.analysis.statespace.search.MOST_AMPLITUDE` of the model's either way (a
-    mode that needs more is not that mode, or trades against a calibration)."""
+    mode that needs more is not that mode, or trades against a calibration). A drive's share
+    of another input of its stage, in each readback: within :data:`MOST_SHARE` either way."""
     lo, hi = band(data)
     avoid = moved_to(model, effects)
     out = {}
@@ -74,6 +81,8 @@ def limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, dic
             out[f"{key}.log_q"] = (math.log(MODE_Q[0] / model.modal.q[k]),
                                    math.log(MODE_Q[1] / model.modal.q[k]))
             out[f"{key}.amplitude"] = (1 / MOST_AMPLITUDE, MOST_AMPLITUDE)
+        if effect.family == "drive_coupling":
+            out.update({f"{key}.{name}": (-MOST_SHARE, MOST_SHARE) for name in own})
         if effect.family != "resonance":
             continue
         at, a, b = own["f_hz"], lo, hi

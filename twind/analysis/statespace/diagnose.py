@@ -61,6 +61,7 @@ from twind.analysis.statespace.fit import (
     fit_baseline,
     fit_plant,
     modelled_entries,
+    one_blas_thread,
     recalibrated,
 )
 from twind.analysis.statespace.measurement import PlantSet
@@ -106,9 +107,12 @@ HOPELESS = 0.25
 fitted: its full fit (the calibrations refitted with it) seldom gains that much more."""
 
 
+@one_blas_thread
 def diagnose_plant(plant: PlantSet, optic: StateSpaceOptic, max_effects: int = MAX_EFFECTS,
                    budget_s: float = BUDGET_S) -> PlantDiagnosis:
-    """Diagnose a measured plant against `optic`'s state-space model.
+    """Diagnose a measured plant against `optic`'s state-space model, on one BLAS thread
+    (:data:`~twind.analysis.statespace.fit.one_blas_thread`): a file gives the same
+    diagnosis every time.
 
     Parameters
     ----------

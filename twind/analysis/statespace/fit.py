@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize, stats
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 from twind import progress
 from twind.analysis.identification.data import MIN_COHERENCE, FitData
@@ -209,6 +210,16 @@ class Baseline:
     modelled: NDArray[np.bool_]
 
 
+one_blas_thread = threadpool_limits.wrap(limits=1, user_api="blas")
+"""Runs a fit, or a diagnosis made of fits, on one BLAS thread. OpenBLAS's threaded
+reductions differ in their last bits from run to run, and a diagnosis chooses its changes
+along a path of local fits that such a difference can redirect: one six-drive file gave
+chi2/nu 1.2e3 with 7 claims in one run and 2.2e3 with 8 in the next. On one thread a file
+gives the same result every time, as fast (the Jacobians are tall and thin: a second thread
+mostly waits)."""
+
+
+@one_blas_thread
 def fit_baseline(plant: PlantSet, optic: StateSpaceOptic,
                  min_coherence: float = MIN_COHERENCE) -> Baseline:
     """The model, its calibrations, delay and low-pass (and, for a closed loop, the other
