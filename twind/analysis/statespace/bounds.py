@@ -13,18 +13,20 @@ import math
 from collections.abc import Sequence
 
 from twind.analysis.identification.data import FitData
-from twind.analysis.statespace.fit import PlantFit
+from twind.analysis.statespace.fit import RANGES, PlantFit
 from twind.analysis.statespace.model import Effect, PlantModel
 from twind.analysis.statespace.moves import reach
 from twind.analysis.statespace.search import MOST_AMPLITUDE, SHIFT
 
 
 MOST_SHARE = 1.0
-"""A drive's share of another input of its stage, in any readback (a ``drive_coupling``'s
-parameter): a drive that drives another input more than its own is not that drive, and a
+"""A coupling's share either way: a drive's share of another input of its stage, in any
+readback (``drive_coupling``), and a readback's share of another readback
+(``cross_coupling``). A drive that drives another input more than its own is not that
+drive, a readback that reads another more than its own DOF is not that readback, and a
 share past it is a free calibration's trade (the BS's TM_LOCK_P b file: shares of 1e8
 against a calibration of 1e-8, which wrecked the final fit). The real files' shares are
-0.003-2.5 %."""
+0.002-5 %."""
 MODE_Q = (3.0, 1e7)
 """A moved mode's Q: below 3 a peak is wider than a third of its frequency, a slope of the
 band no data resolve as that mode."""
@@ -64,8 +66,8 @@ def limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, dic
     it does not wander to another mode's), :data:`~twind.analysis.statespace.search.SHIFT`
     and the band; its Q within :data:`MODE_Q`; its amplitude within
     :data:`~twind.analysis.statespace.search.MOST_AMPLITUDE` of the model's either way (a
-    mode that needs more is not that mode, or trades against a calibration). A drive's share
-    of another input of its stage, in each readback: within :data:`MOST_SHARE` either way."""
+    mode that needs more is not that mode, or trades against a calibration). A coupling's
+    shares: within :data:`MOST_SHARE` either way."""
     lo, hi = band(data)
     avoid = moved_to(model, effects)
     out = {}
@@ -81,7 +83,7 @@ def limits(model: PlantModel, data: FitData, effects: Sequence[tuple[Effect, dic
             out[f"{key}.log_q"] = (math.log(MODE_Q[0] / model.modal.q[k]),
                                    math.log(MODE_Q[1] / model.modal.q[k]))
             out[f"{key}.amplitude"] = (1 / MOST_AMPLITUDE, MOST_AMPLITUDE)
-        if effect.family == "drive_coupling":
+        if effect.family in ("drive_coupling", "cross_coupling"):
             out.update({f"{key}.{name}": (-MOST_SHARE, MOST_SHARE) for name in own})
         if effect.family != "resonance":
             continue
@@ -102,12 +104,14 @@ def pinned(fit: PlantFit, effect: Effect, model: PlantModel,
     of that mode gives), its Q at the lowest, or its frequency within half a bin of its
     anchor's edge (it left the peak it was found at for a flank). Either way the place is
     another mode's. A mode's amplitude within two sigmas of the model's is no change.
-    Likewise a mode in no model within a bin of the edge of its stretch (`within`, from
-    :func:`limits`): the coherent band's edge, where a slope of the band is no mode, or a
-    moved mode's place."""
+    Likewise a mode in no model at its lowest Q (``RANGES["q"]``), or within a bin of the
+    edge of its stretch (`within`, from :func:`limits`): a slope of the band, the coherent
+    band's edge, where a slope of the band is no mode, or a moved mode's place."""
     if effect.family == "mode_amplitude":  # the model's own amplitude is no reading
         a, sa = fit.own(effect)["amplitude"], fit.error(f"{effect.key()}.amplitude")
         return sa is None or abs(a - 1.0) < 2 * sa
+    if effect.family == "resonance" and fit.own(effect)["q"] < 1.05 * RANGES["q"][0]:
+        return True  # as broad as a resonance may be
     if effect.family == "resonance" and within:
         a, b = within.get(f"{effect.key()}.f_hz", (-math.inf, math.inf))
         f = fit.own(effect)["f_hz"]
