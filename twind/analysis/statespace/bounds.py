@@ -104,8 +104,8 @@ def pinned(fit: PlantFit, effect: Effect, model: PlantModel,
     of that mode gives), its Q at the lowest, or its frequency within half a bin of its
     anchor's edge (it left the peak it was found at for a flank). Either way the place is
     another mode's. A mode's amplitude within two sigmas of the model's is no change.
-    Likewise a mode in no model at its lowest Q (``RANGES["q"]``), or within a bin of the
-    edge of its stretch (`within`, from :func:`limits`): a slope of the band, the coherent
+    Likewise a mode in no model at its lowest Q (``RANGES["q"]``: a slope of the band), or
+    within a bin of the edge of its stretch (`within`, from :func:`limits`): the coherent
     band's edge, where a slope of the band is no mode, or a moved mode's place."""
     if effect.family == "mode_amplitude":  # the model's own amplitude is no reading
         a, sa = fit.own(effect)["amplitude"], fit.error(f"{effect.key()}.amplitude")
