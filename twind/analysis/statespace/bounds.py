@@ -110,12 +110,11 @@ def pinned(fit: PlantFit, effect: Effect, model: PlantModel,
     if effect.family == "mode_amplitude":  # the model's own amplitude is no reading
         a, sa = fit.own(effect)["amplitude"], fit.error(f"{effect.key()}.amplitude")
         return sa is None or abs(a - 1.0) < 2 * sa
-    if effect.family == "resonance" and fit.own(effect)["q"] < 1.05 * RANGES["q"][0]:
-        return True  # as broad as a resonance may be
-    if effect.family == "resonance" and within:
-        a, b = within.get(f"{effect.key()}.f_hz", (-math.inf, math.inf))
-        f = fit.own(effect)["f_hz"]
-        return min(f - a, b - f) < model.res
+    if effect.family == "resonance":
+        own = fit.own(effect)
+        a, b = (within or {}).get(f"{effect.key()}.f_hz", (-math.inf, math.inf))
+        at_edge = min(own["f_hz"] - a, b - own["f_hz"]) < model.res
+        return at_edge or own["q"] < 1.05 * RANGES["q"][0]  # or as broad as it may be
     if effect.family != "mode_frequency":
         return False
     own, key = fit.own(effect), effect.key()
